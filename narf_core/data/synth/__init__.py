@@ -1,0 +1,1 @@
+"""Procedural articulated tools and their pybullet ground-truth renders (``narf synth``)."""

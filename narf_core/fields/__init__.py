@@ -1,0 +1,1 @@
+"""Radiance fields: a part field per rigid link and the configuration-conditioned field."""
