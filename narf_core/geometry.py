@@ -189,7 +189,7 @@ def look_at(eye: Tensor, target: Tensor, up: Tensor) -> Tensor:
     """
     z = target - eye
     z = z / z.norm(dim=-1, keepdim=True)
-    x = torch.linalg.cross(z, -up.expand_as(z))
+    x = torch.linalg.cross(z, up.expand_as(z))
     x = x / x.norm(dim=-1, keepdim=True)
     y = torch.linalg.cross(z, x)
     return make_pose(torch.stack([x, y, z], dim=-1), eye)

@@ -1,0 +1,384 @@
+"""Tests for narf_core.kinematics: URDF parsing, FK against pybullet and by hand, parts, limits, meshes."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from narf_core.geometry import invert_pose, pose_from_position_quaternion
+from narf_core.kinematics import LIMIT_TOLERANCE, KinematicTree, UrdfError
+
+pybullet = pytest.importorskip("pybullet")
+
+# Two joints whose poses are easy to work out by hand: a hinge about z one metre out along x,
+# then a slide along the hinged link's x.
+TWO_JOINTS = """<robot name="two">
+  <link name="root"/>
+  <link name="a"><visual><geometry><box size="1 2 4"/></geometry></visual></link>
+  <link name="b"/>
+  <joint name="hinge" type="revolute">
+    <parent link="root"/><child link="a"/><origin xyz="1 0 0"/><axis xyz="0 0 1"/>
+    <limit lower="-3" upper="3" effort="1" velocity="1"/>
+  </joint>
+  <joint name="slide" type="prismatic">
+    <parent link="a"/><child link="b"/><axis xyz="1 0 0"/>
+    <limit lower="0" upper="0.5" effort="1" velocity="1"/>
+  </joint>
+</robot>"""
+
+
+def urdf_with(joint_xml: str, links: str = '<link name="root"/><link name="a"/>') -> str:
+    return f'<robot name="bad">{links}{joint_xml}</robot>'
+
+
+@pytest.fixture(scope="module")
+def tree(assets) -> KinematicTree:
+    return KinematicTree.from_urdf(assets / "articulated.urdf")
+
+
+def random_theta(tree: KinematicTree, n: int, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return tree.lower + (tree.upper - tree.lower) * torch.rand(n, tree.n_joints, generator=g, dtype=torch.float64)
+
+
+def rot_x(a):
+    return np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+
+
+def rot_y(a):
+    return np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+
+
+def rot_z(a):
+    return np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+
+
+# --- structure ----------------------------------------------------------------------------------
+
+
+def test_tree_structure(tree):
+    assert tree.root == "base"
+    assert tree.links == ["base", "wheel", "arm", "slider", "tip", "cap", "plate"]
+    assert [j.child for j in tree.joints] == tree.links[1:]
+    assert {j.name for j in tree.joints} == {"spin", "slide", "tip_cap", "hinge", "tip_mount", "base_plate"}
+    assert tree.joint_names == ["spin", "slide", "hinge"]  # file order, not tree order
+    assert [j.name for j in tree.movable] == tree.joint_names
+    assert tree.lower.tolist() == [-math.pi, -0.02, -1.2] and tree.upper.tolist() == [math.pi, 0.05, 0.9]
+    assert tree.lower.dtype == torch.float64
+    assert tree.parts == [["base", "plate"], ["wheel"], ["arm"], ["slider", "tip", "cap"]]
+    assert tree.part_names == ["base", "wheel", "arm", "slider"]
+    assert tree.part_of_link == [0, 1, 2, 3, 3, 3, 0]
+
+
+def test_joint_fields(tree):
+    hinge = next(j for j in tree.joints if j.name == "hinge")
+    assert (hinge.type, hinge.parent, hinge.child, hinge.lower, hinge.upper) == ("revolute", "base", "arm", -1.2, 0.9)
+    np.testing.assert_allclose(hinge.axis, [0.6, 0.0, 0.8])
+    fixed = next(j for j in tree.joints if j.name == "tip_cap")
+    assert (fixed.lower, fixed.upper) == (0.0, 0.0)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        hinge.lower = 0.0
+    with pytest.raises(ValueError, match="read-only"):
+        hinge.origin[0, 3] = 1.0
+
+
+def test_joint_origin_is_fixed_axis_rpy(tree):
+    hinge = next(j for j in tree.joints if j.name == "hinge")  # xyz="0.05 0 0.03" rpy="0.3 -0.2 0.5"
+    np.testing.assert_allclose(hinge.origin[:3, :3], rot_z(0.5) @ rot_y(-0.2) @ rot_x(0.3), atol=1e-15)
+    np.testing.assert_allclose(hinge.origin[:3, 3], [0.05, 0.0, 0.03])
+    np.testing.assert_allclose(hinge.origin[3], [0, 0, 0, 1])
+
+
+# --- forward kinematics -------------------------------------------------------------------------
+
+
+def test_fk_by_hand():
+    tree = KinematicTree.from_urdf_string(TWO_JOINTS)
+    poses = tree.link_poses(torch.tensor([math.pi / 2, 0.5], dtype=torch.float64))
+    expected_a = np.array([[0, -1, 0, 1], [1, 0, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=np.float64)
+    np.testing.assert_allclose(poses[0].numpy(), np.eye(4))
+    np.testing.assert_allclose(poses[1].numpy(), expected_a, atol=1e-15)
+    expected_b = expected_a.copy()
+    expected_b[:3, 3] = [1.0, 0.5, 0.0]  # slid 0.5 along a's x, which points along the root's y
+    np.testing.assert_allclose(poses[2].numpy(), expected_b, atol=1e-15)
+
+
+@pytest.fixture(scope="module")
+def bullet():
+    client = pybullet.connect(pybullet.DIRECT)
+    yield client
+    pybullet.disconnect(client)
+
+
+def pybullet_link_poses(client: int, path, tree: KinematicTree, theta: torch.Tensor) -> torch.Tensor:
+    """``T_base_link [n_links, 4, 4]`` from pybullet, with the base placed off the origin on purpose."""
+    orientation = pybullet.getQuaternionFromEuler([0.3, 0.2, -1.0])
+    body = pybullet.loadURDF(str(path), [0.3, -0.2, 0.5], orientation, useFixedBase=True, physicsClientId=client)
+    try:
+        infos = [pybullet.getJointInfo(body, i, physicsClientId=client) for i in range(pybullet.getNumJoints(body, physicsClientId=client))]
+        joint_index = {info[1].decode(): info[0] for info in infos}  # by name: indices count fixed joints too
+        link_index = {info[12].decode(): info[0] for info in infos}
+        for name, value in zip(tree.joint_names, theta.tolist()):
+            pybullet.resetJointState(body, joint_index[name], value, physicsClientId=client)
+
+        def pose(position, quaternion):
+            return pose_from_position_quaternion(torch.tensor(position, dtype=torch.float64), torch.tensor(quaternion, dtype=torch.float64))
+
+        # the base pose pybullet reports is its inertial frame: undo the URDF's <inertial><origin>
+        position, quaternion = pybullet.getBasePositionAndOrientation(body, physicsClientId=client)
+        local_inertial = pybullet.getDynamicsInfo(body, -1, physicsClientId=client)[3:5]
+        T_world_base = pose(position, quaternion) @ invert_pose(pose(*local_inertial))
+        T_base_world = invert_pose(T_world_base)
+        out = []
+        for name in tree.links:
+            if name == tree.root:
+                out.append(torch.eye(4, dtype=torch.float64))
+                continue
+            state = pybullet.getLinkState(body, link_index[name], computeForwardKinematics=True, physicsClientId=client)
+            out.append(T_base_world @ pose(state[4], state[5]))  # link frame, not the inertial frame
+        return torch.stack(out)
+    finally:
+        pybullet.removeBody(body, physicsClientId=client)
+
+
+def test_fk_matches_pybullet(tree, assets, bullet):
+    corners = torch.tensor(list(zip(tree.lower.tolist(), tree.upper.tolist())), dtype=torch.float64)
+    thetas = torch.cat([random_theta(tree, 12), corners.T, tree.mid_configuration()[None]])
+    ours = tree.link_poses(thetas)
+    worst = 0.0
+    for theta, poses in zip(thetas, ours):
+        reference = pybullet_link_poses(bullet, assets / "articulated.urdf", tree, theta)
+        worst = max(worst, (reference - poses).abs().max().item())
+    assert worst < 1e-6, f"FK differs from pybullet by {worst:.3g}"
+
+
+@pytest.mark.parametrize("shape", [(), (5,), (2, 3)])
+def test_link_poses_batch_and_dtype(tree, dtype, shape):
+    theta64 = random_theta(tree, math.prod(shape), seed=1).reshape(*shape, tree.n_joints)
+    poses = tree.link_poses(theta64.to(dtype))
+    assert poses.shape == (*shape, len(tree.links), 4, 4) and poses.dtype == dtype
+    reference = tree.link_poses(theta64)
+    torch.testing.assert_close(poses, reference.to(dtype), atol=1e-6 if dtype == torch.float32 else 1e-14, rtol=0)
+    R = poses[..., :3, :3]
+    eye = torch.eye(3, dtype=dtype).expand_as(R)
+    torch.testing.assert_close(R @ R.transpose(-1, -2), eye, atol=1e-6 if dtype == torch.float32 else 1e-14, rtol=0)
+    if shape:
+        torch.testing.assert_close(poses.reshape(-1, len(tree.links), 4, 4)[-1], tree.link_poses(theta64.reshape(-1, tree.n_joints)[-1]).to(dtype))
+
+
+def test_link_poses_gradcheck(tree):
+    for theta in [random_theta(tree, 1, seed=2)[0], tree.lower.clone(), tree.upper.clone()]:
+        assert torch.autograd.gradcheck(tree.link_poses, (theta.requires_grad_(),))
+
+
+def test_gradient_of_hinge_by_hand():
+    tree = KinematicTree.from_urdf_string(TWO_JOINTS)
+    theta = torch.tensor([0.3, 0.2], dtype=torch.float64, requires_grad=True)
+    b_position = tree.link_poses(theta)[2, :3, 3]  # (1 + s cos q, s sin q, 0)
+    (grad,) = torch.autograd.grad(b_position[1], theta)
+    torch.testing.assert_close(grad, torch.tensor([0.2 * math.cos(0.3), math.sin(0.3)], dtype=torch.float64))
+
+
+def test_parts_are_rigid(tree):
+    thetas = random_theta(tree, 2, seed=3)
+    links, parts = tree.link_poses(thetas), tree.part_poses(thetas)
+    assert parts.shape == (2, len(tree.parts), 4, 4)
+    for i, name in enumerate(tree.links):
+        part = tree.part_of_link[i]
+        assert name in tree.parts[part]
+        T_part_link = invert_pose(parts[:, part]) @ links[:, i]
+        torch.testing.assert_close(T_part_link[0], T_part_link[1], atol=1e-14, rtol=0)
+    torch.testing.assert_close(parts[:, 0], torch.eye(4, dtype=torch.float64).expand(2, 4, 4))
+
+
+def test_link_poses_rejects_bad_theta(tree):
+    with pytest.raises(ValueError, match=r"shape \[\.\.\., 3\].*got \[2\]"):
+        tree.link_poses(torch.zeros(2))
+    with pytest.raises(ValueError, match="floating-point tensor, got Tensor"):
+        tree.link_poses(torch.zeros(3, dtype=torch.int64))
+
+
+def test_tree_without_joints():
+    tree = KinematicTree.from_urdf_string('<robot name="one"><link name="solo"/></robot>')
+    assert tree.links == ["solo"] and tree.n_joints == 0 and tree.parts == [["solo"]]
+    assert torch.equal(tree.link_poses(torch.zeros(0)), torch.eye(4)[None])
+    assert tree.visual_meshes() == {}
+
+
+# --- configurations -----------------------------------------------------------------------------
+
+
+def test_mid_configuration(tree):
+    torch.testing.assert_close(tree.mid_configuration(), torch.tensor([0.0, 0.015, -0.15], dtype=torch.float64))
+
+
+def test_joint_vector_and_dict(tree):
+    theta = tree.joint_vector({"hinge": 0.9, "spin": -1.0, "slide": -0.02})
+    assert theta.dtype == torch.float64 and theta.tolist() == [-1.0, -0.02, 0.9]
+    assert tree.joint_dict(theta) == {"spin": -1.0, "slide": -0.02, "hinge": 0.9}
+    assert tree.joint_vector(None).tolist() == tree.mid_configuration().tolist()
+    assert tree.joint_vector({"slide": 0.0}).tolist() == pytest.approx([0.0, 0.0, -0.15], abs=1e-15)
+    assert tree.joint_vector({"hinge": np.float32(0.9)})[2] == pytest.approx(0.9, abs=1e-7)  # float32 round-off
+    assert tree.joint_vector({"hinge": 0.9 + LIMIT_TOLERANCE / 2})[2] == 0.9 + LIMIT_TOLERANCE / 2
+
+
+@pytest.mark.parametrize(
+    "joints, message",
+    [
+        ({"elbow": 0.1}, r"unknown joint\(s\) \['elbow'\]; this object's joints are \['spin', 'slide', 'hinge'\]"),
+        ({"hinge": float("nan")}, "joint 'hinge': value must be finite, got nan"),
+        ({"slide": float("inf")}, "joint 'slide': value must be finite, got inf"),
+        ({"hinge": 1.0}, r"joint 'hinge': 1.0 is outside its limits \[-1.2, 0.9\] \(rad\)"),
+        ({"slide": -0.03}, r"joint 'slide': -0.03 is outside its limits \[-0.02, 0.05\] \(m\)"),
+        ({"spin": 3.2}, r"joint 'spin': 3.2 is outside its limits"),
+        ({"hinge": "0.1"}, "joint 'hinge': value must be a number, got str '0.1'"),
+        ({"hinge": True}, "joint 'hinge': value must be a number, got bool"),
+        ([("hinge", 0.1)], "joints must be a mapping"),
+    ],
+)
+def test_joint_vector_rejects(tree, joints, message):
+    with pytest.raises(ValueError, match=message):
+        tree.joint_vector(joints)
+
+
+def test_joint_vector_without_fill(tree):
+    with pytest.raises(ValueError, match=r"missing value\(s\) for joint\(s\) \['spin', 'hinge'\]"):
+        tree.joint_vector({"slide": 0.0}, fill_mid=False)
+    assert tree.joint_vector({"slide": 0.0, "spin": 0.0, "hinge": 0.0}, fill_mid=False).tolist() == [0.0] * 3
+
+
+def test_joint_dict_rejects_wrong_shape(tree):
+    with pytest.raises(ValueError, match=r"theta must have shape \[3\]"):
+        tree.joint_dict(torch.zeros(2, 3))
+
+
+# --- geometry -----------------------------------------------------------------------------------
+
+
+def test_visual_meshes_merge_every_visual(tree):
+    meshes = tree.visual_meshes()
+    assert set(meshes) == {"base", "wheel", "arm", "slider", "tip", "plate"}  # cap has no visual
+    base = meshes["base"]  # box 0.1 x 0.06 x 0.02 lifted 0.01, plus a 32-gon cylinder along y at x = 0.05
+    cylinder = 0.5 * 32 * math.sin(2 * math.pi / 32) * 0.01**2 * 0.06
+    assert base.volume == pytest.approx(0.1 * 0.06 * 0.02 + cylinder, rel=1e-9)
+    np.testing.assert_allclose(base.bounds, [[-0.05, -0.03, 0.0], [0.06, 0.03, 0.03]], atol=1e-12)
+    arm = meshes["arm"]  # tetrahedron scaled (0.04, 0.02, 0.03), yawed 0.5, at (0.01, 0.02, 0); sphere r = 0.01 at x = 0.06
+    corner = rot_z(0.5) @ [0.04, 0.0, 0.0] + [0.01, 0.02, 0.0]
+    assert np.abs(arm.vertices - corner).sum(1).min() < 1e-12
+    sphere = arm.volume - 0.04 * 0.02 * 0.03 / 6
+    assert 0.97 * (4 / 3 * math.pi * 0.01**3) < sphere < 4 / 3 * math.pi * 0.01**3
+    np.testing.assert_allclose(arm.bounds[:, 0], [0.01 - 0.02 * math.sin(0.5), 0.07], atol=1e-12)
+    meshes["slider"].apply_translation([1.0, 0.0, 0.0])
+    np.testing.assert_allclose(tree.visual_meshes()["slider"].bounds[1], [0.015, 0.005, 0.005])  # a copy was changed
+
+
+def test_sample_points(tree):
+    points = tree.sample_points(n_per_link=200, seed=1)
+    assert set(points) == set(tree.visual_meshes())
+    assert all(p.shape == (200, 3) and p.dtype == np.float64 for p in points.values())
+    on_box = np.abs(points["slider"]) / [0.015, 0.005, 0.005]  # every point on a face of the box
+    np.testing.assert_allclose(on_box.max(1), 1.0, atol=1e-9)
+    again, other = tree.sample_points(200, seed=1), tree.sample_points(200, seed=2)
+    assert np.array_equal(again["arm"], points["arm"]) and not np.array_equal(other["arm"], points["arm"])
+    with pytest.raises(ValueError, match="n_per_link must be positive, got 0"):
+        tree.sample_points(0)
+
+
+def test_bounds_hold_every_configuration(tree):
+    box = tree.bounds()
+    assert box.shape == (2, 3) and (box[0] < box[1]).all()
+    points = tree.sample_points(100)
+    thetas = random_theta(tree, 300, seed=4)
+    poses = tree.link_poses(thetas).numpy()
+    moved = np.concatenate([poses[:, tree.links.index(name), None, :3, :3] @ p[:, :, None] for name, p in points.items()], axis=1)
+    moved = moved[..., 0] + np.concatenate([np.repeat(poses[:, tree.links.index(n), None, :3, 3], len(p), 1) for n, p in points.items()], axis=1)
+    moved = moved.reshape(-1, 3)
+    assert (moved >= box[0]).all() and (moved <= box[1]).all()
+    tight = np.ptp(moved, axis=0)
+    assert (box[1] - box[0] < 1.2 * tight).all()  # not loose either
+
+
+def test_from_string_matches_from_file(tree, assets):
+    text = (assets / "articulated.urdf").read_text()
+    other = KinematicTree.from_urdf_string(text, mesh_dir=assets)
+    assert other.urdf_text == text == tree.urdf_text
+    theta = random_theta(tree, 3, seed=5)
+    assert torch.equal(other.link_poses(theta), tree.link_poses(theta))
+    assert other.visual_meshes()["arm"].volume == pytest.approx(tree.visual_meshes()["arm"].volume)
+
+
+def test_from_string_needs_no_meshes_for_kinematics(assets):
+    tree = KinematicTree.from_urdf_string((assets / "articulated.urdf").read_text())
+    assert tree.link_poses(tree.mid_configuration()).shape == (7, 4, 4)
+    with pytest.raises(UrdfError, match="link 'arm' uses mesh 'meshes/tetra.obj' but no mesh folder was given"):
+        tree.visual_meshes()
+
+
+# --- bad URDFs ----------------------------------------------------------------------------------
+
+
+def test_not_xml(tmp_path):
+    path = tmp_path / "broken.urdf"
+    path.write_text("<robot name='x'>\n<link name='a'>\n</robot>")
+    with pytest.raises(UrdfError) as info:
+        KinematicTree.from_urdf(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: not valid XML: mismatched tag") and "\n" not in message
+
+
+def test_missing_mesh(tmp_path):
+    path = tmp_path / "object.urdf"
+    path.write_text('<robot name="x"><link name="a"><visual><geometry><mesh filename="meshes/gone.stl"/></geometry></visual></link></robot>')
+    with pytest.raises(UrdfError, match=f"^{path}: link 'a': mesh file 'meshes/gone.stl' not found \\(looked in {tmp_path}\\)$"):
+        KinematicTree.from_urdf(path)
+    assert KinematicTree.from_urdf(path, load_meshes=False).links == ["a"]
+
+
+def test_unreadable_file(tmp_path):
+    with pytest.raises(UrdfError, match=r"nope.urdf: cannot read the file \(FileNotFoundError"):
+        KinematicTree.from_urdf(tmp_path / "nope.urdf")
+
+
+def test_corrupt_mesh(tmp_path):
+    (tmp_path / "bad.obj").write_text("this is not a mesh\n")
+    path = tmp_path / "object.urdf"
+    path.write_text('<robot name="x"><link name="a"><visual><geometry><mesh filename="bad.obj"/></geometry></visual></link></robot>')
+    with pytest.raises(UrdfError, match="link 'a': mesh .*bad.obj' has no triangles"):
+        KinematicTree.from_urdf(path)
+
+
+LIMIT = '<limit lower="-1" upper="1" effort="1" velocity="1"/>'
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("<robt/>", "the root element is <robt>, expected <robot>"),
+        ('<robot name="x"/>', "the robot has no <link>"),
+        ('<robot name="x"><link/></robot>', r"malformed URDF \(missing attribute 'name'\)"),
+        ('<robot name="x"><link name="a"/><link name="a"/></robot>', r"duplicate link names \['a'\]"),
+        (urdf_with(f'<joint name="j" type="floating"><parent link="root"/><child link="a"/></joint>'), "joint 'j' has type 'floating'; supported: revolute, continuous, prismatic, fixed"),
+        (urdf_with(f'<joint name="j" type="revolute"><parent link="root"/><child link="a"/></joint>'), r"joint 'j' \(revolute\) needs <limit lower=... upper=...>"),
+        (urdf_with(f'<joint name="j" type="prismatic"><parent link="root"/><child link="a"/><limit lower="1" upper="0" effort="1" velocity="1"/></joint>'), r"joint 'j' has limits \[1.0, 0.0\]; they must be finite with lower <= upper"),
+        (urdf_with(f'<joint name="j" type="revolute"><parent link="root"/><child link="b"/>{LIMIT}</joint>'), "joint 'j' names child link 'b', which is not a <link>"),
+        (urdf_with(f'<joint name="j" type="revolute"><parent link="root"/><child link="a"/><axis xyz="0 0 0"/>{LIMIT}</joint>'), r"joint 'j' has axis \[0.0, 0.0, 0.0\] of length 0; it must be a unit vector"),
+        (urdf_with(f'<joint name="j" type="prismatic"><parent link="root"/><child link="a"/><axis xyz="0 3 4"/>{LIMIT}</joint>'), "joint 'j' has axis .* of length 5; it must be a unit vector"),
+        (urdf_with('<joint name="j" type="continuous"><parent link="root"/><child link="a"/><mimic joint="k"/></joint>'), "joint 'j' mimics 'k'; mimic joints are not supported"),
+        (urdf_with('<joint name="j" type="fixed"><parent link="a"/><child link="root"/></joint><joint name="k" type="fixed"><parent link="root"/><child link="a"/></joint>'), r"expected exactly one root link .*, found \[\]"),
+        (urdf_with("", '<link name="a"/><link name="b"/>'), r"expected exactly one root link .*, found \['a', 'b'\]"),
+        (urdf_with('<joint name="j" type="fixed"><parent link="a"/><child link="b"/></joint><joint name="k" type="fixed"><parent link="b"/><child link="a"/></joint>', '<link name="root"/><link name="a"/><link name="b"/>'), r"links \['a', 'b'\] are not connected to the root 'root'"),
+        (urdf_with('<joint name="j" type="fixed"><parent link="root"/><child link="a"/></joint><joint name="j" type="fixed"><parent link="a"/><child link="root"/></joint>'), r"duplicate joint names \['j'\]"),
+        (urdf_with('<joint name="j" type="fixed"><parent link="root"/><child link="a"/></joint><joint name="k" type="fixed"><parent link="root"/><child link="a"/></joint>'), "link 'a' is the child of two joints: 'j' and 'k'"),
+    ],
+)
+def test_bad_urdf_strings(text, message):
+    with pytest.raises(UrdfError, match=f"^<urdf string>: {message}"):
+        KinematicTree.from_urdf_string(text)
+
+
+def test_near_unit_axis_is_normalised():
+    text = urdf_with(f'<joint name="j" type="revolute"><parent link="root"/><child link="a"/><axis xyz="0.7071 0 0.7071"/>{LIMIT}</joint>')
+    (joint,) = KinematicTree.from_urdf_string(text).movable
+    np.testing.assert_allclose(joint.axis, [math.sqrt(0.5), 0.0, math.sqrt(0.5)], atol=1e-15)
