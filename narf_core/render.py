@@ -1,0 +1,859 @@
+"""Volume rendering: ray/box clipping, occupancy-grid sampling, compositing and part composition.
+
+Pure functions on tensors in the nerfacc style; the renderer never imports a concrete field. A
+*field* is any callable ``(x [n,3], d [n,3], theta [n,k] | None) -> (sigma [n], rgb [n,3])``
+(DESIGN §5); if it also has ``density_only(x, theta) -> sigma [n]``, renders without colour use it.
+
+Sampling: every ray is clipped to the box and cut by a lattice of spacing ``step`` anchored at the
+ray origin (``t = 0``), so that the intervals tile ``[t_near, t_far]`` exactly (the first and last
+ones shorter) and their positions do not depend on how tightly the ray was clipped; each interval
+is represented by one sample, at its middle or (``jitter``) at one random offset per ray.
+Samples in empty cells of the occupancy grid are never evaluated (their density counts as 0). Rays
+are marched together in rounds: each round looks ahead a window of intervals per ray, evaluates
+the field at the ray's next few occupied samples (its budget: 8 in the first round; then as many as
+its last round's optical depth per sample says it needs to become opaque, or twice as many as
+before, up to 128, while it is still in empty or faint space), composites them in a padded
+``[rays, budget]`` layout, and retires the ray once its transmittance is below
+``transmittance_eps`` (early termination; the colour error this adds is below that value) or it
+leaves the box. Sample positions ``t`` are not differentiated (a quadrature choice); everything
+else is: gradients reach the field, ``theta`` and the ray origins and directions.
+
+Stability (DESIGN §5): ``alpha = -expm1(-sigma * delta)``; transmittance is ``exp`` of minus the
+*exclusive* (shifted) cumulative optical depth, never "cumsum minus the current term"; interval
+lengths are >= 0 by construction; opacity is ``-expm1(-total optical depth)``. All finite for
+``sigma`` up to 1e6 and beyond, ``delta`` down to 0, rays grazing the box or starting inside it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Protocol
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from narf_core.geometry import Pinhole, Rays, invert_pose, rotate_vectors, transform_points
+
+OUTPUTS = ("rgb", "depth", "opacity")
+Field = Callable[[Tensor, Tensor, "Tensor | None"], tuple[Tensor, Tensor]]
+
+_DIR_EPS = 1e-12  # |direction| components below this are replaced by a signed epsilon
+_FIRST_ROUND = 8  # occupied samples evaluated per ray in the first round (bounds the work wasted past termination)
+_MAX_ROUND = 128  # ... doubling each round up to this (few rounds for translucent rays)
+_LOOKAHEAD = 4  # window of intervals checked per round, in multiples of the samples evaluated
+_MAX_WINDOW = 512  # ... up to this many
+
+
+class Occupancy(Protocol):
+    """Which points may hold density: ``occupied(x [n,3], theta [k] | [n,k] | None) -> bool [n]``."""
+
+    def occupied(self, x: Tensor, theta: Tensor | None = None) -> Tensor: ...
+
+
+@dataclass
+class RenderOutput:
+    """Per-ray results; an output that was not asked for is ``None``.
+
+    ``rgb [n,3]``: colour composited over the background. ``opacity [n]``: ``1 - T`` at the end
+    of the ray. ``depth [n]``: the *opacity-weighted* expected camera z-depth ``sum_i w_i z_i``
+    (metres; 0 for an empty ray); divide by ``opacity`` for the surface depth. ``n_samples``:
+    the number of field evaluations.
+    """
+
+    rgb: Tensor | None
+    depth: Tensor | None
+    opacity: Tensor | None
+    n_samples: int = 0
+
+
+def ray_aabb(origins: Tensor, directions: Tensor, aabb: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Slab test of rays ``origins [n,3]``, ``directions [n,3]`` against the box ``aabb [2,3]``.
+
+    Returns ``t_near [n]`` (>= 0: a ray starting inside the box starts at 0), ``t_far [n]``
+    (>= ``t_near``) and ``hit [n]`` (bool, ``t_far > t_near``). Direction components smaller than
+    1e-12 are replaced by a signed 1e-12, so an axis-parallel ray starting on a face gives no
+    ``0 * inf = NaN``.
+    """
+    d = directions
+    d = torch.where(d.abs() < _DIR_EPS, torch.where(d < 0, -_DIR_EPS, _DIR_EPS).to(d.dtype), d)
+    inv = 1.0 / d
+    aabb = aabb.to(origins.dtype)
+    t0 = (aabb[0] - origins) * inv
+    t1 = (aabb[1] - origins) * inv
+    t_near = torch.minimum(t0, t1).amax(-1).clamp_min(0)
+    t_far = torch.maximum(t0, t1).amin(-1)
+    hit = t_far > t_near
+    return t_near, torch.maximum(t_far, t_near), hit
+
+
+def volume_render_weights(sigma: Tensor, deltas: Tensor, tau_in: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """Compositing weights in the padded layout.
+
+    Args:
+        sigma: ``[n_rays, n_samples]`` densities (>= 0; 0 for padding).
+        deltas: ``[n_rays, n_samples]`` interval lengths (>= 0).
+        tau_in: ``[n_rays]`` optical depth accumulated before these samples (default 0).
+
+    Returns ``weights [n_rays, n_samples]`` (``T_i * alpha_i``) and ``transmittance
+    [n_rays, n_samples]`` (``T_i``, before sample ``i``), with ``alpha_i = -expm1(-sigma_i
+    delta_i)`` and ``T_i = exp(-(tau_in + sum_{j<i} sigma_j delta_j))`` from a shifted cumsum.
+    """
+    return _weights_from_optical_depth(sigma * deltas, tau_in)
+
+
+def _weights_from_optical_depth(tau: Tensor, tau_in: Tensor | None) -> tuple[Tensor, Tensor]:
+    """:func:`volume_render_weights` from the per-sample optical depths ``tau = sigma * delta``."""
+    excl = torch.cat([tau.new_zeros(tau.shape[0], 1), tau[:, :-1].cumsum(1)], dim=1)
+    if tau_in is not None:
+        excl = excl + tau_in[:, None]
+    transmittance = torch.exp(-excl)
+    return transmittance * -torch.expm1(-tau), transmittance
+
+
+# --------------------------------------------------------------------------------------------
+# Occupancy grid
+
+
+def _cells_for(aabb: Tensor, resolution: int | Sequence[int]) -> tuple[int, int, int]:
+    """Cells per axis: ``resolution`` along the longest axis and about cubic cells, or 3 given counts."""
+    if isinstance(resolution, int):
+        if resolution < 1:
+            raise ValueError(f"grid resolution must be >= 1, got {resolution}")
+        extent = (aabb[1] - aabb[0]).double()
+        cells = [max(1, math.ceil(resolution * float(e / extent.max()) - 1e-6)) for e in extent]
+        return cells[0], cells[1], cells[2]
+    cells = [int(r) for r in resolution]
+    if len(cells) != 3 or min(cells) < 1:
+        raise ValueError(f"grid resolution must be an int or 3 positive ints, got {resolution}")
+    return cells[0], cells[1], cells[2]
+
+
+def _density_fn(field) -> Callable[[Tensor, Tensor | None], Tensor]:
+    density_only = getattr(field, "density_only", None)
+    if density_only is not None:
+        return density_only
+    return lambda x, theta: field(x, torch.zeros_like(x), theta)[0]
+
+
+def _configurations(
+    field, theta_samples: Tensor | None, theta_bins: int | None
+) -> tuple[list[Tensor | None], int, tuple[int, ...], Tensor | None]:
+    """The configurations :meth:`OccupancyGrid.from_field` evaluates.
+
+    Returns the distinct configurations (each ``[k]``, or ``None`` for a part field), the
+    samples per bin and axis, the bins per axis (empty for a single union grid) and the
+    ``theta_range [2,k]`` of a binned grid. Binned: a per-axis ``linspace`` over the limits with
+    ``per_bin - 1`` steps per bin, in row-major product order.
+    """
+    lower, upper = getattr(field, "theta_lower", None), getattr(field, "theta_upper", None)
+    if theta_samples is not None:
+        return list(theta_samples.to(torch.float32)), 0, (), None
+    if lower is None or lower.numel() == 0:
+        return [None], 0, (), None
+    k = lower.numel()
+    bins = theta_bins if theta_bins is not None else max(1, round(8 ** (1.0 / k)))
+    if bins < 1:
+        raise ValueError(f"theta_bins must be >= 1, got {bins}")
+    per_bin = max(2, round(4 ** (1.0 / k)))
+    steps = bins * (per_bin - 1) + 1
+    axes = [torch.linspace(float(lo), float(hi), steps) for lo, hi in zip(lower, upper)]
+    thetas = torch.cartesian_prod(*axes).reshape(-1, k).to(lower.device, torch.float32)
+    return list(thetas), per_bin, (bins,) * k, torch.stack([lower, upper]).float()
+
+
+def _dilate(occ: Tensor, cells: int) -> Tensor:
+    """Grow the occupied set of ``occ [..., Rx, Ry, Rz]`` (bool) by ``cells`` cells (a cube)."""
+    if cells <= 0:
+        return occ
+    lead = occ.shape[:-3]
+    v = occ.reshape(-1, 1, *occ.shape[-3:]).float()
+    v = F.max_pool3d(v, 2 * cells + 1, stride=1, padding=cells)
+    return (v > 0).reshape(*lead, *occ.shape[-3:])
+
+
+def _tight_box(aabb: Tensor, occ: Tensor) -> Tensor | None:
+    """``[2,3]`` around the occupied cells of ``occ [Rx, Ry, Rz]``, or ``None`` if there are none."""
+    nz = occ.nonzero()
+    if nz.shape[0] == 0:
+        return None
+    size = (aabb[1] - aabb[0]) / torch.tensor(occ.shape, dtype=aabb.dtype, device=aabb.device)
+    return torch.stack([aabb[0] + nz.amin(0) * size, aabb[0] + (nz.amax(0) + 1) * size])
+
+
+@dataclass
+class OccupancyGrid:
+    """Which cells of a box may hold density, optionally per bin of the configuration.
+
+    ``occupancy``: bool ``[Rx, Ry, Rz]`` over ``aabb [2,3]``, or ``[B, .., B, Rx, Ry, Rz]`` with
+    ``k`` leading axes of ``B`` bins each that split ``theta_range [2,k]`` (lower, upper) evenly:
+    then each 3D grid holds for every ``theta`` in its bin, and :attr:`union` for every ``theta``
+    in the limits. Cell ``(i, j, l)`` covers ``aabb[0] + ([i, j, l] + [0, 1)) * cell_size``.
+    Stored as is in a model bundle (uint8 occupancy; ``aabb`` and ``theta_range`` as lists).
+    """
+
+    aabb: Tensor
+    occupancy: Tensor
+    theta_range: Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if tuple(self.aabb.shape) != (2, 3) or not bool((self.aabb[1] > self.aabb[0]).all()):
+            raise ValueError(f"grid aabb must be [2,3] with max > min, got {self.aabb.tolist()}")
+        self.occupancy = self.occupancy.bool()
+        k = self.occupancy.dim() - 3
+        if k < 0:
+            raise ValueError(f"occupancy must be [Rx, Ry, Rz] or [bins.., Rx, Ry, Rz], got shape {tuple(self.occupancy.shape)}")
+        if k > 0:
+            bins = self.occupancy.shape[:k]
+            if self.theta_range is None or tuple(self.theta_range.shape) != (2, k):
+                raise ValueError(f"an occupancy with {k} configuration axes needs theta_range [2, {k}]")
+            if len(set(bins)) != 1:
+                raise ValueError(f"every configuration axis needs the same number of bins, got {tuple(bins)}")
+            if not bool((self.theta_range[1] > self.theta_range[0]).all()):
+                raise ValueError(f"theta_range must have upper > lower, got {self.theta_range.tolist()}")
+        elif self.theta_range is not None:
+            raise ValueError("theta_range is only for an occupancy with configuration bins")
+        self._k = k
+        self._bins = self.occupancy.shape[0] if k else 1
+        self._cells = self.occupancy.shape[k:]
+        self._flat = self.occupancy.reshape(-1)
+        self.union = self.occupancy.reshape(-1, *self._cells).any(0)
+        self._union_flat = self.union.reshape(-1)
+        if self._union_flat.numel() >= 1 << 24:
+            raise ValueError(f"at most 2^24 cells per grid, got {self.resolution}")
+        self._bounds = _tight_box(self.aabb, self.union)
+        per_bin = self.occupancy.reshape(-1, *self._cells)
+        self._bin_bounds = [_tight_box(self.aabb, g) for g in per_bin] if k else [self._bounds]
+        cells = torch.tensor(self._cells, dtype=torch.float32, device=self.aabb.device)
+        self._scale = cells / (self.aabb[1] - self.aabb[0])
+        self._last = cells - 1
+        self._strides = torch.tensor(
+            [self._cells[1] * self._cells[2], self._cells[2], 1], dtype=torch.float32, device=self.aabb.device
+        )
+
+    @property
+    def resolution(self) -> tuple[int, int, int]:
+        """Cells per spatial axis."""
+        return tuple(self._cells)  # type: ignore[return-value]
+
+    @property
+    def cell_size(self) -> Tensor:
+        """``[3]`` cell edge lengths (metres)."""
+        return (self.aabb[1] - self.aabb[0]) / torch.tensor(self.resolution, dtype=self.aabb.dtype, device=self.aabb.device)
+
+    @property
+    def fraction(self) -> float:
+        """The mean share of occupied cells (over the bins)."""
+        return float(self._flat.float().mean())
+
+    @classmethod
+    def full(cls, aabb: Tensor, resolution: int | Sequence[int] = 64) -> OccupancyGrid:
+        """Every cell occupied (before a field is trained)."""
+        return cls(aabb, torch.ones(_cells_for(aabb, resolution), dtype=torch.bool, device=aabb.device))
+
+    @classmethod
+    @torch.no_grad()
+    def from_field(
+        cls,
+        field,
+        aabb: Tensor,
+        resolution: int | Sequence[int] = 128,
+        *,
+        theta_samples: Tensor | None = None,
+        theta_bins: int | None = None,
+        threshold: float | None = None,
+        passes: int = 3,
+        dilate: int = 1,
+        chunk: int = 1 << 16,
+        generator: torch.Generator | None = None,
+    ) -> OccupancyGrid:
+        """The cells where ``field``'s density exceeds ``threshold`` somewhere, dilated by ``dilate`` cells.
+
+        Density is evaluated at every cell centre and at ``passes - 1`` random points per cell, and
+        the maximum over the configurations is kept. Configurations: the rows of ``theta_samples
+        [m, k]`` if given (one grid, their union); otherwise, for a field with joint limits
+        (``theta_lower``/``theta_upper``), ``theta_bins`` bins per axis (default 8 for one joint,
+        fewer for more), each sampled at 4 (k = 1) evenly spaced points, its edges included.
+        ``threshold`` (1/m) defaults to the density that gives 1% opacity across one cell's
+        diagonal. ``resolution``: cells along the longest axis (cubic cells), or three counts.
+        From 16 cells per axis up, only the cells under a (generously thresholded, dilated) grid
+        of twice the cell size are evaluated.
+        """
+        aabb = aabb.to(torch.float32)
+        cells = _cells_for(aabb, resolution)
+        size = (aabb[1] - aabb[0]) / torch.tensor(cells, dtype=torch.float32, device=aabb.device)
+        if threshold is None:
+            threshold = -math.log1p(-0.01) / float(size.norm())
+        thetas, per_bin, bins, theta_range = _configurations(field, theta_samples, theta_bins)
+
+        axes = [torch.arange(c, dtype=torch.float32, device=aabb.device) for c in cells]
+        index = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)  # [cells, 3]
+        if min(cells) >= 16:  # coarse-to-fine: skip the cells under an empty coarse cell
+            coarse_cells = [(c + 1) // 2 for c in cells]
+            coarse_box = torch.stack([aabb[0], aabb[0] + 2 * size * torch.tensor(coarse_cells, device=aabb.device)])
+            coarse = cls.from_field(
+                field, coarse_box, coarse_cells, theta_samples=theta_samples, theta_bins=theta_bins,
+                threshold=threshold / 4, passes=passes, dilate=1, chunk=chunk, generator=generator,
+            )
+            parent = (index / 2).long()
+            index = index[coarse.union[parent[:, 0], parent[:, 1], parent[:, 2]]]
+
+        density = _density_fn(field)
+        best = torch.zeros(len(thetas), index.shape[0], device=aabb.device)  # per configuration
+        for p in range(max(1, passes)):
+            offset = torch.full_like(index, 0.5) if p == 0 else torch.rand(index.shape, generator=generator).to(aabb.device)
+            x = aabb[0] + (index + offset) * size
+            for i, theta in enumerate(thetas):
+                for s in range(0, x.shape[0], chunk):
+                    xs = x[s : s + chunk]
+                    th = None if theta is None else theta.expand(xs.shape[0], -1)
+                    best[i, s : s + chunk] = torch.maximum(best[i, s : s + chunk], density(xs, th).float())
+        if bins:  # the maximum over each bin's configurations (bins share their edge samples)
+            k = len(bins)
+            best = best.reshape(*[bins[0] * (per_bin - 1) + 1] * k, -1)
+            for axis in range(k):
+                best = best.unfold(axis, per_bin, per_bin - 1).amax(-1)
+        else:
+            best = best.amax(0)
+        occ = torch.zeros(*best.shape[:-1], *cells, dtype=torch.bool, device=aabb.device)
+        occ[..., index[:, 0].long(), index[:, 1].long(), index[:, 2].long()] = best > threshold
+        return cls(aabb, _dilate(occ, dilate), theta_range)
+
+    def _bin_offset(self, theta: Tensor) -> Tensor:
+        """Flat offset of the bin of ``theta [k]`` or ``[n,k]`` (clamped into the range)."""
+        lo, hi = self.theta_range[0].to(theta.dtype), self.theta_range[1].to(theta.dtype)
+        b = ((theta - lo) * (self._bins / (hi - lo))).long().clamp(0, self._bins - 1)
+        flat = b[..., 0]
+        for i in range(1, self._k):
+            flat = flat * self._bins + b[..., i]
+        return (flat * self._union_flat.numel()).int()
+
+    def occupied(self, x: Tensor, theta: Tensor | None = None) -> Tensor:
+        """``x [n,3]`` (metres) -> ``[n]`` bool: inside the box (faces included) and in an occupied cell.
+
+        ``theta`` (``[k]`` or ``[n,k]``) picks the configuration bin; without it, or for a grid
+        without bins, the union over the configurations is used.
+        """
+        aabb = self.aabb.to(x.dtype)
+        inside = ((x >= aabb[0]) & (x <= aabb[1])).all(-1)
+        return self.occupied_inside(x, theta) & inside
+
+    def occupied_inside(self, x: Tensor, theta: Tensor | None = None) -> Tensor:
+        """:meth:`occupied` for points known to be inside the box (those outside read the nearest cell)."""
+        cell = ((x.float() - self.aabb[0]) * self._scale).floor_()
+        flat = (torch.minimum(cell.clamp_min_(0), self._last) @ self._strides).long()
+        if self._k == 0 or theta is None:
+            return self._union_flat[flat]
+        return self._flat[flat + self._bin_offset(theta)]
+
+    def occupied_along(self, cell_o: Tensor, cell_d: Tensor, t: Tensor, bin_offset: Tensor | int = 0) -> Tensor:
+        """Occupancy at ``t [m, w]`` along rays given in cell units (``cell_o``, ``cell_d [m,3]``) -> ``[m, w]``.
+
+        The renderer's fast path (one contiguous ``[m, w]`` pass per axis): ``cell_o = (o -
+        aabb[0]) * cells / extent``, ``cell_d = d * cells / extent``; points outside the box read
+        the nearest cell. ``bin_offset``: :meth:`bin_offset` of the configuration(s), ``[m, 1]`` or
+        an int; ``-1`` for the union.
+        """
+        t = t.float()
+        flat = None
+        for axis, r in enumerate(self._cells):
+            c = torch.addcmul(cell_o[:, axis : axis + 1].float(), t, cell_d[:, axis : axis + 1].float())
+            c = c.floor_().clamp_(0, r - 1)
+            flat = c if flat is None else flat.mul_(r).add_(c)  # exact: fewer than 2^24 cells per bin
+        index = flat.int()  # int32: faster to convert and to gather with than int64
+        if isinstance(bin_offset, int) and bin_offset < 0:
+            return self._union_flat[index]
+        return self._flat[index + bin_offset]
+
+    def bin_offset(self, theta: Tensor | None) -> Tensor | int:
+        """The table offset :meth:`occupied_along` takes for ``theta [k]`` (an int) or ``[m,k]`` (``[m,1]``).
+
+        ``-1`` (the union) without ``theta`` or for a grid without bins.
+        """
+        if self._k == 0 or theta is None:
+            return -1
+        offset = self._bin_offset(theta)
+        return int(offset) if theta.dim() == 1 else offset[:, None]
+
+    def bounds(self, theta: Tensor | None = None) -> Tensor | None:
+        """``[2,3]`` the tight box around the occupied cells (of ``theta [k]``'s bin), ``None`` if none."""
+        if self._k == 0 or theta is None:
+            return self._bounds
+        return self._bin_bounds[int(self._bin_offset(theta)) // self._union_flat.numel()]
+
+    def to(self, device: torch.device | str) -> OccupancyGrid:
+        return OccupancyGrid(
+            self.aabb.to(device), self.occupancy.to(device), None if self.theta_range is None else self.theta_range.to(device)
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# Marching and compositing
+
+
+def _check_outputs(outputs: Sequence[str]) -> tuple[str, ...]:
+    outputs = tuple(outputs)
+    bad = [o for o in outputs if o not in OUTPUTS]
+    if not outputs or bad:
+        raise ValueError(f"outputs must be a non-empty subset of {OUTPUTS}, got {outputs}")
+    return outputs
+
+
+def _ray_theta(theta: Tensor | None, n: int) -> tuple[Tensor | None, bool]:
+    """Validate ``theta``; returns it and whether it is per ray (``[n,k]``) rather than shared (``[k]``)."""
+    if theta is None or theta.numel() == 0 and theta.dim() == 1:
+        return None, False
+    if theta.dim() == 1:
+        return theta, False
+    if theta.dim() == 2 and theta.shape[0] == n:
+        return (None, False) if theta.shape[1] == 0 else (theta, True)
+    raise ValueError(f"theta must be [k] or [n_rays={n}, k], got shape {tuple(theta.shape)}")
+
+
+def render_rays(
+    field: Field,
+    rays: Rays,
+    aabb: Tensor,
+    *,
+    theta: Tensor | None = None,
+    grid: Occupancy | None = None,
+    step: float,
+    outputs: Sequence[str] = ("rgb",),
+    background: float | Tensor = 0.0,
+    transmittance_eps: float = 1e-3,
+    max_samples: int = 1024,
+    jitter: bool = False,
+    generator: torch.Generator | None = None,
+) -> RenderOutput:
+    """Volume-render ``rays`` (in the field's frame) through ``field`` inside the box ``aabb [2,3]``.
+
+    Args:
+        field: ``(x [m,3], d [m,3], theta [m,k] | None) -> (sigma [m], rgb [m,3])``.
+        rays: ``[n]`` rays; ``z_per_t`` converts distance along a ray into camera z-depth.
+        theta: ``[k]`` for all rays or ``[n,k]`` per ray; ``None`` for a part field.
+        grid: occupancy (an :class:`OccupancyGrid`, or anything with ``occupied``); ``None``: all.
+        step: interval length in metres (e.g. the box diagonal / 256).
+        outputs: any of ``"rgb"``, ``"depth"``, ``"opacity"``; the others come back ``None``.
+        background: colour (a float or ``[3]``) behind the object, composited by ``1 - opacity``.
+        transmittance_eps: a ray stops once its transmittance falls below this.
+        max_samples: at most this many intervals per ray (longer rays get longer intervals).
+        jitter: sample each interval at one random offset per ray (training) instead of its middle.
+    """
+    outputs = _check_outputs(outputs)
+    if not (math.isfinite(step) and step > 0):
+        raise ValueError(f"step must be a positive number of metres, got {step}")
+    if not 0 < transmittance_eps < 1:
+        raise ValueError(f"transmittance_eps must be in (0, 1), got {transmittance_eps}")
+    if max_samples < 3:
+        raise ValueError(f"max_samples must be >= 3, got {max_samples}")
+    n = len(rays)
+    origins, directions = rays.origins, rays.directions
+    dtype, device = origins.dtype, origins.device
+    theta, per_ray = _ray_theta(theta, n)
+    bg = torch.as_tensor(background, dtype=dtype, device=device).expand(3)
+
+    with torch.no_grad():
+        box = _clip_box(aabb, grid, None if per_ray else theta)
+        if box is None:
+            hit = torch.zeros(n, dtype=torch.bool, device=device)
+            t_near = t_far = origins.new_zeros(n)
+        else:
+            t_near, t_far, hit = ray_aabb(origins, directions, box)
+    ids = hit.nonzero().squeeze(-1)
+
+    want_rgb, want_depth = "rgb" in outputs, "depth" in outputs
+    density = None if want_rgb else getattr(field, "density_only", None)
+    seg_ids: list[Tensor] = []  # per round: the ray of each sample, its weighted colour and depth
+    seg_rgb: list[Tensor] = []
+    seg_z: list[Tensor] = []
+    done_ids: list[Tensor] = []  # retired rays and their optical depth
+    done_tau: list[Tensor] = []
+    n_samples = 0
+
+    # State of the live rays (rows follow `ids`).
+    o, d = origins[ids], directions[ids]
+    with torch.no_grad():
+        cell_o = cell_d = o.new_zeros(ids.shape[0], 1)
+        bins: Tensor | int = -1
+        if isinstance(grid, OccupancyGrid):  # the rays in cell units, and the configuration bin(s)
+            cell_o = (o.detach().float() - grid.aabb[0]) * grid._scale
+            cell_d = d.detach().float() * grid._scale
+            bins = grid.bin_offset(theta[ids] if per_ray else theta)
+        t0, t1 = t_near[ids], t_far[ids]
+        step_r = torch.maximum((t1 - t0) / (max_samples - 2), torch.full_like(t0, step))  # <= max_samples cut by the lattice
+        k0 = torch.floor(t0 / step_r)  # the lattice is anchored at t = 0, not at the clipped t_near
+        n_steps = torch.ceil(t1 / step_r) - k0
+        if jitter:
+            offset = torch.rand(ids.shape[0], generator=generator).to(device, dtype)
+        else:
+            offset = torch.full_like(t0, 0.5)
+        j = torch.zeros_like(n_steps)  # next interval (a whole number, in the rays' dtype)
+        budget = torch.full_like(n_steps, _FIRST_ROUND, dtype=torch.int32)  # occupied samples to evaluate this round
+    tau = o.new_zeros(ids.shape[0])  # optical depth so far
+    tau_stop = -math.log(transmittance_eps)
+
+    while ids.numel() > 0:
+        m, most = ids.shape[0], int(budget.max())
+        width = min(_LOOKAHEAD * most, _MAX_WINDOW)
+        with torch.no_grad():
+            lattice = (k0 + j)[:, None] + torch.arange(width, device=device, dtype=dtype)  # [m, width]
+            start = torch.maximum(lattice * step_r[:, None], t0[:, None])
+            end = torch.minimum((lattice + 1) * step_r[:, None], t1[:, None])  # = the next start: exact tiling
+            delta = (end - start).clamp_min_(0)
+            t = torch.addcmul(start, offset[:, None], delta)
+            occ = delta > 0
+            if isinstance(grid, OccupancyGrid):
+                occ &= grid.occupied_along(cell_o, cell_d, t, bins)
+            elif grid is not None:
+                x_all = (o.detach()[:, None, :] + t[..., None] * d.detach()[:, None, :]).reshape(-1, 3)
+                th_all = theta[ids].repeat_interleave(width, 0) if per_ray else theta
+                occ &= grid.occupied(x_all, th_all).reshape(m, width)
+            rank = occ.to(torch.int32).cumsum(1, dtype=torch.int32)  # int32: many times faster than bool -> int64
+            take = occ & (rank <= budget[:, None])
+            full = rank[:, -1] >= budget
+            advance = torch.where(full, (rank < budget[:, None]).sum(1) + 1, width)
+            row, col = take.nonzero(as_tuple=True)
+            slot = rank[row, col] - 1
+            t_s, delta_s = t[row, col], delta[row, col]
+        added = None
+        if row.numel() > 0:
+            x = o[row] + t_s[:, None] * d[row]
+            th = None
+            if theta is not None:
+                th = theta[ids[row]] if per_ray else theta.expand(row.shape[0], -1)
+            if density is not None:
+                sigma, rgb = density(x, th), None
+            else:
+                sigma, rgb = field(x, d[row], th)
+            n_samples += row.shape[0]
+            tau_pad = o.new_zeros(m, most).index_put((row, slot), sigma.to(dtype) * delta_s)
+            weights_pad, _ = _weights_from_optical_depth(tau_pad, tau)
+            w = weights_pad[row, slot]
+            seg_ids.append(ids[row])
+            if want_rgb:
+                seg_rgb.append(w[:, None] * rgb.to(dtype))
+            if want_depth:
+                seg_z.append(w * (t_s * rays.z_per_t[ids[row]].to(dtype)))
+            added = tau_pad.sum(1)
+            tau = tau + added
+        with torch.no_grad():
+            j = j + advance
+            live = (j < n_steps) & (tau < tau_stop)
+            budget = _next_budget(budget, added, take.sum(1), tau, tau_stop)
+        if not bool(live.all()):
+            done_ids.append(ids[~live])
+            done_tau.append(tau[~live])
+            keep = live.nonzero().squeeze(-1)
+            ids, o, d, cell_o, cell_d, t0, t1, step_r, k0, n_steps, offset, j, budget, tau = (
+                v[keep] for v in (ids, o, d, cell_o, cell_d, t0, t1, step_r, k0, n_steps, offset, j, budget, tau)
+            )
+            if isinstance(bins, Tensor):
+                bins = bins[keep]
+
+    tau_all = (origins[:, 0] + directions[:, 0]) * 0  # zeros, but part of the graph even if no ray hits
+    if done_ids:
+        tau_all = tau_all.index_put((torch.cat(done_ids),), torch.cat(done_tau))
+    opacity = -torch.expm1(-tau_all)
+    all_ids = torch.cat(seg_ids) if seg_ids else ids.new_zeros(0)
+    rgb_out = depth_out = None
+    if want_rgb:
+        acc = origins.new_zeros(n, 3)
+        if seg_rgb:
+            acc = acc.index_add(0, all_ids, torch.cat(seg_rgb))
+        rgb_out = acc + (1 - opacity)[:, None] * bg
+    if want_depth:
+        depth_out = origins.new_zeros(n)
+        if seg_z:
+            depth_out = depth_out.index_add(0, all_ids, torch.cat(seg_z))
+    return RenderOutput(rgb_out, depth_out, opacity if "opacity" in outputs else None, n_samples)
+
+
+def _clip_box(aabb: Tensor, grid: Occupancy | None, theta: Tensor | None) -> Tensor | None:
+    """The box to clip rays to: ``aabb`` cut down to the grid's occupied cells (``None``: nothing there)."""
+    box = aabb
+    if isinstance(grid, OccupancyGrid):
+        tight = grid.bounds(theta)
+        if tight is None:
+            return None
+        box = torch.stack([torch.maximum(aabb[0], tight[0].to(aabb)), torch.minimum(aabb[1], tight[1].to(aabb))])
+    return box if bool((box[1] > box[0]).all()) else None
+
+
+def _next_budget(budget: Tensor, added: Tensor | None, taken: Tensor, tau: Tensor, tau_stop: float) -> Tensor:
+    """Occupied samples each live ray evaluates next round ``[m]``.
+
+    A ray that is accumulating density gets about as many as its last round's rate says it needs to
+    become opaque (at least 2); a ray in empty or faint space doubles its budget, up to 128.
+    """
+    grow = (2 * budget).clamp_max(_MAX_ROUND)
+    if added is None:
+        return grow
+    rate = added.detach() / taken.clamp_min(1)
+    need = ((tau_stop - tau.detach()) / rate.clamp_min(1e-12)).ceil().clamp(2, _MAX_ROUND)
+    return torch.where(rate > 1e-3, torch.minimum(need.to(grow.dtype), grow), grow)
+
+
+# --------------------------------------------------------------------------------------------
+# Images
+
+
+def _box_corners(aabb: Tensor) -> Tensor:
+    """``[2,3] -> [8,3]`` the corners of a box."""
+    sel = torch.tensor([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], device=aabb.device)
+    return torch.where(sel.bool(), aabb[1], aabb[0])
+
+
+def box_pixels(camera: Pinhole, T_cam_obj: Tensor, aabb: Tensor) -> Tensor:
+    """Pixels ``[m, 2]`` (``(u, v)``, row-major) whose rays can meet the box ``aabb [2,3]`` (object frame).
+
+    The bounding rectangle of the projected corners; every pixel when the box reaches behind the
+    camera's plane; none when it lies entirely behind it.
+    """
+    K = camera.K
+    corners = transform_points(T_cam_obj.to(K.dtype), _box_corners(aabb.to(K.dtype)))
+    z = corners[:, 2]
+    if bool((z <= 0).all()):
+        return torch.zeros(0, 2, dtype=torch.long, device=K.device)
+    u0, v0, u1, v1 = 0, 0, camera.width, camera.height
+    if bool((z > 1e-9).all()):
+        uv, _ = camera.project(corners)
+        lo, hi = uv.amin(0), uv.amax(0)
+        u0, v0 = max(u0, math.floor(float(lo[0]))), max(v0, math.floor(float(lo[1])))
+        u1, v1 = min(u1, math.ceil(float(hi[0]))), min(v1, math.ceil(float(hi[1])))
+    if u1 <= u0 or v1 <= v0:
+        return torch.zeros(0, 2, dtype=torch.long, device=K.device)
+    v, u = torch.meshgrid(torch.arange(v0, v1, device=K.device), torch.arange(u0, u1, device=K.device), indexing="ij")
+    return torch.stack([u.reshape(-1), v.reshape(-1)], dim=-1)
+
+
+def _empty_images(camera: Pinhole, outputs: Sequence[str], background: Tensor) -> dict[str, Tensor]:
+    H, W = camera.height, camera.width
+    images: dict[str, Tensor] = {}
+    if "rgb" in outputs:
+        images["rgb"] = background.to(torch.float32).expand(H, W, 3).clone()
+    if "depth" in outputs:
+        images["depth"] = torch.zeros(H, W, device=background.device)
+    if "opacity" in outputs:
+        images["opacity"] = torch.zeros(H, W, device=background.device)
+    return images
+
+
+def _fill_images(images: dict[str, Tensor], flat_index: Tensor, out: RenderOutput, depth_min_opacity: float) -> None:
+    """Write per-ray results into ``[H,W,...]`` images at ``flat_index`` (``v * W + u``)."""
+    if "rgb" in images:
+        images["rgb"].view(-1, 3)[flat_index] = out.rgb.to(torch.float32)
+    if "opacity" in images:
+        images["opacity"].view(-1)[flat_index] = out.opacity.to(torch.float32)
+    if "depth" in images:
+        opaque = out.opacity > depth_min_opacity
+        z = torch.where(opaque, out.depth / out.opacity.clamp_min(depth_min_opacity), 0)
+        images["depth"].view(-1)[flat_index] = z.to(torch.float32)
+
+
+def _object_rays(camera: Pinhole, pixels: Tensor, T_obj_cam: Tensor) -> Rays:
+    """The rays of ``pixels [m,2]`` in the object frame (one shared origin, one small matmul)."""
+    rays = camera.rays(pixels)
+    origins = T_obj_cam[:3, 3].expand(pixels.shape[0], 3)
+    return Rays(origins, rays.directions @ T_obj_cam[:3, :3].T, rays.z_per_t)
+
+
+def render_image(
+    field: Field,
+    camera: Pinhole,
+    T_cam_obj: Tensor,
+    *,
+    theta: Tensor | None = None,
+    aabb: Tensor,
+    grid: Occupancy | None = None,
+    outputs: Sequence[str] = ("rgb",),
+    step: float,
+    background: float | Tensor = 0.0,
+    transmittance_eps: float = 1e-3,
+    chunk: int = 1 << 15,
+) -> dict[str, Tensor]:
+    """Render the field at pose ``T_cam_obj [4,4]`` (and ``theta [k]``) into float32 images.
+
+    Only the pixels of the box's projection are marched (``chunk`` rays at a time). Returns the
+    asked outputs: ``rgb [H,W,3]`` (over ``background``), ``opacity [H,W]``, and ``depth [H,W]``:
+    the surface z-depth (metres, opacity-normalised) where opacity > 0.5, else 0 (no return).
+    """
+    outputs = _check_outputs(outputs)
+    if theta is not None and theta.dim() != 1:
+        raise ValueError(f"render_image takes one configuration theta [k], got shape {tuple(theta.shape)}")
+    bg = torch.as_tensor(background, dtype=torch.float32, device=camera.K.device).expand(3)
+    images = _empty_images(camera, outputs, bg)
+    box = _clip_box(aabb, grid, theta)
+    if box is None:
+        return images
+    pixels = box_pixels(camera, T_cam_obj, box)
+    if pixels.shape[0] == 0:
+        return images
+    flat_index = pixels[:, 1] * camera.width + pixels[:, 0]
+    T_obj_cam = invert_pose(T_cam_obj.to(camera.K.dtype))
+    for s in range(0, pixels.shape[0], chunk):
+        rays = _object_rays(camera, pixels[s : s + chunk], T_obj_cam)
+        out = render_rays(
+            field, rays, aabb, theta=theta, grid=grid, step=step, outputs=tuple(set(outputs) | {"opacity"}),
+            background=background, transmittance_eps=transmittance_eps,
+        )
+        _fill_images(images, flat_index[s : s + chunk], out, 0.5)
+    return images
+
+
+# --------------------------------------------------------------------------------------------
+# Part composition
+
+
+def composed_aabb(part_aabbs: Tensor, T_obj_part: Tensor) -> Tensor:
+    """``[2,3]``: the object-frame box around part boxes ``part_aabbs [p,2,3]`` posed by ``T_obj_part [p,4,4]``."""
+    corners = torch.stack([_box_corners(b) for b in part_aabbs.to(T_obj_part.dtype)])  # [p, 8, 3]
+    moved = transform_points(T_obj_part[:, None], corners).reshape(-1, 3)
+    return torch.stack([moved.amin(0), moved.amax(0)])
+
+
+class PartComposition:
+    """Volumetric composition of rigid part fields at fixed poses: itself a field and an occupancy.
+
+    As a field, ``(x [n,3], d [n,3], theta=None) -> (sigma [n], rgb [n,3])`` in the object frame:
+    each sample is moved into every part's frame (``x_part = T_part_obj x``, ``d`` rotated) and a
+    part is evaluated only where the sample is inside its box (and its occupied cells); densities
+    add and the colour is the density-weighted mean. ``occupied(x)`` is the union of the parts'
+    occupancy, so the composition can be passed as its own ``grid``; ``aabb [2,3]`` bounds it.
+    """
+
+    def __init__(self, part_fields: Sequence[Field], part_grids: Sequence[OccupancyGrid | None], T_obj_part: Tensor) -> None:
+        if not (len(part_fields) == len(part_grids) == T_obj_part.shape[0]) or T_obj_part.shape[1:] != (4, 4):
+            raise ValueError(
+                f"need one grid (or None) and one pose [4,4] per part: got {len(part_fields)} fields, "
+                f"{len(part_grids)} grids and poses of shape {tuple(T_obj_part.shape)}"
+            )
+        self.fields, self.grids = list(part_fields), list(part_grids)
+        self.T_obj_part = T_obj_part
+        self.T_part_obj = invert_pose(T_obj_part)
+        self.part_aabbs = torch.stack([f.aabb.to(T_obj_part.dtype) for f in self.fields])
+        self.aabb = composed_aabb(self.part_aabbs, T_obj_part)
+
+    def _part_masks(self, x: Tensor) -> list[tuple[Tensor, Tensor]]:
+        """Per part: the sample indices it covers and their positions in its frame."""
+        out = []
+        for i, grid in enumerate(self.grids):
+            xp = transform_points(self.T_part_obj[i].to(x.dtype), x)
+            if grid is not None:
+                inside = grid.occupied(xp)
+            else:
+                box = self.part_aabbs[i].to(x.dtype)
+                inside = ((xp >= box[0]) & (xp <= box[1])).all(-1)
+            idx = inside.nonzero().squeeze(-1)
+            out.append((idx, xp[idx]))
+        return out
+
+    def occupied(self, x: Tensor, theta: Tensor | None = None) -> Tensor:
+        hit = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+        for idx, _ in self._part_masks(x):
+            hit[idx] = True
+        return hit
+
+    def __call__(self, x: Tensor, d: Tensor, theta: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        sigma = x.new_zeros(x.shape[0])
+        weighted = x.new_zeros(x.shape[0], 3)
+        for i, (idx, xp) in enumerate(self._part_masks(x)):
+            if idx.numel() == 0:
+                continue
+            dp = rotate_vectors(self.T_part_obj[i].to(d.dtype), d[idx])
+            s, c = self.fields[i](xp, dp, None)
+            s = s.to(x.dtype)
+            sigma = sigma.index_add(0, idx, s)
+            weighted = weighted.index_add(0, idx, s[:, None] * c.to(x.dtype))
+        rgb = torch.where(sigma[:, None] > 0, weighted / sigma.clamp_min(1e-30)[:, None], 0.0)
+        return sigma, rgb
+
+
+def compose_parts(
+    part_fields: Sequence[Field], part_grids: Sequence[OccupancyGrid | None], T_obj_part: Tensor
+) -> PartComposition:
+    """The volumetric composition of ``part_fields`` posed by ``T_obj_part [p,4,4]`` (see :class:`PartComposition`)."""
+    return PartComposition(part_fields, part_grids, T_obj_part)
+
+
+def depth_test(parts: Sequence[RenderOutput], background: float | Tensor = 0.0, min_opacity: float = 0.5) -> RenderOutput:
+    """The paper's compositor: per ray, the part with the nearest surface among those with opacity > 0.5.
+
+    ``parts``: per-part renders of the same rays on a black background with rgb, depth (opacity-
+    weighted, as :func:`render_rays` gives it) and opacity. A ray where no part reaches
+    ``min_opacity`` takes the most opaque part (soft silhouette edges). Returns the chosen part's
+    rgb (over ``background``), depth and opacity.
+    """
+    opacity = torch.stack([p.opacity for p in parts])  # [p, n]
+    depth = torch.stack([p.depth for p in parts])
+    surface = torch.where(opacity > min_opacity, depth / opacity.clamp_min(min_opacity), math.inf)
+    nearest = surface.argmin(0)
+    choice = torch.where(torch.isfinite(surface.amin(0)), nearest, opacity.argmax(0))[None]
+    pick_opacity = opacity.gather(0, choice)[0]
+    pick_depth = depth.gather(0, choice)[0]
+    rgb = torch.stack([p.rgb for p in parts]).gather(0, choice[..., None].expand(1, -1, 3))[0]
+    bg = torch.as_tensor(background, dtype=rgb.dtype, device=rgb.device).expand(3)
+    return RenderOutput(rgb + (1 - pick_opacity)[:, None] * bg, pick_depth, pick_opacity, sum(p.n_samples for p in parts))
+
+
+def render_depth_test(
+    part_fields: Sequence[Field],
+    part_grids: Sequence[OccupancyGrid | None],
+    T_obj_part: Tensor,
+    rays: Rays,
+    *,
+    step: float,
+    background: float | Tensor = 0.0,
+    transmittance_eps: float = 1e-3,
+    jitter: bool = False,
+    generator: torch.Generator | None = None,
+) -> RenderOutput:
+    """Render each part separately along ``rays`` (object frame) and keep the nearest (:func:`depth_test`).
+
+    Every part is rendered in its own frame (``T_obj_part [p,4,4]``) inside its own box (its
+    ``aabb`` attribute) with its grid. Returns rgb, depth (opacity-weighted) and opacity.
+    """
+    renders = []
+    for field, grid, T in zip(part_fields, part_grids, invert_pose(T_obj_part)):
+        renders.append(
+            render_rays(
+                field, rays.transform(T.to(rays.origins.dtype)), field.aabb, grid=grid, step=step,
+                outputs=OUTPUTS, transmittance_eps=transmittance_eps, jitter=jitter, generator=generator,
+            )
+        )
+    return depth_test(renders, background)
+
+
+def render_parts_image(
+    part_fields: Sequence[Field],
+    part_grids: Sequence[OccupancyGrid | None],
+    T_obj_part: Tensor,
+    camera: Pinhole,
+    T_cam_obj: Tensor,
+    *,
+    outputs: Sequence[str] = ("rgb",),
+    step: float,
+    background: float | Tensor = 0.0,
+    transmittance_eps: float = 1e-3,
+    chunk: int = 1 << 15,
+) -> dict[str, Tensor]:
+    """Images of the parts composited by the depth test (NARF22's ``parts`` rendering), as :func:`render_image`.
+
+    Each part is rendered only over the pixels of its own box's projection.
+    """
+    outputs = _check_outputs(outputs)
+    bg = torch.as_tensor(background, dtype=torch.float32, device=camera.K.device).expand(3)
+    n = camera.width * camera.height
+    layers = []
+    for field, grid, T in zip(part_fields, part_grids, T_obj_part):
+        img = render_image(
+            field, camera, T_cam_obj @ T.to(T_cam_obj.dtype), aabb=field.aabb, grid=grid, outputs=OUTPUTS,
+            step=step, transmittance_eps=transmittance_eps, chunk=chunk,
+        )
+        opacity = img["opacity"].reshape(n)
+        layers.append(RenderOutput(img["rgb"].reshape(n, 3), img["depth"].reshape(n) * opacity, opacity))
+    out = depth_test(layers, bg)
+    images = _empty_images(camera, outputs, bg)
+    _fill_images(images, torch.arange(n, device=bg.device), out, 0.5)
+    return images

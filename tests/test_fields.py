@@ -1,0 +1,271 @@
+"""Radiance fields: encodings, the K-planes and FastNeRF fields, their configs, gradients and a tiny fit."""
+
+import json
+import math
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from narf_core.fields import FastNeRFField, KPlanesField, RadianceField, make_field
+from narf_core.fields.base import SIGMA_MAX_LOG, trunc_exp
+from narf_core.fields.encodings import frequency_encoding, frequency_encoding_size, sample_plane, spherical_harmonics
+from narf_core.fields.kplanes import total_variation
+from narf_core.geometry import Rays
+from narf_core.render import render_rays
+
+AABB = [[-0.1, -0.05, -0.02], [0.1, 0.05, 0.02]]
+SMALL = {
+    "kplanes": {"resolution": (8, 16), "theta_resolution": (4, 8), "features": 4, "hidden": 16},
+    "fastnerf": {"pos_width": 16, "pos_layers": 2, "dir_width": 8, "dir_layers": 1, "components": 4},
+}
+
+
+def small_field(arch: str, k: int, **kw) -> RadianceField:
+    limits = {} if k == 0 else {"theta_lower": [-1.0] * k, "theta_upper": [0.5] * k}
+    return make_field({"arch": arch, "aabb": AABB, **limits, **SMALL[arch], **kw})
+
+
+def points(n: int, dtype=torch.float32, seed: int = 0) -> torch.Tensor:
+    box = torch.tensor(AABB, dtype=dtype)
+    u = torch.rand(n, 3, generator=torch.Generator().manual_seed(seed), dtype=dtype)
+    return box[0] + u * (box[1] - box[0])
+
+
+# --------------------------------------------------------------------------------------------
+# Encodings
+
+
+def test_frequency_encoding_values():
+    x = torch.tensor([[0.5, -1.0]])
+    out = frequency_encoding(x, 2)
+    assert out.shape == (1, frequency_encoding_size(2, 2)) == (1, 10)
+    # layout: x, sin(2^l pi x) channel-major, cos(...)
+    expected_sin = [math.sin(math.pi * 0.5), math.sin(2 * math.pi * 0.5), math.sin(-math.pi), math.sin(-2 * math.pi)]
+    torch.testing.assert_close(out[0, :2], x[0])
+    torch.testing.assert_close(out[0, 2:6], torch.tensor(expected_sin), atol=1e-6, rtol=0)
+    torch.testing.assert_close(out[0, 6:], torch.tensor([0.0, -1.0, -1.0, 1.0]), atol=1e-6, rtol=0)
+
+
+def test_spherical_harmonics_known_values_and_sizes():
+    d = torch.tensor([[0.0, 0.0, 1.0]])
+    sh = spherical_harmonics(d, 2)
+    torch.testing.assert_close(sh, torch.tensor([[0.28209479, 0.0, 0.48860251, 0.0]]))
+    assert [spherical_harmonics(d, g).shape[1] for g in range(5)] == [0, 1, 4, 9, 16]
+    with pytest.raises(ValueError, match="degree"):
+        spherical_harmonics(d, 5)
+
+
+def test_spherical_harmonics_are_orthonormal_on_the_sphere():
+    d = F.normalize(torch.randn(200_000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64), dim=-1)
+    sh = spherical_harmonics(d, 4)
+    gram = 4 * math.pi * sh.T @ sh / d.shape[0]  # Monte-Carlo integral over the sphere
+    torch.testing.assert_close(gram, torch.eye(16, dtype=torch.float64), atol=0.03, rtol=0)
+
+
+def test_sample_plane_matches_grid_sample(dtype):
+    plane = torch.randn(5, 7, 3, dtype=dtype)
+    coords = torch.rand(50, 2, dtype=dtype) * 2.4 - 1.2
+    ref = F.grid_sample(plane.permute(2, 0, 1)[None], coords[None, None], align_corners=True, padding_mode="border")
+    torch.testing.assert_close(sample_plane(plane, coords), ref[0, :, 0].T)
+    # corners of the plane are its corner texels
+    corners = torch.tensor([[-1.0, -1.0], [1.0, -1.0], [-1.0, 1.0], [1.0, 1.0]], dtype=dtype)
+    torch.testing.assert_close(sample_plane(plane, corners), torch.stack([plane[0, 0], plane[0, -1], plane[-1, 0], plane[-1, -1]]))
+
+
+def test_sample_plane_gradients_are_exact():
+    plane = torch.randn(4, 6, 3, dtype=torch.float64, requires_grad=True)
+    coords = (torch.rand(30, 2, dtype=torch.float64) * 1.9 - 0.95).requires_grad_(True)
+    assert torch.autograd.gradcheck(sample_plane, (plane, coords))
+
+
+def test_sample_plane_gradient_at_and_beyond_the_border():
+    plane = torch.arange(12.0, dtype=torch.float64).reshape(3, 4, 1)  # value = 4 * row + col
+    coords = torch.tensor([[1.0, 0.0], [-1.0, 1.0], [1.5, 0.0]], dtype=torch.float64, requires_grad=True)
+    sample_plane(plane, coords).sum().backward()
+    # d value / d u = 1 per column = (W - 1) / 2 per normalised unit; one-sided at the edge, 0 beyond
+    torch.testing.assert_close(coords.grad[:, 0], torch.tensor([1.5, 1.5, 0.0], dtype=torch.float64))
+    torch.testing.assert_close(coords.grad[1, 1], torch.tensor(4.0, dtype=torch.float64))
+
+
+def test_sample_plane_rejects_bad_shapes():
+    with pytest.raises(ValueError, match=r"\[H, W, F\]"):
+        sample_plane(torch.zeros(1, 5, 2), torch.zeros(3, 2))
+    with pytest.raises(ValueError, match=r"\[n, 2\]"):
+        sample_plane(torch.zeros(4, 5, 2), torch.zeros(3, 3))
+
+
+# --------------------------------------------------------------------------------------------
+# Both architectures
+
+
+def test_trunc_exp_is_finite_with_a_gradient_for_huge_inputs():
+    raw = torch.tensor([-1e4, 0.0, 20.0, 1e4], requires_grad=True)
+    sigma = trunc_exp(raw)
+    sigma.sum().backward()
+    assert torch.isfinite(sigma).all() and torch.isfinite(raw.grad).all()
+    sigma = sigma.detach()
+    assert sigma[0] == 0 and float(sigma[-1]) == pytest.approx(math.exp(SIGMA_MAX_LOG), rel=1e-5)
+    assert raw.grad[-1] > 0  # still pushed down when saturated
+
+
+@pytest.mark.parametrize("arch", ["kplanes", "fastnerf"])
+@pytest.mark.parametrize("k", [0, 1, 2])
+def test_field_shapes_dtypes_and_ranges(arch, k, dtype):
+    field = small_field(arch, k)
+    x = points(64, dtype)
+    d = F.normalize(torch.randn(64, 3, dtype=dtype), dim=-1)
+    theta = None if k == 0 else torch.full((k,), -0.2, dtype=dtype)
+    sigma, rgb = field(x, d, theta)
+    assert sigma.shape == (64,) and rgb.shape == (64, 3)
+    assert sigma.dtype == rgb.dtype == torch.float32  # fields compute in their parameters' dtype
+    assert (sigma >= 0).all() and torch.isfinite(sigma).all()
+    assert ((rgb > 0) & (rgb < 1)).all()
+    torch.testing.assert_close(field.density_only(x, theta), sigma)
+    if k:  # per-sample theta gives the same as a shared one
+        torch.testing.assert_close(field(x, d, theta.expand(64, k))[0], sigma)
+    assert field.n_theta == k
+
+
+@pytest.mark.parametrize("arch", ["kplanes", "fastnerf"])
+def test_gradients_wrt_x_and_theta_are_finite_including_at_the_limits(arch):
+    field = small_field(arch, 1)
+    with torch.no_grad():  # make the planes/weights non-trivial so gradients are not accidentally 0
+        for p in field.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    x = points(32).requires_grad_(True)
+    d = F.normalize(torch.randn(32, 3), dim=-1)
+    theta = torch.tensor([-1.0] * 16 + [0.5] * 16)[:, None].requires_grad_(True)  # exactly at the limits
+    sigma, rgb = field(x, d, theta)
+    (sigma.sum() + rgb.sum()).backward()
+    assert torch.isfinite(x.grad).all() and torch.isfinite(theta.grad).all()
+    assert x.grad.abs().sum() > 0 and theta.grad.abs().sum() > 0
+    assert (theta.grad != 0).float().mean() > 0.5  # one-sided slope at the limit, not a dead clamp
+
+
+def test_kplanes_theta_gradient_matches_finite_differences():
+    field = small_field("kplanes", 1).double()
+    with torch.no_grad():
+        for p in field.parameters():
+            p.add_(0.3 * torch.randn_like(p))
+    x = points(8, torch.float64)
+    theta = torch.tensor([-0.3], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: field.density_only(x, t), (theta,))
+
+
+@pytest.mark.parametrize("arch", ["kplanes", "fastnerf"])
+def test_config_round_trip_rebuilds_the_same_field(arch):
+    field = small_field(arch, 1, **({"dir_degree": 2} if arch == "kplanes" else {}))
+    config = json.loads(json.dumps(field.config()))  # JSON-able
+    clone = make_field(config)
+    clone.load_state_dict(field.state_dict())
+    x, d = points(16), F.normalize(torch.randn(16, 3), dim=-1)
+    theta = torch.tensor([0.1])
+    for a, b in zip(field(x, d, theta), clone(x, d, theta)):
+        torch.testing.assert_close(a, b)
+    assert clone.config() == config
+
+
+def test_make_field_errors_name_the_problem():
+    with pytest.raises(ValueError, match="unknown field architecture 'nerf'"):
+        make_field({"arch": "nerf", "aabb": AABB})
+    with pytest.raises(ValueError, match="needs an 'aabb'"):
+        make_field({"arch": "kplanes"})
+    with pytest.raises(ValueError, match="invalid 'kplanes' field config.*bogus"):
+        make_field({"arch": "kplanes", "aabb": AABB, "bogus": 1})
+    with pytest.raises(ValueError, match="max > min"):
+        make_field({"arch": "kplanes", "aabb": [[0, 0, 0], [1, 0, 1]]})
+    with pytest.raises(ValueError, match="upper > lower"):
+        make_field({"arch": "fastnerf", "aabb": AABB, "theta_lower": [1.0], "theta_upper": [1.0]})
+    with pytest.raises(ValueError, match="resolution"):
+        make_field({"arch": "kplanes", "aabb": AABB, "resolution": [8, 16], "theta_resolution": [8]})
+
+
+def test_theta_shape_errors():
+    field = small_field("kplanes", 2)
+    x = points(4)
+    with pytest.raises(ValueError, match="needs a configuration"):
+        field.density_only(x, None)
+    with pytest.raises(ValueError, match=r"theta must be \[2\] or \[4, 2\]"):
+        field.density_only(x, torch.zeros(3))
+    with pytest.raises(ValueError, match="takes no configuration"):
+        small_field("kplanes", 0).density_only(x, torch.zeros(1))
+
+
+@pytest.mark.parametrize("arch", ["kplanes", "fastnerf"])
+def test_untrained_fields_are_nearly_empty(arch):
+    field = small_field(arch, 1)
+    box = torch.tensor(AABB)
+    diag = box[1] - box[0]
+    rays = Rays(box[0][None] - 0.01 * diag, (diag / diag.norm())[None], torch.ones(1))  # the box diagonal
+    out = render_rays(field, rays, box, theta=torch.zeros(1), step=float(diag.norm()) / 128, outputs=("opacity",))
+    assert 0.02 < float(out.opacity.detach()) < 0.2
+
+
+def test_kplanes_planes_init_and_total_variation():
+    field = small_field("kplanes", 1)
+    spatial = [p for p, (a, b) in zip(field.planes, field.pairs * 2) if b < 3]
+    with_theta = [p for p, (a, b) in zip(field.planes, field.pairs * 2) if b >= 3]
+    assert len(spatial) == 6 and len(with_theta) == 6
+    assert all(((p >= 0.1) & (p <= 0.5)).all() for p in spatial)
+    assert all((p == 1).all() for p in with_theta)
+    assert total_variation(torch.ones(4, 5, 2)) == 0
+    ramp = torch.arange(5.0)[None, :, None].expand(4, 5, 1)  # +1 per column
+    assert total_variation(ramp) == pytest.approx(1.0)
+    with torch.no_grad():
+        assert float(field.regularization()) == pytest.approx(field.tv_weight * float(field.total_variation()))
+
+
+def test_kplanes_spatial_planes_have_about_cubic_cells():
+    field = make_field({"arch": "kplanes", "aabb": AABB, "resolution": [64], "theta_resolution": [8]})
+    shapes = {pair: tuple(p.shape[:2]) for pair, p in zip(field.pairs, field.planes)}
+    assert shapes[(0, 1)] == (32, 64) and shapes[(0, 2)] == (13, 64) and shapes[(1, 2)] == (13, 32)
+
+
+# --------------------------------------------------------------------------------------------
+# K-planes fits a tiny configuration-dependent scene
+
+
+def _sphere_targets(rays: Rays, theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Exact colour and opacity of a sphere at the origin of radius 0.02 + 0.03 theta, colour by height."""
+    r = 0.02 + 0.03 * theta[:, 0]
+    b = (rays.origins * rays.directions).sum(-1)
+    c = (rays.origins**2).sum(-1) - r**2
+    disc = b**2 - c
+    hit = disc > 0
+    t = -b - disc.clamp_min(0).sqrt()
+    p = rays.origins + t[:, None] * rays.directions
+    rgb = torch.stack([0.5 + 0.45 * p[:, 2] / r, 0.3 + 0 * r, 0.8 - 0.5 * theta[:, 0]], dim=-1)
+    return torch.where(hit[:, None], rgb, 0.0), hit.float()
+
+
+def _random_rays(n: int, g: torch.Generator) -> tuple[Rays, torch.Tensor]:
+    eye = F.normalize(torch.randn(n, 3, generator=g), dim=-1) * 0.3
+    target = (torch.rand(n, 3, generator=g) - 0.5) * 0.1
+    d = F.normalize(target - eye, dim=-1)
+    return Rays(eye, d, torch.ones(n)), torch.rand(n, 1, generator=g)
+
+
+def test_kplanes_fits_a_theta_dependent_sphere():
+    torch.manual_seed(0)
+    box = torch.tensor([[-0.05] * 3, [0.05] * 3])
+    field = KPlanesField(box, [0.0], [1.0], resolution=(16, 32), theta_resolution=(4, 8), features=8, hidden=32)
+    step = float((box[1] - box[0]).norm()) / 48
+    opt = torch.optim.Adam(field.parameters(), lr=0.03, eps=1e-15)
+    decay = torch.optim.lr_scheduler.ExponentialLR(opt, 0.99)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(200):
+        rays, theta = _random_rays(512, g)
+        rgb, opacity = _sphere_targets(rays, theta)
+        out = render_rays(field, rays, box, theta=theta, step=step, outputs=("rgb", "opacity"), jitter=True, generator=g)
+        loss = ((out.rgb - rgb) ** 2).mean() + ((out.opacity - opacity) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        decay.step()
+    rays, theta = _random_rays(2000, torch.Generator().manual_seed(99))  # held-out views and theta
+    rgb, _ = _sphere_targets(rays, theta)
+    with torch.no_grad():
+        out = render_rays(field, rays, box, theta=theta, step=step)
+    psnr = -10 * math.log10(float(((out.rgb - rgb) ** 2).mean()))
+    assert psnr > 25  # 26.6 dB; the error is mostly at the silhouette (31+ dB elsewhere)

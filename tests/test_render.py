@@ -1,0 +1,496 @@
+"""The volume renderer: ray/box clipping, compositing, occupancy grids, images and part composition.
+
+Fields here are analytic (spheres, constant densities) so that every expected value is hand-checked.
+"""
+
+import math
+
+import pytest
+import torch
+
+from narf_core.geometry import Pinhole, Rays, invert_pose, look_at, make_pose, se3_exp, so3_exp
+from narf_core.render import (
+    OccupancyGrid,
+    RenderOutput,
+    compose_parts,
+    composed_aabb,
+    depth_test,
+    ray_aabb,
+    render_depth_test,
+    render_image,
+    render_parts_image,
+    render_rays,
+    volume_render_weights,
+)
+
+BOX = torch.tensor([[-0.1, -0.1, -0.1], [0.1, 0.1, 0.1]])
+STEP = 0.2 / 256
+
+
+class Sphere:
+    """Density ``sigma`` inside a ball of radius ``radius + growth * theta[0]``; records what it evaluates."""
+
+    def __init__(self, center=(0.0, 0.0, 0.0), radius=0.05, sigma=1e3, rgb=(1.0, 0.5, 0.0), growth=0.0, aabb=BOX):
+        self.center, self.radius, self.sigma, self.growth = torch.tensor(center), radius, sigma, growth
+        self.rgb = torch.tensor(rgb)
+        self.aabb = aabb
+        self.points: list[torch.Tensor] = []
+
+    def density_only(self, x, theta=None):
+        self.points.append(x.detach())
+        r = self.radius if theta is None else self.radius + self.growth * theta[:, 0].to(x.dtype)
+        inside = (x - self.center.to(x.dtype)).norm(dim=-1) < r
+        return torch.where(inside, self.sigma, 0.0).to(x.dtype)
+
+    def __call__(self, x, d, theta=None):
+        return self.density_only(x, theta), self.rgb.to(x.dtype).expand(x.shape[0], 3)
+
+    @property
+    def n_evaluated(self) -> int:
+        return sum(p.shape[0] for p in self.points)
+
+
+class Constant:
+    """Density ``sigma`` everywhere (the renderer clips it to the box) and a colour that varies with z."""
+
+    def __init__(self, sigma):
+        self.sigma = sigma
+
+    def __call__(self, x, d, theta=None):
+        rgb = torch.stack([0.5 + 2 * x[:, 2], torch.full_like(x[:, 0], 0.25), torch.full_like(x[:, 0], 0.75)], -1)
+        return torch.full_like(x[:, 0], self.sigma), rgb
+
+
+class Blob(torch.nn.Module):
+    """A differentiable Gaussian density whose centre moves with theta."""
+
+    def __init__(self):
+        super().__init__()
+        self.scale = torch.nn.Parameter(torch.tensor(30.0, dtype=torch.float64))
+        self.center = torch.nn.Parameter(torch.tensor([0.01, -0.02, 0.0], dtype=torch.float64))
+
+    def forward(self, x, d, theta=None):
+        c = self.center if theta is None else self.center + 0.05 * theta[:, :1] * torch.tensor([1.0, 0.0, 0.0], dtype=x.dtype)
+        sigma = self.scale * torch.exp(-((x - c) ** 2).sum(-1) / 0.03**2)
+        rgb = torch.sigmoid(torch.cat([x * 10, d[:, :0]], -1))
+        return sigma, rgb
+
+
+def rays_along_z(xy, z0=-1.0, dtype=torch.float32, z_per_t=1.0) -> Rays:
+    xy = torch.as_tensor(xy, dtype=dtype).reshape(-1, 2)
+    n = xy.shape[0]
+    origins = torch.cat([xy, torch.full((n, 1), z0, dtype=dtype)], -1)
+    directions = torch.tensor([[0.0, 0.0, 1.0]], dtype=dtype).expand(n, 3)
+    return Rays(origins, directions, torch.full((n,), z_per_t, dtype=dtype))
+
+
+# --------------------------------------------------------------------------------------------
+# ray_aabb
+
+
+def test_ray_aabb_hit_miss_and_away(dtype):
+    box = torch.tensor([[-1.0, -1, -1], [1, 1, 1]], dtype=dtype)
+    o = torch.tensor([[0.0, 0, -2], [2.0, 0, -2], [0.0, 0, -2]], dtype=dtype)
+    d = torch.tensor([[0.0, 0, 1], [0.0, 0, 1], [0.0, 0, -1]], dtype=dtype)
+    t_near, t_far, hit = ray_aabb(o, d, box)
+    assert hit.tolist() == [True, False, False]
+    assert t_near[0] == 1 and t_far[0] == 3
+    assert torch.isfinite(t_near).all() and torch.isfinite(t_far).all()
+    assert (t_far >= t_near).all() and (t_near >= 0).all()  # never far < near, even pointing away
+
+
+def test_ray_aabb_axis_parallel_ray_starting_on_a_face_is_finite(dtype):
+    box = torch.tensor([[-1.0, -1, -1], [1, 1, 1]], dtype=dtype)
+    o = torch.tensor([[-1.0, 0, -2], [-1.0, 0.5, 0.0], [0.3, -1.0, -1.0]], dtype=dtype)  # on faces / edges
+    d = torch.tensor([[0.0, 0, 1], [-0.0, 0, 1], [0.0, -0.0, 1]], dtype=dtype)
+    t_near, t_far, hit = ray_aabb(o, d, box)
+    assert torch.isfinite(t_near).all() and torch.isfinite(t_far).all()
+    assert hit.all()  # rays along a lower face count as inside
+    torch.testing.assert_close(t_far - t_near, torch.tensor([2.0, 1.0, 2.0], dtype=dtype))
+
+
+def test_ray_aabb_camera_inside_the_box_starts_at_zero(dtype):
+    box = torch.tensor([[-1.0, -1, -1], [1, 1, 1]], dtype=dtype)
+    d = torch.nn.functional.normalize(torch.tensor([[1.0, 1.0, 0.0]], dtype=dtype), dim=-1)
+    t_near, t_far, hit = ray_aabb(torch.zeros(1, 3, dtype=dtype), d, box)
+    assert hit.item() and t_near.item() == 0
+    assert t_far.item() == pytest.approx(math.sqrt(2))
+
+
+def test_ray_aabb_grazing_a_corner_gives_a_tiny_nonnegative_segment():
+    box = torch.tensor([[-1.0, -1, -1], [1, 1, 1]], dtype=torch.float64)
+    o = torch.tensor([[1.0 - 1e-9, 1.0 - 1e-9, -3.0]], dtype=torch.float64)
+    t_near, t_far, hit = ray_aabb(o, torch.tensor([[0.0, 0, 1]], dtype=torch.float64), box)
+    assert hit.item() and (t_far - t_near).item() == pytest.approx(2.0)
+    o = torch.tensor([[-2.0, 0.0, 1.0 - 1e-9]], dtype=torch.float64)
+    d = torch.nn.functional.normalize(torch.tensor([[1.0, 0.0, 1e-3]], dtype=torch.float64), dim=-1)
+    t_near, t_far, hit = ray_aabb(o, d, box)
+    assert 0 <= (t_far - t_near).item() < 1e-5
+
+
+# --------------------------------------------------------------------------------------------
+# Compositing weights
+
+
+def test_volume_render_weights_hand_checked(dtype):
+    sigma = torch.tensor([[1.0, 2.0, 0.0]], dtype=dtype)
+    delta = torch.tensor([[0.5, 0.5, 0.5]], dtype=dtype)
+    w, T = volume_render_weights(sigma, delta)
+    e = math.exp
+    torch.testing.assert_close(T, torch.tensor([[1.0, e(-0.5), e(-1.5)]], dtype=dtype))
+    torch.testing.assert_close(w, torch.tensor([[1 - e(-0.5), e(-0.5) * (1 - e(-1.0)), 0.0]], dtype=dtype))
+    w_in, _ = volume_render_weights(sigma, delta, torch.tensor([2.0], dtype=dtype))
+    torch.testing.assert_close(w_in, w * e(-2.0))
+
+
+def test_volume_render_weights_huge_density_and_tiny_steps(dtype):
+    sigma = torch.tensor([[1e6, 1e6, 1.0], [1e6, 1e6, 1e6], [3e38, 1.0, 1.0]], dtype=dtype, requires_grad=True)
+    delta = torch.tensor([[1e-9, 1e-9, 1e-9], [1.0, 1.0, 1.0], [10.0, 1.0, 1.0]], dtype=dtype)
+    w, T = volume_render_weights(sigma, delta)
+    assert torch.isfinite(w).all() and torch.isfinite(T).all()
+    # row 0: alpha ~ 1e-3 each; the weights sum exactly to 1 - exp(-total optical depth)
+    total = (sigma * delta)[0].sum()
+    torch.testing.assert_close(w[0].sum(), -torch.expm1(-total))
+    assert w[1].tolist() == [1.0, 0.0, 0.0]  # opaque at once; no NaN from the shifted cumsum
+    assert w[2].tolist() == [1.0, 0.0, 0.0]  # optical depth overflows to inf (float32): still exact
+    w[:2].sum().backward()
+    assert torch.isfinite(sigma.grad).all()
+
+
+# --------------------------------------------------------------------------------------------
+# render_rays against analytic answers
+
+
+def test_constant_density_box_gives_the_analytic_opacity_and_depth(dtype):
+    sigma, L, t0, z_per_t = 5.0, 0.2, 0.9, 0.8
+    rays = rays_along_z([[0.0, 0.0], [0.03, -0.07]], dtype=dtype, z_per_t=z_per_t)
+    out = render_rays(Constant(sigma), rays, BOX, step=STEP, outputs=("rgb", "depth", "opacity"), background=0.5)
+    opacity = 1 - math.exp(-sigma * L)
+    torch.testing.assert_close(out.opacity, torch.full((2,), opacity, dtype=dtype))
+    # opacity-weighted depth: integral of t sigma exp(-sigma (t - t0)) over [t0, t0 + L], times z_per_t
+    expected = z_per_t * (t0 * opacity + opacity / sigma - L * math.exp(-sigma * L))
+    rtol = 1e-4 if dtype == torch.float32 else 1e-5  # midpoint quadrature error ~ step^2
+    torch.testing.assert_close(out.depth, torch.full((2,), expected, dtype=dtype), rtol=rtol, atol=0)
+    # colour: constant channels composite to c * opacity over the background
+    torch.testing.assert_close(out.rgb[:, 1:], (torch.tensor([0.25, 0.75], dtype=dtype) * opacity + 0.5 * (1 - opacity)).expand(2, 2))
+
+
+def test_camera_inside_the_box():
+    rays = Rays(torch.zeros(1, 3), torch.tensor([[0.0, 1.0, 0.0]]), torch.ones(1))
+    out = render_rays(Constant(5.0), rays, BOX, step=STEP, outputs=("opacity",))
+    assert out.opacity.item() == pytest.approx(1 - math.exp(-5.0 * 0.1), rel=1e-6)
+
+
+def test_outputs_come_back_only_when_asked():
+    class DensityOnly(Sphere):
+        def __call__(self, x, d, theta=None):
+            raise AssertionError("colour was computed although only opacity was asked for")
+
+    rays = rays_along_z([[0.0, 0.0]])
+    out = render_rays(DensityOnly(), rays, BOX, step=STEP, outputs=("opacity",))
+    assert out.rgb is None and out.depth is None and out.opacity.item() == pytest.approx(1.0)
+    out = render_rays(Sphere(), rays, BOX, step=STEP)
+    assert out.depth is None and out.opacity is None and out.rgb is not None
+
+
+def test_rays_missing_the_box_are_never_evaluated():
+    field = Sphere()
+    rays = rays_along_z([[0.0, 0.0], [0.5, 0.0], [0.0, -0.3], [0.09, 0.09]])
+    out = render_rays(field, rays, BOX, step=STEP, outputs=("rgb", "opacity"), background=torch.tensor([0.0, 0.0, 1.0]))
+    evaluated = torch.cat(field.points)
+    assert out.n_samples == evaluated.shape[0] > 0
+    assert ((evaluated >= BOX[0] - 1e-6) & (evaluated <= BOX[1] + 1e-6)).all()
+    assert (evaluated[:, :2].abs() < 0.1).all()  # only the two rays through the box were marched
+    assert out.rgb[1].tolist() == [0.0, 0.0, 1.0] and out.opacity[1] == 0
+    field.points.clear()
+    out = render_rays(field, rays[1:3], BOX, step=STEP)
+    assert out.n_samples == 0 and not field.points
+
+
+def test_early_termination_changes_the_result_by_less_than_eps():
+    field = Constant(100.0)  # T < 1e-3 after 7 cm of the 20 cm through the box
+    rays = rays_along_z(torch.rand(64, 2, generator=torch.Generator().manual_seed(0)) * 0.18 - 0.09)
+    exact = render_rays(field, rays, BOX, step=STEP, outputs=("rgb", "depth", "opacity"), transmittance_eps=1e-12)
+    early = render_rays(field, rays, BOX, step=STEP, outputs=("rgb", "depth", "opacity"), transmittance_eps=1e-3)
+    assert early.n_samples < 0.6 * exact.n_samples
+    assert (early.rgb - exact.rgb).abs().max() < 1e-3
+    assert (early.opacity - exact.opacity).abs().max() < 1e-3
+
+
+def test_extreme_densities_and_tiny_steps_stay_finite_with_gradients():
+    blob = Blob()
+    with torch.no_grad():
+        blob.scale.fill_(1e6)
+    origins = torch.tensor([[0.0, 0.0, -1.0], [0.03, -0.02, -1.0]], dtype=torch.float64, requires_grad=True)
+    rays = Rays(origins, torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=torch.float64), torch.ones(2, dtype=torch.float64))
+    out = render_rays(blob, rays, BOX, step=STEP, outputs=("rgb", "depth", "opacity"))
+    assert out.opacity[0].item() == 1.0
+    (out.rgb.sum() + out.depth.sum()).backward()
+    assert torch.isfinite(origins.grad).all() and torch.isfinite(blob.scale.grad)
+    tiny_box = torch.tensor([[0.0, 0.0, 0.0], [1e-7, 1e-7, 1e-7]], dtype=torch.float64)  # intervals of 1e-9
+    rays = Rays(torch.tensor([[5e-8, 5e-8, -1.0]], dtype=torch.float64), rays.directions[:1], torch.ones(1, dtype=torch.float64))
+    out = render_rays(Constant(1e6), rays, tiny_box, step=1e-9, outputs=("rgb", "depth", "opacity"))
+    assert out.n_samples == 100
+    assert out.opacity.item() == pytest.approx(-math.expm1(-1e6 * 1e-7), rel=1e-9)
+    assert torch.isfinite(out.rgb).all() and torch.isfinite(out.depth).all()
+
+
+def test_rays_that_leave_the_box_after_a_pose_update_give_background_and_finite_gradients():
+    xi = torch.zeros(6, requires_grad=True)
+    rays = rays_along_z([[0.0, 0.0], [0.05, 0.05]], z0=0.5)  # start beyond the box, pointing away
+    moved = rays.transform(se3_exp(xi))
+    out = render_rays(Sphere(), moved, BOX, step=STEP, outputs=("rgb", "depth", "opacity"), background=0.2)
+    assert out.n_samples == 0 and torch.allclose(out.rgb, torch.tensor(0.2))
+    (out.rgb.sum() + out.opacity.sum()).backward()
+    assert torch.isfinite(xi.grad).all()
+
+
+def test_gradients_reach_the_field_theta_and_the_rays():
+    blob = Blob()
+    theta = torch.tensor([0.3], dtype=torch.float64, requires_grad=True)
+    xi = torch.zeros(6, dtype=torch.float64, requires_grad=True)
+    rays = rays_along_z(torch.tensor([[0.0, 0.0], [0.02, -0.01], [0.03, -0.03]]), dtype=torch.float64)
+    out = render_rays(blob, rays.transform(se3_exp(xi)), BOX, theta=theta, step=STEP, outputs=("rgb", "depth", "opacity"))
+    (out.rgb.sum() + out.depth.sum() + out.opacity.sum()).backward()
+    for g in (theta.grad, xi.grad, blob.scale.grad, blob.center.grad):
+        assert torch.isfinite(g).all() and g.abs().sum() > 0
+
+
+def test_render_is_differentiable_in_theta_exactly():
+    blob = Blob()
+    rays = rays_along_z(torch.tensor([[0.0, 0.0], [0.02, -0.01]]), dtype=torch.float64)
+
+    def rgb_of(theta):
+        return render_rays(blob, rays, BOX, theta=theta, step=STEP, transmittance_eps=1e-300).rgb
+
+    assert torch.autograd.gradcheck(rgb_of, (torch.tensor([0.3], dtype=torch.float64, requires_grad=True),))
+
+
+def test_theta_per_ray_equals_a_shared_theta():
+    field = Sphere(growth=0.04)
+    rays = rays_along_z(torch.rand(16, 2, generator=torch.Generator().manual_seed(1)) * 0.16 - 0.08)
+    shared = render_rays(field, rays, BOX, theta=torch.tensor([0.5]), step=STEP, outputs=("rgb", "opacity"))
+    per_ray = render_rays(field, rays, BOX, theta=torch.full((16, 1), 0.5), step=STEP, outputs=("rgb", "opacity"))
+    torch.testing.assert_close(shared.rgb, per_ray.rgb)
+    assert shared.opacity.sum() > 0
+
+
+def test_jitter_is_reproducible_and_keeps_the_constant_density_opacity_exact():
+    rays = rays_along_z(torch.zeros(4, 2))
+    outs = [
+        render_rays(Constant(5.0), rays, BOX, step=STEP, outputs=("depth", "opacity"), jitter=True, generator=torch.Generator().manual_seed(s))
+        for s in (0, 0, 1)
+    ]
+    torch.testing.assert_close(outs[0].depth, outs[1].depth)
+    assert not torch.equal(outs[0].depth, outs[2].depth)
+    for o in outs:
+        torch.testing.assert_close(o.opacity, torch.full((4,), 1 - math.exp(-1.0)))
+
+
+def test_max_samples_caps_the_intervals_per_ray():
+    out = render_rays(Constant(0.1), rays_along_z([[0.0, 0.0]]), BOX, step=1e-6, max_samples=16, outputs=("opacity",))
+    assert 14 <= out.n_samples <= 16  # the lattice may cut a partial interval at either end
+    assert out.opacity.item() == pytest.approx(1 - math.exp(-0.02), rel=1e-6)
+
+
+def test_bad_arguments_are_refused_with_a_clear_message():
+    rays = rays_along_z([[0.0, 0.0]])
+    with pytest.raises(ValueError, match="outputs must be"):
+        render_rays(Sphere(), rays, BOX, step=STEP, outputs=("normals",))
+    with pytest.raises(ValueError, match="step must be"):
+        render_rays(Sphere(), rays, BOX, step=0.0)
+    with pytest.raises(ValueError, match=r"theta must be \[k\] or \[n_rays=1, k\]"):
+        render_rays(Sphere(), rays, BOX, theta=torch.zeros(3, 1), step=STEP)
+    with pytest.raises(ValueError, match="transmittance_eps"):
+        render_rays(Sphere(), rays, BOX, step=STEP, transmittance_eps=0.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Occupancy grid
+
+
+def test_occupancy_lookup_hand_checked():
+    occ = torch.zeros(2, 2, 2, dtype=torch.bool)
+    occ[1, 0, 1] = True  # the cell [0.5, 1) x [0, 0.5) x [0.5, 1)
+    grid = OccupancyGrid(torch.tensor([[0.0, 0, 0], [1, 1, 1]]), occ)
+    x = torch.tensor([[0.75, 0.25, 0.75], [0.25, 0.25, 0.75], [1.0, 0.0, 1.0], [1.01, 0.25, 0.75], [0.75, 0.25, -0.01]])
+    assert grid.occupied(x).tolist() == [True, False, True, False, False]
+    torch.testing.assert_close(grid.bounds(), torch.tensor([[0.5, 0.0, 0.5], [1.0, 0.5, 1.0]]))
+    assert grid.fraction == 1 / 8 and grid.resolution == (2, 2, 2)
+    assert OccupancyGrid.full(BOX, 4).occupied(torch.zeros(1, 3)).item()
+
+
+def test_grid_validation_errors():
+    with pytest.raises(ValueError, match="max > min"):
+        OccupancyGrid(torch.tensor([[0.0, 0, 0], [0, 1, 1]]), torch.ones(2, 2, 2))
+    with pytest.raises(ValueError, match="needs theta_range"):
+        OccupancyGrid(BOX, torch.ones(4, 2, 2, 2))
+    with pytest.raises(ValueError, match=r"\[Rx, Ry, Rz\]"):
+        OccupancyGrid(BOX, torch.ones(2, 2))
+
+
+def test_grid_from_field_never_drops_the_sphere_at_any_theta():
+    field = Sphere(radius=0.03, growth=0.04)  # radius 3 cm at theta = 0 .. 7 cm at theta = 1
+    field.theta_lower, field.theta_upper = torch.tensor([0.0]), torch.tensor([1.0])
+    grid = OccupancyGrid.from_field(field, BOX, 16, theta_bins=4)
+    assert grid.occupancy.shape == (4, 16, 16, 16)
+    g = torch.Generator().manual_seed(0)
+    theta = torch.cat([torch.tensor([0.0, 1.0]), torch.rand(998, generator=g)])[:, None]
+    direction = torch.nn.functional.normalize(torch.randn(1000, 3, generator=g), dim=-1)
+    x = direction * (torch.rand(1000, 1, generator=g) * (0.03 + 0.04 * theta))  # inside the sphere at its theta
+    assert grid.occupied(x, theta).all() and grid.occupied(x).all()
+    small = grid.bounds(torch.tensor([0.0]))  # the first bin's ball is smaller than the union's
+    assert (small[1] - small[0] < grid.bounds()[1] - grid.bounds()[0]).all()
+    far = torch.tensor([[0.0, 0.0, 0.095]])  # outside even the largest sphere, beyond the dilation
+    assert not grid.occupied(far).item()
+
+
+def test_grid_from_field_with_explicit_theta_samples_is_one_union_grid():
+    field = Sphere(radius=0.02, growth=0.04)
+    grid = OccupancyGrid.from_field(field, BOX, 16, theta_samples=torch.tensor([[0.0], [0.5], [1.0]]), passes=1)
+    assert grid.occupancy.shape == (16, 16, 16) and grid.theta_range is None
+    assert grid.occupied(torch.tensor([[0.055, 0.0, 0.0]])).item()  # inside the theta = 1 ball only
+
+
+def test_grid_skips_empty_cells_without_changing_the_render():
+    field = Sphere(center=(0.02, 0.0, 0.01), radius=0.04, rgb=(0.2, 0.9, 0.4))
+    grid = OccupancyGrid.from_field(field, BOX, 32)
+    rays = rays_along_z(torch.rand(200, 2, generator=torch.Generator().manual_seed(2)) * 0.2 - 0.1)
+    exact = {"step": STEP, "outputs": ("rgb", "depth", "opacity"), "transmittance_eps": 1e-30}  # no early stop
+    field.points.clear()
+    full = render_rays(field, rays, BOX, **exact)
+    n_full = field.n_evaluated
+    field.points.clear()
+    skipped = render_rays(field, rays, BOX, grid=grid, **exact)
+    assert skipped.n_samples < n_full / 5
+    assert grid.occupied(torch.cat(field.points)).all()  # nothing evaluated in an empty cell
+    for a, b in zip((full.rgb, full.depth, full.opacity), (skipped.rgb, skipped.depth, skipped.opacity)):
+        torch.testing.assert_close(a, b)
+
+
+def test_an_empty_grid_renders_background_without_evaluating():
+    field = Sphere()
+    grid = OccupancyGrid(BOX, torch.zeros(4, 4, 4, dtype=torch.bool))
+    out = render_rays(field, rays_along_z([[0.0, 0.0]]), BOX, grid=grid, step=STEP, background=0.3, outputs=("rgb", "opacity"))
+    assert out.n_samples == 0 and out.opacity.item() == 0 and torch.allclose(out.rgb, torch.tensor(0.3))
+
+
+# --------------------------------------------------------------------------------------------
+# Images
+
+
+def camera_looking_at_origin(distance=0.5, width=64, height=48) -> tuple[Pinhole, torch.Tensor]:
+    camera = Pinhole.primesense(width, height)
+    T_world_cam = look_at(torch.tensor([0.0, -distance, 0.0]), torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
+    return camera, invert_pose(T_world_cam)
+
+
+def test_render_image_of_a_sphere_has_the_right_depth_and_silhouette():
+    camera, T_cam_obj = camera_looking_at_origin(width=160, height=120)
+    field = Sphere(sigma=1e5)  # opaque within one interval
+    images = render_image(field, camera, T_cam_obj, aabb=BOX, step=STEP, outputs=("rgb", "depth", "opacity"), background=0.1)
+    assert images["rgb"].shape == (120, 160, 3) and images["depth"].shape == images["opacity"].shape == (120, 160)
+    assert all(v.dtype == torch.float32 for v in images.values())
+    assert images["depth"][60, 80].item() == pytest.approx(0.45, abs=STEP)  # front of the ball, on the axis
+    mask = images["opacity"] > 0.5
+    radius_px = camera.K[0, 0].item() * 0.05 / math.sqrt(0.5**2 - 0.05**2)  # tangent cone of the ball
+    assert mask.sum().item() == pytest.approx(math.pi * radius_px**2, rel=0.05)
+    assert (images["depth"][~mask] == 0).all()
+    torch.testing.assert_close(images["rgb"][0, 0], torch.full((3,), 0.1))
+    torch.testing.assert_close(images["rgb"][60, 80], torch.tensor([1.0, 0.5, 0.0]))
+
+
+def test_render_image_equals_render_rays_over_every_pixel():
+    camera, T_cam_obj = camera_looking_at_origin(distance=0.35)
+    field = Sphere(center=(0.03, 0.0, -0.02))
+    images = render_image(field, camera, T_cam_obj, aabb=BOX, step=STEP, outputs=("rgb", "opacity"))
+    rays = camera.rays().transform(invert_pose(T_cam_obj))
+    out = render_rays(field, rays, BOX, step=STEP, outputs=("rgb", "opacity"))
+    torch.testing.assert_close(images["rgb"].reshape(-1, 3), out.rgb)
+    torch.testing.assert_close(images["opacity"].reshape(-1), out.opacity)
+
+
+def test_a_box_behind_the_camera_renders_nothing():
+    camera, T_cam_obj = camera_looking_at_origin()
+    behind = make_pose(so3_exp(torch.tensor([0.0, math.pi, 0.0])), torch.zeros(3)) @ T_cam_obj
+    field = Sphere()
+    images = render_image(field, camera, behind, aabb=BOX, step=STEP, outputs=("opacity",))
+    assert not field.points and images["opacity"].sum() == 0
+
+
+# --------------------------------------------------------------------------------------------
+# Part composition
+
+
+def two_parts(second_offset=(0.0, 0.0, 0.08)):
+    """Two spheres defined at their own origins, posed in the object frame: red at 0, blue at an offset."""
+    part_box = torch.tensor([[-0.05] * 3, [0.05] * 3])
+    red = Sphere(radius=0.04, sigma=200.0, rgb=(1.0, 0.0, 0.0), aabb=part_box)
+    blue = Sphere(radius=0.03, sigma=300.0, rgb=(0.0, 0.0, 1.0), aabb=part_box)
+    R = so3_exp(torch.tensor([0.0, 0.0, 0.7]))
+    T_obj_part = torch.stack([torch.eye(4), make_pose(R, torch.tensor(second_offset))])
+    return [red, blue], T_obj_part
+
+
+def test_composed_aabb_covers_the_posed_part_boxes():
+    boxes = torch.tensor([[[-1.0, -1, -1], [1, 1, 1]], [[0.0, 0, 0], [1, 2, 3]]])
+    T = torch.stack([torch.eye(4), make_pose(torch.eye(3), torch.tensor([10.0, 0.0, 0.0]))])
+    torch.testing.assert_close(composed_aabb(boxes, T), torch.tensor([[-1.0, -1, -1], [11, 2, 3]]))
+
+
+def test_volumetric_composition_equals_the_analytic_union():
+    parts, T_obj_part = two_parts(second_offset=(0.0, 0.0, 0.05))  # the balls overlap
+
+    def union(x, d, theta=None):
+        s1 = torch.where(x.norm(dim=-1) < 0.04, 200.0, 0.0)
+        s2 = torch.where((x - torch.tensor([0.0, 0.0, 0.05])).norm(dim=-1) < 0.03, 300.0, 0.0)
+        sigma = s1 + s2
+        rgb = torch.stack([s1, torch.zeros_like(s1), s2], -1) / sigma.clamp_min(1e-30)[:, None]
+        return sigma, rgb
+
+    composition = compose_parts(parts, [None, None], T_obj_part)
+    box = composition.aabb
+    g = torch.Generator().manual_seed(3)
+    offsets = torch.stack([torch.rand(300, generator=g) * 0.12 - 0.06, torch.zeros(300), torch.rand(300, generator=g) * 0.16 - 0.05], -1)
+    rays = Rays(torch.tensor([0.0, -1.0, 0.0]) + offsets, torch.tensor([[0.0, 1.0, 0.0]]).expand(300, 3), torch.ones(300))
+    exact = {"step": STEP, "outputs": ("rgb", "depth", "opacity"), "transmittance_eps": 1e-30}  # no early stop
+    got = render_rays(composition, rays, box, grid=composition, **exact)
+    want = render_rays(union, rays, box, **exact)
+    for a, b in zip((got.rgb, got.depth, got.opacity), (want.rgb, want.depth, want.opacity)):
+        torch.testing.assert_close(a, b, atol=1e-5, rtol=1e-5)
+    mixed = (got.rgb[:, 0] > 0.05) & (got.rgb[:, 2] > 0.05)
+    assert mixed.any()  # some rays cross both balls: the density-weighted colour matters
+    for part in parts:  # each part is evaluated only inside its own box
+        seen = torch.cat(part.points)
+        assert ((seen >= part.aabb[0] - 1e-6) & (seen <= part.aabb[1] + 1e-6)).all()
+
+
+def test_depth_test_keeps_the_nearer_part():
+    parts, T_obj_part = two_parts()  # blue sits 8 cm further along +z
+    toward_plus_z = rays_along_z([[0.0, 0.0]] * 2)  # meets red first
+    toward_minus_z = Rays(torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([[0.0, 0.0, -1.0]]), torch.ones(1))  # blue first
+    out = render_depth_test(parts, [None, None], T_obj_part, toward_plus_z, step=STEP)
+    torch.testing.assert_close(out.rgb[0], torch.tensor([1.0, 0.0, 0.0]), atol=1e-3, rtol=0)  # T < 1e-3 left
+    # surface at 0.96; with sigma = 200 the expected depth lies 1 / sigma behind it
+    assert (out.depth / out.opacity)[0].item() == pytest.approx(0.96 + 1 / 200, abs=2 * STEP)
+    out = render_depth_test(parts, [None, None], T_obj_part, toward_minus_z, step=STEP)
+    torch.testing.assert_close(out.rgb[0], torch.tensor([0.0, 0.0, 1.0]), atol=1e-3, rtol=0)
+
+
+def test_depth_test_skips_a_near_part_that_is_too_faint():
+    faint_near = RenderOutput(torch.tensor([[0.3, 0.0, 0.0]]), torch.tensor([0.3 * 0.5]), torch.tensor([0.3]))
+    solid_far = RenderOutput(torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([0.9]), torch.tensor([1.0]))
+    out = depth_test([faint_near, solid_far], background=0.0)
+    torch.testing.assert_close(out.rgb, torch.tensor([[0.0, 0.0, 1.0]]))
+    both_faint = depth_test([faint_near, RenderOutput(torch.zeros(1, 3), torch.zeros(1), torch.tensor([0.1]))], background=1.0)
+    torch.testing.assert_close(both_faint.rgb, torch.tensor([[1.0, 0.7, 0.7]]))  # the most opaque, over the background
+
+
+def test_render_parts_image_matches_the_per_ray_depth_test():
+    parts, T_obj_part = two_parts()
+    camera, T_cam_obj = camera_looking_at_origin(distance=0.4, width=40, height=30)
+    images = render_parts_image(parts, [None, None], T_obj_part, camera, T_cam_obj, step=STEP, outputs=("rgb", "opacity"))
+    rays = camera.rays().transform(invert_pose(T_cam_obj))
+    out = render_depth_test(parts, [None, None], T_obj_part, rays, step=STEP)
+    torch.testing.assert_close(images["rgb"].reshape(-1, 3), out.rgb, atol=1e-6, rtol=0)
+    assert (images["opacity"] > 0.5).any()
