@@ -1,0 +1,775 @@
+"""The refiner: an object's pose and configuration from one masked RGB(-D) view (DESIGN §4.4).
+
+iNeRF-style render-and-compare, as in NARF22 §III-C: from an initial pose ``T_init`` and the
+mid-range configuration, Adam moves ``(T_cam_obj, θ)`` so that rays rendered through the model
+match the observed pixels.
+
+Parameterisation (one row per start, ``[n_starts, 6 + k]``):
+  - pose: ``T = se3_exp(ξ) @ T_init``, a left-multiplied twist. ``ξ`` is expressed at the object's
+    centre with the camera's axes (``ξ = Ad(C) [r ρ, ω]``, ``C`` the translation to the centre of
+    the object's box under ``T_init``, ``r`` its half-diagonal), so a rotation turns the object
+    about itself instead of swinging it around the camera, and one step moves surface points about
+    equally for ``ρ`` and ``ω``: the pose is learnt in radians and object radii.
+  - configuration: ``θ = mid + half_range * sin(u)``, inside the limits by construction and reaching
+    either limit at a finite ``u = ±π/2`` (a sigmoid would only approach it). ``u`` starts at most
+    ``_U_LIMIT`` from ±π/2 so that a start at a limit still has a gradient.
+
+Learning rates. The paper uses Adam with 0.001 (pose) and 0.01 (θ, metres for its clamp) for 150
+iterations. Ours are per normalised unit: ``lr_pose`` in radians / object radii, ``lr_theta`` in
+``u`` (near mid-range one step moves θ by about ``lr_theta * half_range``); both decay
+exponentially to ``lr_decay`` times their start. The paper's pose rate moves at most 150 * 0.001 rad
+= 8.6 deg in 150 steps, less than its own 10 deg perturbation, so the defaults are larger: they
+are the measured best on our benchmark (benchmarks/estimate.py) at 150 iterations.
+
+Loss, averaged over the rays of one iteration: the paper's masked photometric MSE
+``|render - image * mask|^2`` (rendered on a black background), plus ``silhouette_weight * (opacity
+- mask)^2`` and, where a depth is observed inside the mask, ``depth_weight * ((depth - observed) /
+r)^2``. Rays come only from the mask's box dilated by ``box_margin``. With ``coarse_to_fine = L``
+the first half of the iterations goes through L - 1 coarse levels whose targets are box-filtered
+over ``2^l + 1`` pixels (l = L-1 .. 1), with rays jittered over the same square, so the loss seen
+is the fine loss smoothed over small image shifts; the second half uses the paper's plain loss at
+pixel centres.
+
+``theta_starts = S`` runs S configurations (the given one and S-1 spread over the joint box) as
+ONE batch of ``S * rays_per_iteration`` rays for the first third of the iterations, then keeps
+the start with the lowest loss. A non-finite loss or gradient never reaches the parameters: the
+best finite iterate is restored, Adam's moments reset and its rates halved.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from narf_core.geometry import (
+    Pinhole,
+    Rays,
+    invert_pose,
+    pose_to_position_quaternion,
+    se3_exp,
+    so3_log,
+    transform_points,
+)
+from narf_core.metrics import add, add_s, joint_errors, success_rates
+from narf_core.render import ray_aabb
+
+if TYPE_CHECKING:
+    from narf_core.bundle import NarfModel
+
+STATUSES = ("converged", "max_iterations", "no_overlap", "non_finite")
+MIN_MASK_PIXELS = 4
+_U_LIMIT = 0.2  # a start keeps u this far inside ±π/2 (where dθ/du = 0): 2% of the half-range from a limit
+_MAX_RECOVERIES = 8  # consecutive non-finite iterations before giving up
+_EVAL_RAYS = 4096  # the final loss is measured on at most this many rays of the box
+_ADAM_BETAS = (0.9, 0.999)
+_ADAM_EPS = 1e-8
+_ROTATION_ATOL = 1e-3  # tolerance on R^T R = I and det R = 1 for an input pose
+
+
+class EstimateInputError(ValueError):
+    """Unusable input to :func:`refine`; the message names the argument and what is wrong."""
+
+
+@dataclass
+class EstimateOptions:
+    """Refiner settings; plain JSON-able fields, so ``EstimateOptions(**asdict(o)) == o``.
+
+    The defaults follow the paper's protocol (150 Adam iterations on the masked photometric loss,
+    one start at mid-range); :meth:`robust` switches on the extras.
+    """
+
+    iterations: int = 150
+    lr_pose: float = 0.01  # per step, radians and object radii (see the module docstring)
+    lr_theta: float = 0.05  # per step, in u where θ = mid + half_range * sin(u)
+    lr_decay: float = 0.1  # final rate / first rate, exponential in between
+    rays_per_iteration: int = 1024
+    mode: str = "narf"  # "narf" (the configuration field) or "parts" (composed part fields)
+    silhouette_weight: float = 0.0
+    depth_weight: float = 0.0
+    theta_starts: int = 1
+    coarse_to_fine: int = 1  # pyramid levels; 1 = the plain loss throughout
+    box_margin: float = 0.15  # rays come from the mask's box grown by this fraction of its size
+    early_stop: bool = True
+    tolerance: float = 3e-4  # early stop: mean motion per iteration (radii, radians, θ range) ...
+    loss_tolerance: float = 0.02  # ... and relative change of the mean loss, over `patience` iterations
+    patience: int = 15
+    record_every: int = 0  # keep the pose every this many iterations in `EstimateResult.history`
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, name: str, what: str) -> None:
+            if not ok:
+                raise EstimateInputError(f"options.{name} {what}, got {getattr(self, name)!r}")
+
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.type == "bool":
+                need(isinstance(value, bool), f.name, "must be true or false")
+            elif f.type == "int":
+                need(isinstance(value, int) and not isinstance(value, bool), f.name, "must be an integer")
+            elif f.type == "float":
+                need(isinstance(value, (int, float)) and not isinstance(value, bool), f.name, "must be a number")
+                need(math.isfinite(value), f.name, "must be finite")
+        need(self.iterations >= 0, "iterations", "must be >= 0")
+        need(self.lr_pose > 0, "lr_pose", "must be > 0")
+        need(self.lr_theta > 0, "lr_theta", "must be > 0")
+        need(0 < self.lr_decay <= 1, "lr_decay", "must be in (0, 1]")
+        need(self.rays_per_iteration >= 1, "rays_per_iteration", "must be >= 1")
+        need(self.mode in ("narf", "parts"), "mode", "must be 'narf' or 'parts'")
+        need(self.silhouette_weight >= 0, "silhouette_weight", "must be >= 0")
+        need(self.depth_weight >= 0, "depth_weight", "must be >= 0")
+        need(1 <= self.theta_starts <= 64, "theta_starts", "must be in [1, 64]")
+        need(1 <= self.coarse_to_fine <= 6, "coarse_to_fine", "must be in [1, 6]")
+        need(self.box_margin >= 0, "box_margin", "must be >= 0")
+        need(self.tolerance >= 0, "tolerance", "must be >= 0")
+        need(self.loss_tolerance >= 0, "loss_tolerance", "must be >= 0")
+        need(self.patience >= 1, "patience", "must be >= 1")
+        need(self.record_every >= 0, "record_every", "must be >= 0")
+
+    @classmethod
+    def robust(cls, **overrides) -> EstimateOptions:
+        """The defaults plus a silhouette term, 4 configuration starts and 3 pyramid levels."""
+        return cls(**{"silhouette_weight": 1.0, "theta_starts": 4, "coarse_to_fine": 3, **overrides})
+
+
+@dataclass
+class Snapshot:
+    """The estimate after ``iteration`` steps, ``seconds`` into the run (``options.record_every``)."""
+
+    iteration: int
+    seconds: float
+    loss: float
+    T_cam_obj: np.ndarray  # [4, 4]
+    joints: dict[str, float]
+
+
+@dataclass
+class EstimateResult:
+    """What :func:`refine` found.
+
+    ``status``: ``converged`` (stopped early), ``max_iterations``, ``no_overlap`` (no ray of the
+    mask's box meets the object's box under ``T_init``: the initial pose comes back unchanged) or
+    ``non_finite`` (the loss stayed non-finite for several iterations in a row despite recovery:
+    the best finite iterate comes back, or the initial pose if there was none). ``loss`` is the
+    final loss on a fixed set of up to 4096 rays of the box, or ``None`` (JSON ``null``) when none
+    could be computed. ``trace`` holds ``(loss, seconds since the start)`` of every finite iteration; ``metrics``
+    (with ``ground_truth``) holds ``add``, ``add_s`` (metres), ``add<1cm`` and ``add<0.1d`` (0 or
+    1), ``rotation_error_deg`` and ``translation_error_m`` of the root link and
+    ``joint_error/<name>`` (radians or metres).
+    """
+
+    T_cam_obj: np.ndarray  # [4, 4] float64
+    position: np.ndarray  # [3]
+    quaternion: np.ndarray  # [4], xyzw
+    joints: dict[str, float]
+    loss: float | None
+    iterations: int
+    seconds: float
+    trace: list[tuple[float, float]]
+    status: str
+    recovered_non_finite: bool
+    metrics: dict[str, float] | None = None
+    history: list[Snapshot] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        """A JSON-able copy (arrays as nested lists)."""
+        return {
+            "T_cam_obj": self.T_cam_obj.tolist(),
+            "position": self.position.tolist(),
+            "quaternion": self.quaternion.tolist(),
+            "joints": dict(self.joints),
+            "loss": self.loss,
+            "iterations": self.iterations,
+            "seconds": self.seconds,
+            "trace": [list(t) for t in self.trace],
+            "status": self.status,
+            "recovered_non_finite": self.recovered_non_finite,
+            "metrics": None if self.metrics is None else dict(self.metrics),
+            "history": [
+                {"iteration": s.iteration, "seconds": s.seconds, "loss": s.loss, "T_cam_obj": s.T_cam_obj.tolist(),
+                 "joints": dict(s.joints)}
+                for s in self.history
+            ],
+        }
+
+
+# --------------------------------------------------------------------------------------------
+# Input checks
+
+
+def _check_pose(T: np.ndarray, name: str) -> np.ndarray:
+    """A finite rigid 4x4 pose as float64, or :class:`EstimateInputError` saying what is wrong."""
+    T = np.asarray(T)
+    if T.shape != (4, 4):
+        raise EstimateInputError(f"{name} must be a 4x4 pose matrix, got shape {T.shape}")
+    if not np.issubdtype(T.dtype, np.number) or not np.isfinite(T).all():
+        raise EstimateInputError(f"{name} must be finite numbers, got {T.tolist()}")
+    T = T.astype(np.float64)
+    R = T[:3, :3]
+    if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6):
+        raise EstimateInputError(f"{name} must have the last row [0, 0, 0, 1], got {T[3].tolist()}")
+    if not np.allclose(R.T @ R, np.eye(3), atol=_ROTATION_ATOL) or np.linalg.det(R) < 0:
+        raise EstimateInputError(f"{name} has a rotation block that is not a proper orthonormal matrix")
+    return T
+
+
+def _check_observation(
+    image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, camera: Pinhole
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Validated ``image [H,W,3]`` uint8, ``mask [H,W]`` bool and ``depth [H,W]`` (0 = none)."""
+    image, mask = np.asarray(image), np.asarray(mask)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise EstimateInputError(f"image must be an RGB array [H, W, 3], got shape {image.shape}")
+    if image.dtype != np.uint8:
+        raise EstimateInputError(f"image must be uint8 sRGB, got dtype {image.dtype}")
+    if mask.ndim != 2:
+        raise EstimateInputError(f"mask must be a 2-D array [H, W], got shape {mask.shape}")
+    if mask.dtype != bool and not np.issubdtype(mask.dtype, np.integer):
+        raise EstimateInputError(f"mask must be boolean (or integer, nonzero = object), got dtype {mask.dtype}")
+    height, width = image.shape[:2]
+    if mask.shape != (height, width):
+        raise EstimateInputError(f"mask is {mask.shape[1]}x{mask.shape[0]} but image is {width}x{height} (WxH)")
+    if (camera.width, camera.height) != (width, height):
+        raise EstimateInputError(
+            f"camera is {camera.width}x{camera.height} but image is {width}x{height} (WxH)"
+        )
+    K = camera.K.detach().double().cpu().numpy()
+    if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
+        raise EstimateInputError(f"camera K must be finite with fx, fy > 0 and last row [0, 0, 1], got {K.tolist()}")
+    if not (0 <= K[0, 2] <= width and 0 <= K[1, 2] <= height):
+        raise EstimateInputError(
+            f"camera K's principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the {width}x{height} image: "
+            "K is probably for another resolution"
+        )
+    mask = mask != 0
+    count = int(mask.sum())
+    if count == 0:
+        raise EstimateInputError("mask is empty: no object pixel to fit")
+    if count < MIN_MASK_PIXELS:
+        raise EstimateInputError(f"mask has only {count} object pixel(s); at least {MIN_MASK_PIXELS} are needed")
+    if depth is not None:
+        depth = np.asarray(depth)
+        if depth.shape != (height, width):
+            raise EstimateInputError(f"depth must be [H, W] = {(height, width)} like the image, got shape {depth.shape}")
+        if not np.issubdtype(depth.dtype, np.floating):
+            raise EstimateInputError(f"depth must be float metres, got dtype {depth.dtype}")
+        depth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
+        if (depth < 0).any():
+            raise EstimateInputError("depth has negative values; expected metres with 0 (or NaN) = no return")
+    return image, mask, depth
+
+
+def _check_joints(model: NarfModel, joints: Mapping[str, float] | None, name: str, *, complete: bool) -> Tensor:
+    """θ ``[k]`` float64 from ``{name: value}`` (missing -> mid-range unless ``complete``)."""
+    if joints is not None and not isinstance(joints, Mapping):
+        raise EstimateInputError(f"{name} must be a mapping {{joint name: value}}, got {type(joints).__name__}")
+    if complete:
+        missing = [j.name for j in model.joints if j.name not in (joints or {})]
+        if missing:
+            raise EstimateInputError(f"{name} lacks joint(s) {', '.join(missing)}")
+    try:
+        return model.joint_vector(joints).to(torch.float64)
+    except ValueError as e:
+        raise EstimateInputError(f"{name}: {e}") from None
+
+
+# --------------------------------------------------------------------------------------------
+# The observation, cropped to the rays' box
+
+
+@dataclass
+class _Target:
+    """Per-pixel targets of the box at one pyramid level, flattened row-major."""
+
+    rgb: Tensor  # [P, 3] the masked image, box-filtered over `width` pixels
+    mask: Tensor  # [P] mask coverage in [0, 1]
+    depth: Tensor | None  # [P] metres, 0 = none (never filtered: only at the finest level)
+    width: int  # box filter width in pixels (odd)
+
+
+@dataclass
+class _Observation:
+    """The dilated mask box ``[u0, u1) x [v0, v1)`` with its pixels and per-level targets."""
+
+    pixels: Tensor  # [P, 2] integer (u, v) of the box
+    levels: list[_Target]  # coarse to fine
+
+
+def _mask_box(mask: np.ndarray, margin: float) -> tuple[int, int, int, int]:
+    """``(u0, v0, u1, v1)``: the mask's bounding box grown by ``margin`` of its size, inside the image."""
+    rows, cols = np.nonzero(mask.any(1))[0], np.nonzero(mask.any(0))[0]
+    v0, v1, u0, u1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+    grow = max(2, round(margin * max(u1 - u0, v1 - v0)))
+    height, width = mask.shape
+    return max(0, u0 - grow), max(0, v0 - grow), min(width, u1 + grow), min(height, v1 + grow)
+
+
+def _box_filter(image: Tensor, width: int) -> Tensor:
+    """Mean over ``width x width`` pixels (odd ``width``), shrinking at the borders: ``[h,w,c] -> [h,w,c]``."""
+    if width == 1:
+        return image
+    x = image.permute(2, 0, 1)[None]
+    out = F.avg_pool2d(x, width, stride=1, padding=width // 2, count_include_pad=False)
+    return out[0].permute(1, 2, 0)
+
+
+def _observation(
+    image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, box: tuple[int, int, int, int], levels: int
+) -> _Observation:
+    u0, v0, u1, v1 = box
+    rgb = torch.tensor(image[v0:v1, u0:u1], dtype=torch.float32) / 255
+    m = torch.tensor(mask[v0:v1, u0:u1], dtype=torch.float32)[..., None]
+    masked = torch.cat([rgb * m, m], dim=-1)  # [h, w, 4]
+    d = None if depth is None else torch.tensor(depth[v0:v1, u0:u1]).reshape(-1)
+    targets = []
+    for level in range(levels):
+        width = 2 ** (levels - 1 - level) + 1 if level < levels - 1 else 1
+        blurred = _box_filter(masked, width).reshape(-1, 4)
+        targets.append(_Target(blurred[:, :3], blurred[:, 3], d if width == 1 else None, width))
+    v, u = torch.meshgrid(torch.arange(v0, v1), torch.arange(u0, u1), indexing="ij")
+    return _Observation(torch.stack([u.reshape(-1), v.reshape(-1)], -1), targets)
+
+
+# --------------------------------------------------------------------------------------------
+# Parameterisation
+
+
+@dataclass
+class _Parameterisation:
+    """Maps the optimised rows ``p [S, 6 + k]`` to poses ``[S,4,4]`` and configurations ``[S,k]``."""
+
+    T_init: Tensor  # [4, 4] float64
+    T_centre: Tensor  # [4, 4] translation to the object's centre in the camera frame under T_init
+    radius: float  # metres per unit of the normalised translation
+    mid: Tensor  # [k] float64
+    half: Tensor  # [k] half the joint ranges
+
+    @classmethod
+    def around(cls, T_init: Tensor, model: NarfModel) -> _Parameterisation:
+        aabb = model.aabb.to(torch.float64)
+        T_centre = torch.eye(4, dtype=torch.float64)
+        T_centre[:3, 3] = transform_points(T_init, (aabb[0] + aabb[1]) / 2)
+        lower, upper = model.kinematics.lower.to(torch.float64), model.kinematics.upper.to(torch.float64)
+        return cls(T_init, T_centre, float((aabb[1] - aabb[0]).norm()) / 2, (lower + upper) / 2, (upper - lower) / 2)
+
+    def poses(self, p: Tensor) -> Tensor:
+        xi = torch.cat([p[:, :3] * self.radius, p[:, 3:6]], dim=-1)
+        return self.T_centre @ se3_exp(xi) @ invert_pose(self.T_centre) @ self.T_init
+
+    def thetas(self, p: Tensor) -> Tensor:
+        return self.mid + self.half * torch.sin(p[:, 6:])
+
+    def u_of(self, theta: Tensor) -> Tensor:
+        """Inverse of :meth:`thetas` on ``[-π/2, π/2]``, kept ``_U_LIMIT`` inside."""
+        ratio = torch.where(self.half > 0, (theta - self.mid) / self.half.clamp_min(1e-12), torch.zeros_like(theta))
+        return torch.asin(ratio.clamp(-1, 1)).clamp(-math.pi / 2 + _U_LIMIT, math.pi / 2 - _U_LIMIT)
+
+    def motion(self, a: Tensor, b: Tensor) -> Tensor:
+        """Largest motion ``[S]`` between rows: radii, radians, or fractions of a joint's range."""
+        pose = (a[:, :6] - b[:, :6]).abs().amax(-1)
+        if a.shape[1] == 6:
+            return pose
+        span = (2 * self.half).clamp_min(1e-12)
+        theta = ((self.thetas(a) - self.thetas(b)).abs() / span).amax(-1)
+        return torch.maximum(pose, theta)
+
+
+def _theta_starts(theta0: Tensor, param: _Parameterisation, count: int) -> Tensor:
+    """``[S, k]``: ``theta0`` first, then ``count - 1`` configurations spread over the joint box.
+
+    Each joint's range is cut into ``count`` equal strata; ``theta0`` takes one, and the other
+    starts take the middles of the others, assigned per joint with a shift (a Latin hypercube):
+    every joint sees every stratum, and no two starts repeat a value. A rigid object (``k = 0``)
+    gets one start.
+    """
+    if theta0.shape[0] == 0:
+        return theta0[None]
+    lower, span = param.mid - param.half, (2 * param.half).clamp_min(1e-12)
+    taken = ((theta0 - lower) / span * count).floor().clamp(0, count - 1).long()
+    rows = [theta0]
+    for i in range(1, count):
+        row = []
+        for j in range(theta0.shape[0]):
+            free = [s for s in range(count) if s != int(taken[j])]
+            row.append(lower[j] + span[j] * (free[(i - 1 + j) % (count - 1)] + 0.5) / count)
+        rows.append(torch.stack(row))
+    return torch.stack(rows)
+
+
+# --------------------------------------------------------------------------------------------
+# Rendering and loss
+
+
+def _object_rays(rays_cam: Rays, T_cam_obj: Tensor) -> Rays:
+    """Camera rays ``[n]`` seen from every pose ``T_cam_obj [S,4,4]`` -> object-frame rays ``[S*n]``."""
+    T_obj_cam = invert_pose(T_cam_obj).to(rays_cam.origins.dtype)  # [S, 4, 4]
+    n_starts, n = T_obj_cam.shape[0], len(rays_cam)
+    origins = T_obj_cam[:, None, :3, 3].expand(n_starts, n, 3)
+    directions = rays_cam.directions @ T_obj_cam[:, :3, :3].transpose(-1, -2)  # [S, n, 3]
+    return Rays(origins.reshape(-1, 3), directions.reshape(-1, 3), rays_cam.z_per_t.repeat(n_starts))
+
+
+@dataclass
+class _Loss:
+    """Everything fixed about the loss of one run."""
+
+    model: NarfModel
+    options: EstimateOptions
+    radius: float
+    uses_depth: bool
+
+    def __call__(self, rays_cam: Rays, target: _Target, index: Tensor, T: Tensor, theta: Tensor) -> Tensor:
+        """Loss ``[S]`` of every start on the rays ``rays_cam [n]`` through box pixels ``index [n]``."""
+        opts = self.options
+        n_starts, n = T.shape[0], len(rays_cam)
+        outputs = ["rgb"]
+        if opts.silhouette_weight > 0:
+            outputs.append("opacity")
+        depth = target.depth[index] if (self.uses_depth and target.depth is not None) else None
+        if depth is not None:
+            outputs += ["depth", "opacity"]
+        k = theta.shape[-1]
+        theta_rays = theta.to(torch.float32)[:, None, :].expand(n_starts, n, k).reshape(n_starts * n, k) if k else None
+        out = self.model.render_rays(
+            _object_rays(rays_cam, T),
+            theta_rays,
+            mode=opts.mode,
+            outputs=tuple(dict.fromkeys(outputs)),
+            background=0.0,
+        )
+        rgb = out.rgb.reshape(n_starts, n, 3)
+        loss = ((rgb - target.rgb[index]) ** 2).mean(dim=(1, 2))
+        if opts.silhouette_weight > 0:
+            opacity = out.opacity.reshape(n_starts, n)
+            loss = loss + opts.silhouette_weight * ((opacity - target.mask[index]) ** 2).mean(-1)
+        if depth is not None:
+            valid = (depth > 0) & (target.mask[index] > 0.5)
+            if bool(valid.any()):
+                rendered = out.depth.reshape(n_starts, n)
+                opacity = out.opacity.reshape(n_starts, n)
+                # Rendered depth is opacity-weighted; compare like with like (no division by opacity).
+                err = (rendered - opacity * depth) / self.radius
+                loss = loss + opts.depth_weight * (err**2 * valid).sum(-1) / valid.sum()
+        return loss
+
+
+# --------------------------------------------------------------------------------------------
+# Adam on rows, with per-column rates, slicing and resets
+
+
+class _Adam:
+    """Plain Adam over ``params [S, d]`` with per-column rates ``lr [d]``; rows are independent, so
+    a start can be dropped (:meth:`keep`) and the moments reset after a non-finite step."""
+
+    def __init__(self, params: Tensor, lr: Tensor) -> None:
+        self.params, self.lr = params, lr
+        self.reset()
+
+    def reset(self) -> None:
+        self.m = torch.zeros_like(self.params)
+        self.v = torch.zeros_like(self.params)
+        self.step_count = 0
+
+    def step(self, grad: Tensor, scale: float) -> None:
+        b1, b2 = _ADAM_BETAS
+        self.step_count += 1
+        self.m.mul_(b1).add_(grad, alpha=1 - b1)
+        self.v.mul_(b2).addcmul_(grad, grad, value=1 - b2)
+        m_hat = self.m / (1 - b1**self.step_count)
+        v_hat = self.v / (1 - b2**self.step_count)
+        self.params = self.params - scale * self.lr * m_hat / (v_hat.sqrt() + _ADAM_EPS)
+
+    def keep(self, rows: Tensor) -> None:
+        self.params, self.m, self.v = self.params[rows], self.m[rows], self.v[rows]
+
+
+# --------------------------------------------------------------------------------------------
+# The refiner
+
+
+def refine(
+    model: NarfModel,
+    image: np.ndarray,
+    mask: np.ndarray,
+    camera: Pinhole,
+    T_init: np.ndarray,
+    *,
+    joints_init: Mapping[str, float] | None = None,
+    depth: np.ndarray | None = None,
+    options: EstimateOptions | None = None,
+    ground_truth: tuple[np.ndarray, Mapping[str, float]] | None = None,
+) -> EstimateResult:
+    """Refine ``T_init`` and ``joints_init`` so that ``model``'s render matches the masked view.
+
+    Args:
+        model: a :class:`~narf_core.bundle.NarfModel` (``render_rays``, ``joints``, limits, ``aabb``).
+        image: ``[H, W, 3]`` uint8 sRGB observation.
+        mask: ``[H, W]`` bool, the object's pixels (integer arrays: nonzero = object).
+        camera: the view's intrinsics; its size must be the image's.
+        T_init: ``[4, 4]`` initial ``T_cam_obj``.
+        joints_init: initial ``{joint: value}`` (missing joints start at mid-range).
+        depth: optional ``[H, W]`` metric z-depth, 0 or NaN = no return (used if ``depth_weight > 0``).
+        options: :class:`EstimateOptions`; defaults follow the paper.
+        ground_truth: optional ``(T_cam_obj [4, 4], {joint: value})`` to score the result against.
+
+    Raises:
+        EstimateInputError: empty or tiny mask, size mismatches, a K for another resolution, a
+            non-finite or non-rigid pose, unknown or out-of-limit joints, bad options.
+    """
+    start_time = time.perf_counter()
+    opts = options if options is not None else EstimateOptions()
+    if not isinstance(opts, EstimateOptions):
+        raise EstimateInputError(f"options must be EstimateOptions, got {type(opts).__name__}")
+    image, mask, depth = _check_observation(image, mask, depth, camera)
+    T0 = torch.from_numpy(_check_pose(T_init, "T_init"))
+    theta0 = _check_joints(model, joints_init, "joints_init", complete=False)
+    truth = None
+    if ground_truth is not None:
+        if not isinstance(ground_truth, (tuple, list)) or len(ground_truth) != 2:
+            raise EstimateInputError("ground_truth must be a pair (T_cam_obj [4, 4], {joint: value})")
+        truth = (
+            torch.from_numpy(_check_pose(ground_truth[0], "ground_truth pose")),
+            _check_joints(model, ground_truth[1], "ground_truth joints", complete=True),
+        )
+    if opts.mode == "parts" and not model.has_parts:
+        raise EstimateInputError(f"options.mode 'parts' needs part fields, which model {model.name!r} lacks")
+
+    camera = Pinhole(camera.K.detach().to(torch.float32).cpu(), camera.width, camera.height)
+    obs = _observation(image, mask, depth, _mask_box(mask, opts.box_margin), opts.coarse_to_fine)
+    param = _Parameterisation.around(T0, model)
+
+    def result(status: str, row: Tensor | None, loss: float | None, run: _Run | None = None) -> EstimateResult:
+        T, theta = (T0, theta0) if row is None else (param.poses(row)[0], param.thetas(row)[0])
+        position, quaternion = pose_to_position_quaternion(T)
+        return EstimateResult(
+            T_cam_obj=T.numpy().copy(),
+            position=position.numpy().copy(),
+            quaternion=quaternion.numpy().copy(),
+            joints=model.joint_dict(theta.to(torch.float32)),
+            loss=loss,
+            iterations=0 if run is None else run.iteration,
+            seconds=time.perf_counter() - start_time,
+            trace=[] if run is None else run.trace,
+            status=status,
+            recovered_non_finite=run is not None and run.recovered,
+            metrics=None if truth is None else _metrics(model, truth, T, theta),
+            history=[] if run is None else run.history,
+        )
+
+    if not _overlaps(camera, obs.pixels, T0, model.aabb):
+        return result("no_overlap", None, None)
+    loss_fn = _Loss(model, opts, param.radius, depth is not None and opts.depth_weight > 0)
+    run = _Run(model, opts, obs, camera, param, loss_fn, _theta_starts(theta0, param, opts.theta_starts), start_time)
+    run.optimise()
+    final = _final_choice(loss_fn, obs, camera, param, run.adam.params, run.best_params, run.rng)
+    if final is None:
+        run.recovered = True
+        return result("non_finite", None, None, run)
+    row, loss, replaced = final
+    run.recovered |= replaced
+    return result(run.status, row, loss, run)
+
+
+class _Run:
+    """The optimisation loop of one :func:`refine` call and its record."""
+
+    def __init__(
+        self,
+        model: NarfModel,
+        opts: EstimateOptions,
+        obs: _Observation,
+        camera: Pinhole,
+        param: _Parameterisation,
+        loss_fn: _Loss,
+        starts: Tensor,
+        start_time: float,
+    ) -> None:
+        self.model, self.opts, self.obs, self.camera, self.param, self.loss_fn = model, opts, obs, camera, param, loss_fn
+        self.start_time = start_time
+        params0 = torch.cat([torch.zeros(starts.shape[0], 6, dtype=torch.float64), param.u_of(starts)], dim=1)
+        k = starts.shape[1]
+        self.adam = _Adam(params0, torch.tensor([opts.lr_pose] * 6 + [opts.lr_theta] * k, dtype=torch.float64))
+        self.best_params, self.best_loss = params0, math.inf
+        self.rng = torch.Generator().manual_seed(opts.seed)
+        self.rate_scale, self.recovered = 1.0, False
+        self.iteration, self.status = 0, "max_iterations"
+        self.trace: list[tuple[float, float]] = []
+        self.history: list[Snapshot] = []
+        self.losses: list[Tensor] = []  # per-start losses of the recent iterations
+        self.past: list[Tensor] = []  # parameters of the recent iterations
+
+    def optimise(self) -> None:
+        opts, n_levels = self.opts, len(self.obs.levels)
+        prune_at = opts.iterations // 3
+        failures = 0
+        while self.iteration < opts.iterations:
+            level = _level(self.iteration, opts.iterations, n_levels)
+            self.iteration += 1
+            per_start, grad = self._loss_and_gradient(self.obs.levels[level])
+            if not (bool(torch.isfinite(per_start).all()) and bool(torch.isfinite(grad).all())):
+                failures += 1
+                self._recover()
+                if failures >= _MAX_RECOVERIES:
+                    self.status = "non_finite"
+                    return
+                continue
+            failures = 0
+            self._record(per_start)
+            decay = opts.lr_decay ** (self.iteration / max(opts.iterations - 1, 1))
+            self.adam.step(grad, self.rate_scale * decay)
+            if self.adam.params.shape[0] > 1 and self.iteration >= prune_at:
+                self._keep_best_start()
+            if opts.early_stop and level == n_levels - 1 and self.adam.params.shape[0] == 1 and self._converged():
+                self.status = "converged"
+                return
+
+    def _loss_and_gradient(self, target: _Target) -> tuple[Tensor, Tensor]:
+        """Per-start loss ``[S]`` on this iteration's rays and its gradient ``[S, d]`` (zero if no ray
+        reaches the object)."""
+        n_pixels = self.obs.pixels.shape[0]
+        n_rays = min(self.opts.rays_per_iteration, n_pixels)
+        if n_rays == n_pixels and target.width == 1:
+            index = torch.arange(n_pixels)
+        else:
+            index = torch.randint(n_pixels, (n_rays,), generator=self.rng)
+        pixels = self.obs.pixels[index].to(torch.float32)
+        if target.width > 1:
+            pixels = pixels + (torch.rand(n_rays, 2, generator=self.rng) - 0.5) * target.width
+        p = self.adam.params.clone().requires_grad_(True)
+        per_start = self.loss_fn(self.camera.rays(pixels), target, index, self.param.poses(p), self.param.thetas(p))
+        if not per_start.requires_grad:
+            return per_start, torch.zeros_like(p)
+        (grad,) = torch.autograd.grad(per_start.sum(), p)
+        return per_start.detach(), grad
+
+    def _recover(self) -> None:
+        """After a non-finite loss or gradient: back to the best finite iterate, fresh moments, half rate."""
+        self.recovered = True
+        self.adam.params = self.best_params.clone()
+        self.adam.reset()
+        self.rate_scale *= 0.5
+        self.losses.clear()
+        self.past.clear()
+
+    def _record(self, per_start: Tensor) -> None:
+        total = float(per_start.sum())
+        if total < self.best_loss:
+            self.best_loss, self.best_params = total, self.adam.params.clone()
+        elapsed = time.perf_counter() - self.start_time
+        self.trace.append((float(per_start.min()), elapsed))
+        self.losses.append(per_start)
+        self.past.append(self.adam.params.clone())
+        del self.losses[: -2 * self.opts.patience], self.past[: -self.opts.patience - 1]
+        if self.opts.record_every and self.iteration % self.opts.record_every == 0:
+            self.history.append(_snapshot(self.model, self.param, self.adam.params, per_start, self.iteration, elapsed))
+
+    def _keep_best_start(self) -> None:
+        """Drop every start but the one with the lowest mean loss over the last iterations (paired:
+        all starts saw the same rays)."""
+        recent = self.losses[-5:] or [torch.zeros(self.adam.params.shape[0])]
+        keep = torch.stack(recent).mean(0).argmin().reshape(1)
+        self.adam.keep(keep)
+        self.best_params = self.adam.params.clone()
+        self.best_loss = float(recent[-1][keep])
+        self.losses = [row[keep] for row in self.losses]
+        self.past = [row[keep] for row in self.past]
+
+    def _converged(self) -> bool:
+        """Over the last ``patience`` iterations the estimate moved less than ``tolerance`` per
+        iteration (net, so Adam's jitter about a minimum cancels out) and the mean loss changed by
+        less than ``loss_tolerance`` (relative) from the window before."""
+        n = self.opts.patience
+        if len(self.past) < n + 1 or len(self.losses) < 2 * n:
+            return False
+        if float(self.param.motion(self.adam.params, self.past[-n - 1]).max()) > self.opts.tolerance * n:
+            return False
+        recent = float(torch.stack(self.losses[-n:]).mean())
+        before = float(torch.stack(self.losses[-2 * n : -n]).mean())
+        return abs(recent - before) <= self.opts.loss_tolerance * max(abs(before), 1e-12)
+
+
+def _level(iteration: int, iterations: int, levels: int) -> int:
+    """The pyramid level of an iteration: coarse levels share the first half of the run equally."""
+    if levels == 1:
+        return 0
+    return min(2 * iteration * (levels - 1) // max(iterations, 1), levels - 1)
+
+
+@torch.no_grad()
+def _final_choice(
+    loss_fn: _Loss,
+    obs: _Observation,
+    camera: Pinhole,
+    param: _Parameterisation,
+    params: Tensor,
+    best_params: Tensor,
+    rng: torch.Generator,
+) -> tuple[Tensor, float, bool] | None:
+    """The row ``[1, d]`` with the lowest loss on a fixed set of fine rays, its loss, and whether the
+    last iterate had to be replaced by the best finite one (``None`` if nothing is finite)."""
+    n_pixels = obs.pixels.shape[0]
+    index = torch.arange(n_pixels) if n_pixels <= _EVAL_RAYS else torch.randperm(n_pixels, generator=rng)[:_EVAL_RAYS]
+    rays = camera.rays(obs.pixels[index])
+    target = obs.levels[-1]
+    for candidate, replaced in ((params, False), (best_params, True)):
+        loss = loss_fn(rays, target, index, param.poses(candidate), param.thetas(candidate))
+        loss = torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf))
+        i = int(loss.argmin())
+        if math.isfinite(float(loss[i])):
+            return candidate[i : i + 1], float(loss[i]), replaced
+    return None
+
+
+@torch.no_grad()
+def _overlaps(camera: Pinhole, pixels: Tensor, T_cam_obj: Tensor, aabb: Tensor) -> bool:
+    """Whether any ray through the box pixels ``[P, 2]`` meets the object's box under ``T_cam_obj``."""
+    corners = torch.stack(torch.meshgrid(*[aabb[:, i].double() for i in range(3)], indexing="ij"), -1).reshape(-1, 3)
+    if bool((transform_points(T_cam_obj, corners)[:, 2] <= 0).all()):
+        return False
+    rays = camera.rays(pixels)
+    T_obj_cam = invert_pose(T_cam_obj).to(torch.float32)
+    origins = transform_points(T_obj_cam, rays.origins)
+    directions = rays.directions @ T_obj_cam[:3, :3].T
+    _, t_far, hit = ray_aabb(origins, directions, aabb.to(torch.float32))
+    return bool((hit & (t_far > 0)).any())
+
+
+@torch.no_grad()
+def _snapshot(model: NarfModel, param: _Parameterisation, params: Tensor, losses: Tensor, iteration: int, seconds: float) -> Snapshot:
+    i = int(losses.argmin())
+    row = params[i : i + 1]
+    return Snapshot(
+        iteration,
+        seconds,
+        float(losses[i]),
+        param.poses(row)[0].numpy().copy(),
+        model.joint_dict(param.thetas(row)[0].to(torch.float32)),
+    )
+
+
+def _metrics(model: NarfModel, truth: tuple[Tensor, Tensor], T: Tensor, theta: Tensor) -> dict[str, float]:
+    """Root pose errors, per-joint errors and, where the model has surface points, ADD, ADD-S and
+    the success flags, against the ground truth."""
+    T_true, theta_true = truth
+    T, theta = T.detach(), theta.detach()
+    out = {
+        "rotation_error_deg": math.degrees(float(so3_log(T[:3, :3] @ T_true[:3, :3].T).norm())),
+        "translation_error_m": float((T[:3, 3] - T_true[:3, 3]).norm()),
+    }
+    errors = joint_errors(theta_true.numpy(), theta.numpy(), [j.type for j in model.joints])
+    out.update({f"joint_error/{j.name}": float(e) for j, e in zip(model.joints, errors)})
+    if any(len(points) for points in model.sample_points.values()):
+        kin = model.kinematics
+        args = (model.sample_points, kin.link_poses(theta_true).numpy(), T_true.numpy(), kin.link_poses(theta).numpy(), T.numpy(), model.links)
+        out["add"], out["add_s"] = float(add(*args)), float(add_s(*args))
+        if model.diameter > 0:
+            out.update(success_rates(np.array([out["add"]]), model.diameter))
+    return out

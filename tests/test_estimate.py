@@ -1,0 +1,410 @@
+"""The refiner on an analytic toy clamp: a textured bar and a jaw sliding along it (prismatic).
+
+The fields are written by hand (boxes with a linear density ramp at their faces), so the rendered
+observation is exact and the optimum is known. Images are 64x48 (about 4.5 mm per pixel at the
+object), so "recovered" means an ADD of a few millimetres.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from torch import Tensor, nn
+
+from narf_core.bundle import NarfModel
+from narf_core.estimate import EstimateInputError, EstimateOptions, EstimateResult, refine
+from narf_core.geometry import Pinhole, invert_pose, look_at, so3_exp
+from narf_core.kinematics import KinematicTree
+from narf_core.render import OccupancyGrid
+
+BAR_HALF = (0.08, 0.02, 0.01)
+JAW_HALF = (0.01, 0.03, 0.01)
+JAW_Y = 0.05  # the jaw link's origin in the bar frame at θ = 0
+RAMP = 0.006  # density ramps from 0 to full over this distance across a face
+DENSITY = 3000.0
+LOWER, UPPER = -0.06, 0.06
+TRUTH = {"slide": 0.012}
+FAST = dict(iterations=80, rays_per_iteration=512, lr_pose=0.02)
+ASSETS = Path(__file__).parent / "assets"
+
+
+def _ramp_box(x: Tensor, half: tuple[float, ...]) -> Tensor:
+    return ((x.new_tensor(half) - x.abs()) / RAMP + 0.5).clamp(0, 1).prod(-1)
+
+
+def bar(x: Tensor) -> tuple[Tensor, Tensor]:
+    """The bar in its own frame: ``x [n,3] -> (σ [n], rgb [n,3])``."""
+    one = torch.ones_like(x[:, 0])
+    rgb = torch.stack([0.5 + 0.4 * torch.sin(60 * x[:, 0]), 0.3 + 0.2 * torch.cos(90 * x[:, 1] + 40 * x[:, 2]), 0.6 * one], -1)
+    return DENSITY * _ramp_box(x, BAR_HALF), rgb
+
+
+def jaw(x: Tensor) -> tuple[Tensor, Tensor]:
+    """The jaw in its own frame."""
+    one = torch.ones_like(x[:, 0])
+    rgb = torch.stack([0.9 * one, 0.5 + 0.4 * torch.sin(120 * x[:, 1] + 80 * x[:, 0]), 0.1 * one], -1)
+    return DENSITY * _ramp_box(x, JAW_HALF), rgb
+
+
+class SliderField(nn.Module):
+    """The configuration field ``F(x, d, θ)``: bar plus jaw moved by θ, densities added."""
+
+    def forward(self, x: Tensor, d: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
+        s_bar, c_bar = bar(x)
+        shift = torch.stack([theta[:, 0], torch.full_like(theta[:, 0], JAW_Y), torch.zeros_like(theta[:, 0])], -1)
+        s_jaw, c_jaw = jaw(x - shift)
+        sigma = s_bar + s_jaw
+        return sigma, (s_bar[:, None] * c_bar + s_jaw[:, None] * c_jaw) / sigma.clamp_min(1e-8)[:, None]
+
+
+class PartField(nn.Module):
+    """A rigid part field ``(x, d, None) -> (σ, rgb)`` with its box."""
+
+    def __init__(self, fn, half: tuple[float, ...]) -> None:
+        super().__init__()
+        self.fn = fn
+        self.register_buffer("aabb", torch.tensor([[-h - RAMP for h in half], [h + RAMP for h in half]]))
+
+    def forward(self, x: Tensor, d: Tensor, theta: Tensor | None) -> tuple[Tensor, Tensor]:
+        return self.fn(x)
+
+
+class FlakyField(SliderField):
+    """Returns NaN densities on the calls numbered in ``bad`` (``None``: on every call)."""
+
+    def __init__(self, bad: range | None) -> None:
+        super().__init__()
+        self.bad, self.calls = bad, 0
+
+    def forward(self, x, d, theta):
+        self.calls += 1
+        sigma, rgb = super().forward(x, d, theta)
+        if self.bad is None or self.calls in self.bad:
+            sigma = torch.full_like(sigma, math.nan)
+        return sigma, rgb
+
+
+def make_model(field: nn.Module, assets: Path = ASSETS, *, parts: bool = False) -> NarfModel:
+    kin = KinematicTree.from_urdf(assets / "estimate_slider.urdf")
+    aabb = torch.tensor([[-0.09, -0.03, -0.02], [0.09, 0.09, 0.02]])
+    grid = OccupancyGrid.from_field(SliderField(), aabb, 24, theta_samples=torch.linspace(LOWER, UPPER, 13)[:, None])
+    part_fields = [PartField(bar, BAR_HALF), PartField(jaw, JAW_HALF)] if parts else None
+    part_grids = [OccupancyGrid.full(f.aabb, 8) for f in part_fields] if parts else None
+    return NarfModel("slider", kin, field, grid, part_fields=part_fields, part_grids=part_grids, step=0.003)
+
+
+@pytest.fixture(scope="module")
+def model() -> NarfModel:
+    return make_model(SliderField(), ASSETS, parts=True)
+
+
+CAMERA = Pinhole.primesense(64, 48)
+
+
+def view(eye=(0.08, -0.15, 0.18)) -> np.ndarray:
+    """``T_cam_obj`` of a camera at ``eye`` looking at the middle of the toy, z up."""
+    f64 = dict(dtype=torch.float64)
+    T_world_cam = look_at(torch.tensor(eye, **f64), torch.tensor([0.0, 0.03, 0.0], **f64), torch.tensor([0.0, 0.0, 1.0], **f64))
+    return invert_pose(T_world_cam).numpy()
+
+
+def observe(model: NarfModel, T: np.ndarray, joints: dict, camera: Pinhole = CAMERA):
+    """uint8 image, bool mask and depth of the toy at ``T``, ``joints``."""
+    out = model.render(torch.as_tensor(T, dtype=torch.float32), model.joint_vector(joints), camera, outputs=("rgb", "opacity", "depth"))
+    return (out["rgb"].numpy() * 255).round().astype(np.uint8), out["opacity"].numpy() > 0.5, out["depth"].numpy()
+
+
+def perturbed(T: np.ndarray, degrees: float, metres: float, seed: int) -> np.ndarray:
+    """``T`` turned by ``degrees`` about a random axis through the toy's middle and moved by ``metres``."""
+    rng = np.random.default_rng(seed)
+    axis, shift = rng.normal(size=3), rng.normal(size=3)
+    R = so3_exp(torch.as_tensor(axis / np.linalg.norm(axis) * math.radians(degrees))).numpy()
+    centre = T[:3, :3] @ np.array([0.0, 0.03, 0.0]) + T[:3, 3]
+    out = T.copy()
+    out[:3, :3] = R @ T[:3, :3]
+    out[:3, 3] = R @ (T[:3, 3] - centre) + centre + shift / np.linalg.norm(shift) * metres
+    return out
+
+
+def assert_finite(result: EstimateResult) -> None:
+    assert np.isfinite(result.T_cam_obj).all() and np.isfinite(result.quaternion).all()
+    assert all(math.isfinite(v) for v in result.joints.values())
+    assert all(math.isfinite(loss) and math.isfinite(t) for loss, t in result.trace)
+    json.dumps(result.to_dict(), allow_nan=False)
+
+
+# --- recovery -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("mode", ["narf", "parts"])
+def test_recovers_pose_and_joint_from_10deg_2cm(model, mode):
+    T = view()
+    image, mask, _ = observe(model, T, TRUTH)
+    T0 = perturbed(T, 10, 0.02, seed=1)
+    result = refine(model, image, mask, CAMERA, T0, options=EstimateOptions(mode=mode, **FAST), ground_truth=(T, TRUTH))
+    start = refine(model, image, mask, CAMERA, T0, options=EstimateOptions(iterations=0), ground_truth=(T, TRUTH))
+    assert_finite(result)
+    assert start.metrics["add"] > 0.02
+    assert result.metrics["add"] < 0.006, result.metrics
+    assert result.metrics["joint_error/slide"] < 0.004
+    assert result.metrics["add<1cm"] == 1.0
+    assert result.loss < start.loss / 10
+    assert result.status in ("converged", "max_iterations")
+    assert np.allclose(result.T_cam_obj[:3, :3] @ result.T_cam_obj[:3, :3].T, np.eye(3), atol=1e-9)
+
+
+@pytest.mark.parametrize("limit", [LOWER, UPPER])
+def test_reaches_a_joint_limit_and_never_passes_it(model, limit):
+    T = view()
+    truth = {"slide": limit}
+    image, mask, _ = observe(model, T, truth)
+    start = {"slide": limit - math.copysign(0.012, limit)}
+    result = refine(model, image, mask, CAMERA, T, joints_init=start, options=EstimateOptions(**FAST), ground_truth=(T, truth))
+    assert LOWER <= result.joints["slide"] <= UPPER
+    assert abs(result.joints["slide"] - limit) < 0.002
+    for s in result.history:
+        assert LOWER <= s.joints["slide"] <= UPPER
+
+
+def test_a_start_exactly_at_a_limit_can_leave_it(model):
+    T = view()
+    truth = {"slide": UPPER - 0.012}
+    image, mask, _ = observe(model, T, truth)
+    result = refine(model, image, mask, CAMERA, T, joints_init={"slide": UPPER}, options=EstimateOptions(**FAST))
+    assert abs(result.joints["slide"] - truth["slide"]) < 0.003
+
+
+def test_object_partly_outside_the_image(model):
+    T = view()
+    T[0, 3] += 0.07  # the bar's far end leaves the image on the right
+    image, mask, _ = observe(model, T, TRUTH)
+    assert mask[:, -1].any() and 0 < mask.sum()
+    result = refine(model, image, mask, CAMERA, perturbed(T, 5, 0.01, seed=2), options=EstimateOptions(**FAST), ground_truth=(T, TRUTH))
+    assert_finite(result)
+    assert result.metrics["add"] < 0.01
+
+
+def test_no_overlap_returns_the_initial_pose_unchanged(model):
+    T = view()
+    image, mask, _ = observe(model, T, TRUTH)
+    far = T.copy()
+    far[0, 3] += 1.0  # a metre to the side: no ray of the mask's box meets the object's box
+    result = refine(model, image, mask, CAMERA, far, joints_init={"slide": 0.03}, ground_truth=(T, TRUTH))
+    assert result.status == "no_overlap"
+    assert np.array_equal(result.T_cam_obj, far)
+    assert result.joints == pytest.approx({"slide": 0.03})
+    assert result.loss is None and result.iterations == 0 and result.trace == []
+    assert result.metrics["add"] > 0.5
+    behind = T.copy()
+    behind[2, 3] = -1.0  # behind the camera
+    assert refine(model, image, mask, CAMERA, behind).status == "no_overlap"
+
+
+# --- robustness -----------------------------------------------------------------------------
+
+
+def test_flipped_object_near_180_degrees_stays_finite(model):
+    T = view()
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])  # 180 deg about the bar's long axis: the far side shows
+    T_flipped = T @ flip
+    image, mask, _ = observe(model, T_flipped, TRUTH)
+    T0 = T_flipped @ np.array(
+        [[1, 0, 0, 0], [0, math.cos(3.1415), -math.sin(3.1415), 0], [0, math.sin(3.1415), math.cos(3.1415), 0], [0, 0, 0, 1]]
+    )  # starts upside down again: 179.99 deg off
+    result = refine(model, image, mask, CAMERA, T0, options=EstimateOptions(iterations=20), ground_truth=(T_flipped, TRUTH))
+    assert_finite(result)
+    assert not result.recovered_non_finite
+    assert math.isfinite(result.metrics["rotation_error_deg"]) and result.metrics["rotation_error_deg"] > 150
+    near = refine(model, image, mask, CAMERA, perturbed(T_flipped, 5, 0.005, 3), options=EstimateOptions(**FAST), ground_truth=(T_flipped, TRUTH))
+    assert near.metrics["add"] < 0.006
+
+
+def test_transient_nan_in_the_field_is_recovered(assets):
+    flaky = make_model(FlakyField(bad=range(30, 33)), assets)
+    T = view()
+    image, mask, _ = observe(make_model(SliderField(), assets), T, TRUTH)
+    result = refine(flaky, image, mask, CAMERA, perturbed(T, 10, 0.02, 1), options=EstimateOptions(**FAST), ground_truth=(T, TRUTH))
+    assert flaky.field.calls > 40
+    assert result.recovered_non_finite
+    assert_finite(result)
+    assert result.metrics["add"] < 0.01
+
+
+def test_a_field_that_is_always_nan_gives_back_the_initial_pose(assets):
+    broken = make_model(FlakyField(bad=None), assets)
+    T = view()
+    image, mask, _ = observe(make_model(SliderField(), assets), T, TRUTH)
+    T0 = perturbed(T, 10, 0.02, 1)
+    result = refine(broken, image, mask, CAMERA, T0, options=EstimateOptions(**FAST))
+    assert result.status == "non_finite" and result.recovered_non_finite
+    assert np.array_equal(result.T_cam_obj, T0) and result.loss is None
+    assert result.iterations < 20
+    json.dumps(result.to_dict(), allow_nan=False)
+
+
+def test_theta_starts_run_as_one_batch_and_keep_the_best(model, monkeypatch):
+    T = view()
+    truth, init = {"slide": -0.05}, {"slide": 0.05}  # the jaws do not overlap: the loss is flat in θ there
+    image, mask, _ = observe(model, T, truth)
+    one = refine(model, image, mask, CAMERA, T, joints_init=init, options=EstimateOptions(**{**FAST, "iterations": 30}), ground_truth=(T, truth))
+    calls = []
+    render_rays = model.render_rays
+    monkeypatch.setattr(model, "render_rays", lambda rays, theta, **kw: calls.append((len(rays), theta)) or render_rays(rays, theta, **kw))
+    options = EstimateOptions(theta_starts=4, **FAST)
+    four = refine(model, image, mask, CAMERA, T, joints_init=init, options=options, ground_truth=(T, truth))
+    assert one.metrics["joint_error/slide"] > 0.05
+    assert four.metrics["joint_error/slide"] < 0.003
+    assert four.loss < one.loss / 10
+    n, theta = calls[0]
+    assert n == 4 * 512 and theta.shape == (n, 1)  # four starts in one call: a batch of 4 x 512 rays
+    assert torch.unique(theta).tolist() == pytest.approx([-0.045, -0.015, 0.015, 0.05], abs=1e-6)  # 3 strata + the start
+    assert [c[0] for c in calls[:-1]] == [4 * 512] * 26 + [512] * 54  # the best start alone after a third
+
+
+def test_early_stop_stops_early_and_can_be_switched_off(model):
+    T = view()
+    image, mask, _ = observe(model, T, TRUTH)
+    options = EstimateOptions(iterations=100, rays_per_iteration=4096, patience=8)  # every pixel: a deterministic loss
+    stopped = refine(model, image, mask, CAMERA, T, joints_init=TRUTH, options=options, ground_truth=(T, TRUTH))
+    assert stopped.status == "converged" and stopped.iterations < 80
+    assert stopped.metrics["add"] < 0.003
+    full = refine(model, image, mask, CAMERA, T, joints_init=TRUTH, options=EstimateOptions(iterations=20, early_stop=False))
+    assert full.status == "max_iterations" and full.iterations == 20 and len(full.trace) == 20
+
+
+def test_robust_options_and_depth(model):
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    depth[::7] = np.nan  # missing returns
+    options = EstimateOptions.robust(depth_weight=1.0, record_every=25, **FAST)
+    result = refine(model, image, mask, CAMERA, perturbed(T, 10, 0.02, 4), depth=depth, options=options, ground_truth=(T, TRUTH))
+    assert result.metrics["add"] < 0.006
+    assert [s.iteration for s in result.history] == [25, 50, 75]
+
+
+# --- inputs and outputs ---------------------------------------------------------------------
+
+
+def test_options_round_trip_through_json():
+    options = EstimateOptions.robust(iterations=10, seed=3)
+    assert EstimateOptions(**json.loads(json.dumps(asdict(options)))) == options
+    assert options.theta_starts > 1 and options.silhouette_weight > 0 and options.coarse_to_fine > 1
+    assert EstimateOptions().iterations == 150
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(iterations=-1), "options.iterations must be >= 0"),
+        (dict(mode="mesh"), "options.mode must be 'narf' or 'parts'"),
+        (dict(lr_pose=0.0), "options.lr_pose must be > 0"),
+        (dict(lr_theta=math.nan), "options.lr_theta must be finite"),
+        (dict(rays_per_iteration=2.5), "options.rays_per_iteration must be an integer"),
+        (dict(early_stop="yes"), "options.early_stop must be true or false"),
+        (dict(theta_starts=0), "options.theta_starts must be in [1, 64]"),
+    ],
+)
+def test_bad_options_are_refused(kwargs, message):
+    with pytest.raises(EstimateInputError, match=message.replace("[", r"\[").replace("]", r"\]").replace(".", r"\.")):
+        EstimateOptions(**kwargs)
+
+
+def _bad_inputs(model):
+    T = view()
+    image, mask, _ = observe(model, T, TRUTH)
+    one = np.zeros_like(mask)
+    one[20, 30] = True
+    nan_pose = T.copy()
+    nan_pose[0, 3] = math.nan
+    sheared = T.copy()
+    sheared[0, 1] += 0.2
+    return T, image, mask, [
+        (dict(mask=np.zeros_like(mask)), "mask is empty"),
+        (dict(mask=one), "mask has only 1 object pixel"),
+        (dict(mask=mask[:, :-1]), "mask is 63x48 but image is 64x48"),
+        (dict(image=image[..., :2]), r"image must be an RGB array \[H, W, 3\]"),
+        (dict(image=image.astype(np.float32)), "image must be uint8"),
+        (dict(camera=Pinhole.primesense(640, 480)), "camera is 640x480 but image is 64x48"),
+        (dict(camera=Pinhole(Pinhole.primesense(640, 480).K, 64, 48)), "principal point .* outside the 64x48 image"),
+        (dict(T_init=nan_pose), "T_init must be finite"),
+        (dict(T_init=T[:3]), "T_init must be a 4x4 pose matrix"),
+        (dict(T_init=sheared), "T_init has a rotation block that is not a proper orthonormal matrix"),
+        (dict(joints_init={"slid": 0.0}), r"joints_init: unknown joint\(s\) \['slid'\]"),
+        (dict(joints_init={"slide": 0.5}), "joints_init: joint 'slide': 0.5 is outside its limits"),
+        (dict(depth=np.zeros((10, 10), np.float32)), r"depth must be \[H, W\]"),
+        (dict(depth=-np.ones(mask.shape, np.float32)), "depth has negative values"),
+        (dict(ground_truth=(T, {})), r"ground_truth joints lacks joint\(s\) slide"),
+    ]
+
+
+def test_bad_inputs_raise_a_clear_error(model, assets):
+    T, image, mask, cases = _bad_inputs(model)
+    for override, message in cases:
+        args = {**dict(image=image, mask=mask, camera=CAMERA, T_init=T), **override}
+        kwargs = {k: args.pop(k) for k in ("joints_init", "depth", "options", "ground_truth") if k in args}
+        with pytest.raises(EstimateInputError, match=message):
+            refine(model, args["image"], args["mask"], args["camera"], args["T_init"], **kwargs)
+    no_parts = make_model(SliderField(), assets)
+    with pytest.raises(EstimateInputError, match="options.mode 'parts' needs part fields"):
+        refine(no_parts, image, mask, CAMERA, T, options=EstimateOptions(mode="parts"))
+
+
+def test_rigid_object_without_joints(tmp_path):
+    urdf = (ASSETS / "estimate_slider.urdf").read_text()
+    rigid = urdf[: urdf.index('  <link name="jaw">')] + "</robot>\n"
+    (tmp_path / "bar.urdf").write_text(rigid)
+    kin = KinematicTree.from_urdf(tmp_path / "bar.urdf")
+    field = PartField(bar, BAR_HALF)
+    rigid_model = NarfModel("bar", kin, field, OccupancyGrid.full(field.aabb, 8), step=0.003)
+    T = view()
+    image, mask, _ = observe(rigid_model, T, {})
+    options = EstimateOptions(theta_starts=3, **FAST)  # no joint: one start
+    result = refine(rigid_model, image, mask, CAMERA, perturbed(T, 10, 0.02, 5), options=options, ground_truth=(T, {}))
+    assert result.joints == {} and result.metrics["add_s"] < 0.006, result.metrics
+
+
+# --- the benchmark protocol -----------------------------------------------------------------
+
+
+def test_perturbation_is_azimuth_elevation_about_the_centre_and_bounded():
+    from benchmarks.estimate import perturb_pose
+
+    T = view()
+    centre = np.array([0.0, 0.03, 0.0])
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        T0 = perturb_pose(T, centre, 10.0, 0.02, rng)
+        R = T0[:3, :3] @ T[:3, :3].T  # the rotation applied in the camera frame
+        assert math.degrees(math.acos(min(1.0, (np.trace(R) - 1) / 2))) <= 10 * math.sqrt(2) + 1e-9
+        assert abs(R[1, 0]) < 1e-12  # Ry(azimuth) @ Rx(elevation): the camera's x axis stays in the xz plane
+        moved = (T0[:3, :3] @ centre + T0[:3, 3]) - (T[:3, :3] @ centre + T[:3, 3])
+        assert np.linalg.norm(moved) <= 0.02 + 1e-12
+    assert np.array_equal(perturb_pose(T, centre, 0.0, 0.0, rng), T)
+
+
+def test_benchmark_writes_table_curves_and_sweep(model, tmp_path):
+    from benchmarks.estimate import run
+    from narf_core.data.dataset import DatasetWriter, FrameImages, read_urdf
+
+    root = tmp_path / "toy"
+    with DatasetWriter(root, read_urdf(ASSETS / "estimate_slider.urdf"), CAMERA) as writer:
+        for eye in [(0.08, -0.15, 0.18), (-0.1, -0.12, 0.2), (0.05, 0.2, 0.22)]:
+            T = view(eye)
+            image, mask, _ = observe(model, T, TRUTH)
+            writer.add("test", FrameImages(image, None, mask.astype(np.uint8)), T, TRUTH)
+    result = run({"toy": model}, {"toy": root}, out_dir=tmp_path / "out", scenes=2, iterations=12, scale_sweep=(1.0,))
+    assert [(r["tool"], r["mode"], r["scenes"]) for r in result["table"]] == [("toy", "narf", 2), ("toy", "parts", 2)]
+    row = result["table"][0]
+    assert row["add_mean_m"] > 0 and 0 <= row["add<0.1d"] <= 1 and row["joints"]["slide"]["unit"] == "m"
+    assert result["curves"]["toy narf"]["iteration"] == [10]
+    assert [(s["robust"], s["scale"]) for s in result["sweep"]] == [(False, 1.0), (True, 1.0)]
+    for name in ("estimate.json", "estimate.md", "estimate_error_vs_iterations.png", "estimate_sweep.png"):
+        assert (tmp_path / "out" / name).stat().st_size > 0
+    assert json.loads((tmp_path / "out" / "estimate.json").read_text())["config"]["scenes"] == 2
+    assert "| toy | narf | 2 |" in (tmp_path / "out" / "estimate.md").read_text()
