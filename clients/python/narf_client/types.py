@@ -1,0 +1,153 @@
+"""What the client hands back: poses, rendered images, estimates and model descriptions (numpy inside).
+
+Conventions are the server's (DESIGN §2): metres, radians; ``K`` in the OpenCV frame; a pose is
+``T_cam_obj``; quaternions are ``[qx, qy, qz, qw]`` (ROS order).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Quaternion ``[4]`` (xyzw, normalised here) -> rotation ``[3, 3]``."""
+    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
+    """Rotation ``[3, 3]`` -> unit quaternion ``[4]`` (xyzw, ``qw >= 0``); Shepperd's method, stable at pi."""
+    m = np.asarray(R, dtype=np.float64)
+    trace = np.trace(m)
+    diagonal = np.diag(m)
+    i = int(np.argmax([trace, *diagonal]))
+    if i == 0:
+        r = 2 * np.sqrt(1 + trace)  # 4 qw
+        q = np.array([(m[2, 1] - m[1, 2]) / r, (m[0, 2] - m[2, 0]) / r, (m[1, 0] - m[0, 1]) / r, r / 4])
+    else:  # (a, b, c) cyclic, a the largest diagonal entry; r = 4 q_a
+        a = i - 1
+        b, c = (a + 1) % 3, (a + 2) % 3
+        r = np.sqrt(1 + m[a, a] - m[b, b] - m[c, c]) * 2
+        q = np.empty(4)
+        q[a] = r / 4
+        q[b] = (m[a, b] + m[b, a]) / r
+        q[c] = (m[a, c] + m[c, a]) / r
+        q[3] = (m[c, b] - m[b, c]) / r
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A rigid pose ``T_cam_obj``: ``matrix [4, 4]`` (float64); ``position [3]`` and ``orientation [4]`` (xyzw)."""
+
+    matrix: np.ndarray
+
+    def __post_init__(self) -> None:
+        m = np.array(self.matrix, dtype=np.float64)
+        if m.shape != (4, 4):
+            raise ValueError(f"a pose matrix must be 4x4, got shape {m.shape}")
+        if not np.isfinite(m).all():
+            raise ValueError("a pose matrix must be finite (it holds NaN or infinity)")
+        m.setflags(write=False)
+        object.__setattr__(self, "matrix", m)
+
+    @classmethod
+    def from_position_orientation(cls, position, orientation) -> Pose:
+        """From ``position [3]`` (metres) and ``orientation [4]`` (xyzw, normalised here)."""
+        q = np.asarray(orientation, dtype=np.float64)
+        p = np.asarray(position, dtype=np.float64)
+        if p.shape != (3,) or q.shape != (4,):
+            raise ValueError(f"position must have 3 values and orientation 4, got {p.shape} and {q.shape}")
+        if not np.linalg.norm(q) > 0:
+            raise ValueError("orientation must be a non-zero quaternion")
+        m = np.eye(4)
+        m[:3, :3] = quaternion_to_matrix(q)
+        m[:3, 3] = p
+        return cls(m)
+
+    @classmethod
+    def coerce(cls, pose: Pose | np.ndarray | Any) -> Pose:
+        """A :class:`Pose` from a Pose or a ``[4, 4]`` array-like."""
+        return pose if isinstance(pose, Pose) else cls(np.asarray(pose, dtype=np.float64))
+
+    @property
+    def position(self) -> np.ndarray:
+        return self.matrix[:3, 3].copy()
+
+    @property
+    def orientation(self) -> np.ndarray:
+        return matrix_to_quaternion(self.matrix[:3, :3])
+
+    def to_json(self) -> dict[str, list]:
+        return {"matrix": self.matrix.tolist()}
+
+
+@dataclass(frozen=True)
+class RenderResult:
+    """Rendered images; those not asked for are ``None``.
+
+    ``rgb`` uint8 ``[H, W, 3]``; ``depth`` float32 metres ``[H, W]`` (0 = no return, 1 mm steps);
+    ``opacity`` float32 ``[H, W]`` in [0, 1] (1/255 steps).
+    """
+
+    rgb: np.ndarray | None
+    depth: np.ndarray | None
+    opacity: np.ndarray | None
+    joints: dict[str, float] = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A refined pose and configuration.
+
+    ``trace`` holds ``(loss, elapsed seconds)`` per iteration (loss ``None`` where it was not finite);
+    ``metrics`` (``add``, ``add_s`` in metres, ``joint_error/<name>``) only when ground truth was sent.
+    """
+
+    pose: Pose
+    joints: dict[str, float]
+    loss: float | None
+    iterations: int
+    seconds: float
+    wall_seconds: float
+    status: str
+    trace: list[tuple[float | None, float]]
+    metrics: dict[str, float | None] | None
+    recovered_non_finite: bool = False
+
+
+@dataclass(frozen=True)
+class JointInfo:
+    name: str
+    type: str
+    lower: float
+    upper: float
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """A served model. ``bounds [2, 3]``, ``metrics`` and ``metadata`` are filled by ``model(name)`` only."""
+
+    name: str
+    links: list[str]
+    joints: list[JointInfo]
+    modes: list[str]
+    bounds: np.ndarray | None = None
+    metrics: dict[str, Any] = field(default_factory=dict)
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def mid_joints(self) -> dict[str, float]:
+        """Every joint at the middle of its range."""
+        return {j.name: (j.lower + j.upper) / 2 for j in self.joints}

@@ -1,0 +1,289 @@
+"""The HTTP API v1 (DESIGN §8): render and estimate with the served models.
+
+``create_app()`` builds the FastAPI app; models are loaded once, in the lifespan, from
+``settings.models_dir``. Compute runs on a bounded :class:`~narf_service.workers.WorkQueue`; a full
+queue answers 503 with ``Retry-After``. Every error has the body ``{"error": {"code", "message",
+"field"?}}`` (see :mod:`narf_service.errors`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hmac
+import time
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
+from typing import Annotated, Any, TypeVar
+
+import torch
+from fastapi import APIRouter, Depends, FastAPI, File, Form, Header, Path, Request, UploadFile
+from fastapi.responses import JSONResponse, Response
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from pydantic import Json
+
+from narf_service import jobs
+from narf_service.engine import Engine
+from narf_service.errors import ApiError, install_error_handlers, invalid
+from narf_service.limits import BodySizeLimit
+from narf_service.monitoring import MetricsMiddleware, ServiceMetrics
+from narf_service.registry import MODEL_NAME_MAX, MODEL_NAME_PATTERN, ModelRegistry
+from narf_service.schemas import (
+    Camera,
+    ErrorResponse,
+    EstimateRequest,
+    EstimateResponse,
+    Health,
+    ModelInfo,
+    ModelList,
+    Readiness,
+    RenderRequest,
+    RenderResponse,
+)
+from narf_service.settings import Settings
+from narf_service.workers import QueueFull, WorkQueue
+
+T = TypeVar("T")
+
+API_VERSION = "1"
+PNG = "image/png"
+
+
+def _errors(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    return {status: {"model": ErrorResponse} for status in statuses}
+
+
+def prefers_png(accept: str | None) -> bool:
+    """Whether an ``Accept`` header ranks ``image/png`` above ``application/json`` (q-values honoured)."""
+    if not accept:
+        return False
+
+    def quality(media_type: str) -> float:
+        main = media_type.split("/")[0]
+        best_specificity, best_q = -1, 0.0
+        for item in accept.split(","):
+            media_range, *params = (p.strip() for p in item.split(";"))
+            media_range = media_range.lower()
+            specificity = {media_type: 2, f"{main}/*": 1, "*/*": 0}.get(media_range, -1)
+            if specificity <= best_specificity:
+                continue
+            q = 1.0
+            for param in params:
+                key, _, value = param.partition("=")
+                if key.strip().lower() == "q":
+                    try:
+                        q = float(value)
+                    except ValueError:
+                        q = 0.0
+            best_specificity, best_q = specificity, q
+        return best_q
+
+    png = quality(PNG)
+    return png > 0 and png > quality("application/json")
+
+
+_bearer = HTTPBearer(auto_error=False, description="Required when the server runs with NARF_TOKEN set.")
+
+
+async def require_token(
+    request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
+) -> None:
+    token = request.app.state.settings.token
+    if token is None:
+        return
+    given = credentials.credentials.encode() if credentials is not None else b""
+    if not hmac.compare_digest(given, token.get_secret_value().encode()):
+        raise ApiError(401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"})
+
+
+def _registry(request: Request) -> ModelRegistry:
+    return request.app.state.registry
+
+
+async def _run(request: Request, fn: Callable[[], T]) -> T:
+    """Run ``fn`` on the work queue; 503 with ``Retry-After`` when the queue is full."""
+    try:
+        return await request.app.state.queue.run(fn)
+    except QueueFull as e:
+        request.app.state.metrics.rejected.inc()
+        raise ApiError(503, str(e), headers={"Retry-After": str(e.retry_after_s)}) from None
+
+
+def _check_pixels(camera: Camera, settings: Settings, field: str) -> None:
+    pixels = camera.width * camera.height
+    if pixels > settings.max_image_pixels:
+        limit = settings.max_image_pixels
+        message = f"{field}: {camera.width}x{camera.height} = {pixels} pixels exceeds the limit of {limit}"
+        raise ApiError(413, message, field=field)
+
+
+v1 = APIRouter(prefix="/v1", dependencies=[Depends(require_token)], responses=_errors(401))
+
+
+@v1.get("/models", response_model=ModelList, summary="The served models")
+async def list_models(registry: Annotated[ModelRegistry, Depends(_registry)]) -> ModelList:
+    return ModelList(models=[jobs.describe(name, registry.models[name], full=False) for name in registry])
+
+
+@v1.get(
+    "/models/{name}",
+    response_model=ModelInfo,
+    responses=_errors(404, 422),
+    summary="One model: links, joints and limits, bounds, metrics",
+)
+async def get_model(
+    registry: Annotated[ModelRegistry, Depends(_registry)],
+    name: Annotated[str, Path(max_length=MODEL_NAME_MAX, pattern=MODEL_NAME_PATTERN)],
+) -> Any:
+    return jobs.describe(name, registry.get(name, field="name"), full=True)
+
+
+@v1.post(
+    "/render",
+    response_model=RenderResponse,
+    responses={
+        200: {"content": {PNG: {"schema": {"type": "string", "format": "binary"}}}},
+        **_errors(400, 404, 413, 422, 503),
+    },
+    summary="Render a model at a pose and configuration",
+    description="Images as base64 PNG in JSON; with `Accept: image/png` the one asked output as a PNG body "
+    "(depth: 16-bit millimetres, 0 = no return).",
+)
+async def render(
+    request: Request,
+    body: RenderRequest,
+    registry: Annotated[ModelRegistry, Depends(_registry)],
+    accept: Annotated[str | None, Header()] = None,
+) -> Any:
+    settings: Settings = request.app.state.settings
+    model = registry.get(body.model)
+    _check_pixels(body.camera, settings, "camera")
+    jobs.check_joints(model, body.joints, "joints")
+    jobs.check_mode(model, body.mode, "mode")
+    if prefers_png(accept):
+        if len(body.outputs) != 1:
+            raise invalid("outputs", f"'Accept: {PNG}' returns one image; ask for exactly one output")
+        png, seconds = await _run(request, lambda: jobs.render_png(model, body))
+        return Response(png, media_type=PNG, headers={"X-Render-Seconds": f"{seconds:.6f}"})
+    return await _run(request, lambda: jobs.render_json(body.model, model, body))
+
+
+@v1.post(
+    "/estimate",
+    response_model=EstimateResponse,
+    responses=_errors(400, 404, 413, 422, 503),
+    summary="Estimate pose and configuration from an image and a mask",
+    description="Multipart: `image` (PNG/JPEG), `mask` (PNG), optional `depth` (16-bit PNG millimetres or .npy "
+    "float32 metres) files and the `request` form field holding an EstimateRequest as JSON (curl: "
+    "`-F image=@rgb.png -F mask=@mask.png -F 'request=<request.json'`). With `ground_truth`, `metrics` carries "
+    "ADD, ADD-S and the joint errors.",
+)
+async def estimate(
+    request: Request,
+    params: Annotated[Json[EstimateRequest], Form(alias="request", description="JSON: an EstimateRequest")],
+    image: Annotated[UploadFile, File(description="RGB image, PNG or JPEG, the camera's size")],
+    mask: Annotated[UploadFile, File(description="Object mask, single-channel PNG, non-zero = object")],
+    registry: Annotated[ModelRegistry, Depends(_registry)],
+    depth: Annotated[UploadFile | None, File(description="16-bit PNG (mm, 0 = none) or .npy (float32 m)")] = None,
+) -> Any:
+    started = time.perf_counter()
+    settings: Settings = request.app.state.settings
+    model = registry.get(params.model, field="request.model")
+    _check_pixels(params.camera, settings, "request.camera")
+    if params.iterations is not None and params.iterations > settings.max_iterations:
+        raise invalid(
+            "request.iterations", f"{params.iterations} exceeds this server's limit of {settings.max_iterations}"
+        )
+    jobs.check_joints(model, params.initial_joints, "request.initial_joints")
+    jobs.check_mode(model, params.options.mode, "request.options.mode")
+    if params.ground_truth is not None:
+        jobs.check_joints(model, params.ground_truth.joints, "request.ground_truth.joints", complete=True)
+    uploads = {
+        "image": await image.read(),
+        "mask": await mask.read(),
+        "depth": await depth.read() if depth is not None else None,
+    }
+    engine: Engine = request.app.state.engine
+    return await _run(
+        request,
+        lambda: jobs.estimate(
+            engine, params.model, model, params, uploads, max_pixels=settings.max_image_pixels, started=started
+        ),
+    )
+
+
+ops = APIRouter(tags=["operations"])
+
+
+@ops.get("/healthz", response_model=Health, summary="Liveness: the process answers")
+async def healthz() -> Health:
+    return Health()
+
+
+@ops.get(
+    "/readyz",
+    response_model=Readiness,
+    responses={503: {"model": Readiness}},
+    summary="Readiness: at least one model is loaded",
+)
+async def readyz(registry: Annotated[ModelRegistry, Depends(_registry)]) -> Any:
+    ready = len(registry) > 0
+    body = Readiness(status="ready" if ready else "not_ready", models=list(registry), failed=registry.failed)
+    return body if ready else JSONResponse(body.model_dump(), status_code=503)
+
+
+@ops.get(
+    "/metrics",
+    response_class=Response,
+    responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}}},
+    summary="Prometheus metrics",
+)
+async def metrics(request: Request) -> Response:
+    return Response(request.app.state.metrics.exposition(), media_type="text/plain; version=0.0.4")
+
+
+def create_app(
+    settings: Settings | None = None,
+    *,
+    engine: Engine | None = None,
+    registry: ModelRegistry | None = None,
+) -> FastAPI:
+    """The service. ``engine`` defaults to narf_core's; ``registry`` to the bundles in ``settings.models_dir``.
+
+    Both are resolved in the lifespan (at server start), so building the app is cheap and loads nothing.
+    """
+    settings = settings or Settings()
+    metrics = ServiceMetrics()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        torch.set_num_threads(settings.torch_threads)
+        app.state.engine = engine if engine is not None else Engine.narf_core()
+        if registry is not None:
+            app.state.registry = registry
+        else:
+            app.state.registry = await asyncio.to_thread(
+                ModelRegistry.load_folder, settings.models_dir, app.state.engine.load_bundle, settings.device
+            )
+        queue = WorkQueue(settings.workers, settings.queue_size, retry_after_max_s=settings.retry_after_max_s)
+        app.state.queue = queue
+        metrics.watch(queue, app.state.registry)
+        try:
+            yield
+        finally:
+            queue.shutdown()
+
+    app = FastAPI(
+        title="NARF",
+        version=f"{API_VERSION}.0",
+        summary="Render-and-compare pose and joint-configuration estimation for articulated objects.",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.metrics = metrics
+    install_error_handlers(app)
+    app.include_router(v1)
+    app.include_router(ops)
+    app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(MetricsMiddleware, metrics=metrics)
+    return app
+

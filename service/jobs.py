@@ -1,0 +1,206 @@
+"""What the worker threads run: validated requests in, response models out.
+
+The checks that need the model (joints against its limits, the ``parts`` mode) are here as well,
+and are run before a job is queued so that bad input never waits for a worker.
+"""
+
+from __future__ import annotations
+
+import base64
+import math
+import time
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from narf_core.geometry import Pinhole
+from narf_service.engine import Engine
+from narf_service.errors import ApiError, invalid
+from narf_service.images import (
+    decode_depth,
+    decode_mask,
+    decode_rgb,
+    depth_to_mm,
+    encode_png,
+    opacity_to_uint8,
+    rgb_to_uint8,
+)
+from narf_service.schemas import (
+    Camera,
+    EstimateRequest,
+    EstimateResponse,
+    JointInfo,
+    ModelInfo,
+    ModelSummary,
+    PoseOut,
+    RenderRequest,
+    RenderResponse,
+)
+
+if TYPE_CHECKING:
+    from narf_core.bundle import NarfModel
+
+
+def check_joints(model: NarfModel, joints: Mapping[str, float] | None, field: str, *, complete: bool = False) -> None:
+    """422 naming ``<field>.<joint>`` for an unknown joint or a value outside its limits.
+
+    With ``complete``, every movable joint of the model must be given.
+    """
+    specs = {j.name: j for j in model.joints}
+    for name, value in (joints or {}).items():
+        spec = specs.get(name)
+        if spec is None:
+            known = ", ".join(specs) or "none"
+            raise invalid(f"{field}.{name}", f"unknown joint (joints of {model.name!r}: {known})")
+        if not spec.lower <= value <= spec.upper:
+            raise invalid(f"{field}.{name}", f"{value:g} is outside the limits [{spec.lower:g}, {spec.upper:g}]")
+    if complete:
+        missing = [name for name in specs if name not in (joints or {})]
+        if missing:
+            raise invalid(field, f"missing joint(s) {', '.join(missing)}")
+
+
+def check_mode(model: NarfModel, mode: str | None, field: str) -> None:
+    if mode == "parts" and not model.has_parts:
+        raise invalid(field, f"model {model.name!r} has no part fields; only mode 'narf' is available")
+
+
+def pinhole(camera: Camera, device: torch.device) -> Pinhole:
+    return Pinhole(torch.tensor(camera.K, dtype=torch.float32, device=device), camera.width, camera.height)
+
+
+def describe(name: str, model: NarfModel, *, full: bool) -> ModelSummary | ModelInfo:
+    summary = {
+        "name": name,
+        "links": list(model.links),
+        "joints": [JointInfo(name=j.name, type=j.type, lower=j.lower, upper=j.upper) for j in model.joints],
+        "modes": ["narf", "parts"] if model.has_parts else ["narf"],
+    }
+    if not full:
+        return ModelSummary(**summary)
+    metadata = _json_safe({k: v for k, v in model.metadata.items() if k != "urdf"})
+    return ModelInfo(**summary, bounds=model.aabb.tolist(), metrics=metadata.get("metrics") or {}, metadata=metadata)
+
+
+def _json_safe(value: Any) -> Any:
+    """``value`` with NaN and infinities (a perfect render's PSNR, say) replaced by ``None``: JSON has neither."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def _theta(model: NarfModel, joints: Mapping[str, float] | None, field: str) -> Tensor:
+    try:
+        return model.joint_vector(joints)
+    except ValueError as e:
+        raise invalid(field, str(e)) from None
+
+
+def render_images(model: NarfModel, request: RenderRequest) -> tuple[dict[str, np.ndarray], Tensor, float]:
+    """The asked images, encoded-ready (``rgb``/``opacity`` uint8, ``depth`` uint16 mm), θ and seconds."""
+    start = time.perf_counter()
+    device = model.aabb.device
+    theta = _theta(model, request.joints, "joints").to(device)
+    T = torch.as_tensor(request.pose.as_matrix(), dtype=torch.float32, device=device)
+    try:
+        with torch.inference_mode():
+            out = model.render(T, theta, pinhole(request.camera, device), outputs=tuple(request.outputs), mode=request.mode)
+    except ValueError as e:
+        raise ApiError(422, str(e)) from None
+    convert = {"rgb": rgb_to_uint8, "depth": depth_to_mm, "opacity": opacity_to_uint8}
+    images = {name: convert[name](out[name].detach().float().cpu().numpy()) for name in request.outputs}
+    return images, theta.cpu(), time.perf_counter() - start
+
+
+def render_json(name: str, model: NarfModel, request: RenderRequest) -> RenderResponse:
+    images, theta, seconds = render_images(model, request)
+    encoded = {k: base64.b64encode(encode_png(v)).decode("ascii") for k, v in images.items()}
+    return RenderResponse(
+        model=name,
+        width=request.camera.width,
+        height=request.camera.height,
+        mode=request.mode,
+        pose=PoseOut.from_matrix(request.pose.as_matrix()),
+        joints={**model.joint_dict(theta), **(request.joints or {})},  # the values as sent, not rounded to float32
+        seconds=seconds,
+        **encoded,
+    )
+
+
+def render_png(model: NarfModel, request: RenderRequest) -> tuple[bytes, float]:
+    images, _, seconds = render_images(model, request)
+    (image,) = images.values()
+    return encode_png(image), seconds
+
+
+def _finite_or_none(x: float | None) -> float | None:
+    return float(x) if x is not None and math.isfinite(x) else None
+
+
+def estimate(
+    engine: Engine,
+    name: str,
+    model: NarfModel,
+    request: EstimateRequest,
+    uploads: Mapping[str, bytes | None],
+    *,
+    max_pixels: int,
+    started: float,
+) -> EstimateResponse:
+    """Decode the uploads (``image``, ``mask``, optional ``depth``), check them against the camera and refine."""
+    size = (request.camera.height, request.camera.width)
+    image = decode_rgb(uploads["image"] or b"", "image", max_pixels)
+    mask = decode_mask(uploads["mask"] or b"", "mask", max_pixels)
+    depth = decode_depth(uploads["depth"], "depth", max_pixels) if uploads.get("depth") else None
+    for field, array in (("image", image), ("mask", mask), ("depth", depth)):
+        if array is not None and array.shape[:2] != size:
+            h, w = array.shape[:2]
+            raise invalid(field, f"size {w}x{h} does not match the camera's {size[1]}x{size[0]}")
+    if not mask.any():
+        raise invalid("mask", "the mask is empty: no object pixel to compare against")
+
+    fields = request.options.model_dump(exclude_none=True)
+    if request.iterations is not None:
+        fields["iterations"] = request.iterations
+    ground_truth = None
+    if request.ground_truth is not None:
+        ground_truth = (request.ground_truth.pose.as_matrix(), dict(request.ground_truth.joints))
+    try:
+        result = engine.refine(
+            model,
+            image,
+            mask,
+            pinhole(request.camera, model.aabb.device),
+            request.initial_pose.as_matrix(),
+            joints_init=request.initial_joints,
+            depth=depth,
+            options=engine.options(**fields),
+            ground_truth=ground_truth,
+        )
+    except engine.input_error as e:
+        raise ApiError(422, str(e)) from None
+
+    T = np.asarray(result.T_cam_obj, dtype=np.float64)
+    if not np.isfinite(T).all() or not all(math.isfinite(v) for v in result.joints.values()):
+        raise RuntimeError(f"refine returned a non-finite estimate for model {name!r}")
+    metrics = None if result.metrics is None else {k: _finite_or_none(v) for k, v in result.metrics.items()}
+    return EstimateResponse(
+        model=name,
+        pose=PoseOut.from_matrix(T),
+        joints={k: float(v) for k, v in result.joints.items()},
+        loss=_finite_or_none(result.loss),
+        iterations=result.iterations,
+        status=result.status,
+        recovered_non_finite=result.recovered_non_finite,
+        seconds=result.seconds,
+        wall_seconds=time.perf_counter() - started,
+        trace=[(_finite_or_none(loss), float(t)) for loss, t in result.trace],
+        metrics=metrics,
+    )

@@ -1,0 +1,99 @@
+"""Run the service with uvicorn: :func:`serve` (what ``narf serve`` calls) and ``python -m narf_service``."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import uvicorn
+from fastapi import FastAPI
+from pydantic import ValidationError
+
+from narf_service.app import create_app
+from narf_service.settings import Settings
+
+
+def serve(
+    models_dir: str | Path | None = None,
+    host: str = "127.0.0.1",
+    port: int = 8000,
+    token: str | None = None,
+    *,
+    log_level: str = "info",
+    **settings: Any,
+) -> None:
+    """Serve every ``*.narf`` in ``models_dir`` on ``host:port`` until interrupted.
+
+    Unset arguments fall back to the ``NARF_*`` environment (``NARF_MODELS_DIR``, ``NARF_TOKEN``, ...),
+    then to the defaults of :class:`~narf_service.settings.Settings`; ``settings`` takes any of its
+    other fields (``workers=2``, ``max_body_bytes=...``). Raises ``ValueError`` for a models folder
+    that does not exist or invalid settings.
+    """
+    overrides = dict(settings)
+    if models_dir is not None:
+        overrides["models_dir"] = Path(models_dir)
+    if token is not None:
+        overrides["token"] = token
+    try:
+        config = Settings(**overrides)
+    except ValidationError as e:
+        first = e.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise ValueError(f"invalid setting {where}: {first['msg']}") from None
+    if not config.models_dir.is_dir():
+        raise ValueError(f"models folder {config.models_dir} does not exist")
+    logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    uvicorn.run(create_app(config), host=host, port=port, log_level=log_level, timeout_graceful_shutdown=10)
+
+
+@contextmanager
+def serve_in_thread(app: FastAPI, host: str = "127.0.0.1", port: int = 0, *, startup_timeout_s: float = 60.0) -> Iterator[str]:
+    """Run ``app`` with uvicorn on a background thread, yielding its base URL (``port=0``: a free port).
+
+    For tests, benchmarks and examples; the server is stopped (lifespan shutdown included) on exit.
+    """
+    server = uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_level="warning", lifespan="on"))
+    thread = threading.Thread(target=server.run, name="narf-uvicorn", daemon=True)
+    thread.start()
+    deadline = time.monotonic() + startup_timeout_s
+    while not server.started:
+        if not thread.is_alive():
+            raise RuntimeError(f"the server on {host}:{port} failed to start (see its log)")
+        if time.monotonic() > deadline:
+            server.should_exit = True
+            raise TimeoutError(f"the server on {host}:{port} did not start within {startup_timeout_s} s")
+        time.sleep(0.01)
+    bound_port = server.servers[0].sockets[0].getsockname()[1]
+    try:
+        yield f"http://{host}:{bound_port}"
+    finally:
+        server.should_exit = True
+        thread.join(timeout=30)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m narf_service",
+        description="Serve NARF models over HTTP (API v1). Settings also come from NARF_* environment "
+        "variables; the bearer token only from NARF_TOKEN, so it never shows in a process list.",
+    )
+    parser.add_argument("--models", type=Path, default=None, help="folder of *.narf bundles (NARF_MODELS_DIR)")
+    parser.add_argument("--host", default="127.0.0.1", help="address to bind (default: loopback only)")
+    parser.add_argument("--port", type=int, default=8000)
+    parser.add_argument("--workers", type=int, default=None, help="compute threads (default: one per core)")
+    parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
+    args = parser.parse_args(argv)
+    extra = {} if args.workers is None else {"workers": args.workers}
+    try:
+        serve(args.models, args.host, args.port, log_level=args.log_level, **extra)
+    except ValueError as e:
+        print(f"narf serve: error: {e}", file=sys.stderr)
+        return 2
+    return 0

@@ -1,0 +1,306 @@
+"""The wire format of API v1: pydantic models, the single source of the OpenAPI contract.
+
+Conventions (DESIGN §2): metres, radians, seconds; ``K`` in the OpenCV frame; poses ``T_cam_obj``
+either as ``{"matrix": 4x4}`` or ``{"position": [x, y, z], "orientation": [qx, qy, qz, qw]}``
+(ROS order); responses give both. Every number must be finite: NaN and infinities are refused with
+a 422 naming the field, as are non-rigid matrices, non-unit quaternions and impossible cameras.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from narf_core.geometry import pose_from_position_quaternion, pose_to_position_quaternion
+from narf_service.registry import MODEL_NAME_MAX, MODEL_NAME_PATTERN
+
+ROTATION_TOLERANCE = 1e-3
+"""Largest entry of ``|R^T R - I|`` (and of ``| |q| - 1 |``) still accepted; such input is re-projected."""
+MAX_COORDINATE = 1e3  # metres: a pose farther than a kilometre is a unit mistake
+MAX_IMAGE_SIDE = 16384
+MAX_JOINTS = 64
+
+Number = Annotated[float, Field(allow_inf_nan=False)]
+Coordinate = Annotated[float, Field(allow_inf_nan=False, ge=-MAX_COORDINATE, le=MAX_COORDINATE)]
+Vector3 = Annotated[list[Coordinate], Field(min_length=3, max_length=3)]
+Quaternion = Annotated[list[Number], Field(min_length=4, max_length=4, description="[qx, qy, qz, qw]")]
+Row4 = Annotated[list[Coordinate], Field(min_length=4, max_length=4)]
+Matrix4 = Annotated[list[Row4], Field(min_length=4, max_length=4, description="4x4, row-major")]
+Row3 = Annotated[list[Number], Field(min_length=3, max_length=3)]
+Matrix3 = Annotated[list[Row3], Field(min_length=3, max_length=3, description="3x3, row-major")]
+ModelName = Annotated[
+    str,
+    Field(
+        min_length=1,
+        max_length=MODEL_NAME_MAX,
+        pattern=MODEL_NAME_PATTERN,
+        description="A served model (GET /v1/models), e.g. 'clamp'.",
+    ),
+]
+Joints = Annotated[
+    dict[Annotated[str, Field(min_length=1, max_length=128)], Number],
+    Field(
+        max_length=MAX_JOINTS,
+        description="{joint: value}, radians or metres, within the joint's limits; a missing joint is at mid-range.",
+    ),
+]
+RenderOutput = Literal["rgb", "depth", "opacity"]
+RenderMode = Literal["narf", "parts"]
+
+
+class StrictModel(BaseModel):
+    """Request bodies refuse unknown fields, so a typo is a 422 naming it rather than ignored."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class Pose(StrictModel):
+    """A rigid pose ``T_cam_obj`` (object root-link frame -> camera frame).
+
+    Exactly one form: ``matrix``, or ``position`` with ``orientation``.
+    """
+
+    matrix: Matrix4 | None = None
+    position: Vector3 | None = None
+    orientation: Quaternion | None = None
+
+    @field_validator("matrix")
+    @classmethod
+    def _rigid(cls, m: list[list[float]] | None) -> list[list[float]] | None:
+        if m is None:
+            return None
+        T = np.asarray(m, dtype=np.float64)
+        if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-6:
+            raise ValueError(f"last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+        R = T[:3, :3]
+        error = float(np.abs(R.T @ R - np.eye(3)).max())
+        if error > ROTATION_TOLERANCE:
+            raise ValueError(f"rotation is not orthonormal (|R^T R - I| = {error:.3g} > {ROTATION_TOLERANCE})")
+        if np.linalg.det(R) < 0:
+            raise ValueError("rotation is a reflection (determinant -1)")
+        U, _, Vt = np.linalg.svd(R)
+        T[:3, :3] = U @ Vt
+        return T.tolist()
+
+    @field_validator("orientation")
+    @classmethod
+    def _unit(cls, q: list[float] | None) -> list[float] | None:
+        if q is None:
+            return None
+        norm = math.sqrt(sum(x * x for x in q))
+        if abs(norm - 1) > ROTATION_TOLERANCE:
+            raise ValueError(f"quaternion norm {norm:.6g} is not 1 (tolerance {ROTATION_TOLERANCE})")
+        return [x / norm for x in q]
+
+    @model_validator(mode="after")
+    def _one_form(self) -> Pose:
+        has_matrix = self.matrix is not None
+        has_pq = self.position is not None or self.orientation is not None
+        if has_matrix == has_pq:
+            raise ValueError("give either 'matrix' or 'position' and 'orientation'")
+        if has_pq and (self.position is None or self.orientation is None):
+            raise ValueError("'position' and 'orientation' go together")
+        return self
+
+    def as_matrix(self) -> np.ndarray:
+        """``float64 [4, 4]``."""
+        if self.matrix is not None:
+            return np.asarray(self.matrix, dtype=np.float64)
+        position = torch.tensor(self.position, dtype=torch.float64)
+        orientation = torch.tensor(self.orientation, dtype=torch.float64)
+        return pose_from_position_quaternion(position, orientation).numpy()
+
+
+class PoseOut(BaseModel):
+    """A pose in both wire forms."""
+
+    matrix: list[list[float]] = Field(description="4x4, row-major")
+    position: list[float] = Field(description="[x, y, z] metres")
+    orientation: list[float] = Field(description="[qx, qy, qz, qw], qw >= 0")
+
+    @classmethod
+    def from_matrix(cls, T: np.ndarray) -> PoseOut:
+        """``T [4, 4]`` in both forms."""
+        position, orientation = pose_to_position_quaternion(torch.as_tensor(T, dtype=torch.float64))
+        return cls(matrix=np.asarray(T).tolist(), position=position.tolist(), orientation=orientation.tolist())
+
+
+class Camera(StrictModel):
+    """A pinhole camera (OpenCV frame, undistorted images); pixel (u, v) is centred at (u + .5, v + .5)."""
+
+    K: Matrix3 = Field(description="[[fx, s, cx], [0, fy, cy], [0, 0, 1]], pixels")
+    width: int = Field(gt=0, le=MAX_IMAGE_SIDE)
+    height: int = Field(gt=0, le=MAX_IMAGE_SIDE)
+
+    @field_validator("K")
+    @classmethod
+    def _intrinsics(cls, K: list[list[float]]) -> list[list[float]]:
+        (fx, s, cx), (k10, fy, cy), last = K
+        if not (1e-3 <= fx <= 1e7 and 1e-3 <= fy <= 1e7):
+            raise ValueError(f"focal lengths must lie in [1e-3, 1e7] pixels, got fx={fx:g}, fy={fy:g}")
+        if k10 != 0 or list(last) != [0, 0, 1]:
+            raise ValueError("must have the form [[fx, s, cx], [0, fy, cy], [0, 0, 1]]")
+        if max(abs(s), abs(cx), abs(cy)) > 1e7:
+            raise ValueError("skew and principal point must lie within 1e7 pixels")
+        return K
+
+
+class JointInfo(BaseModel):
+    name: str
+    type: str = Field(description="URDF joint type: revolute (radians) or prismatic (metres)")
+    lower: float
+    upper: float
+
+
+_EXAMPLE_CAMERA = {"K": [[134.1, 0, 80], [0, 134.1, 60], [0, 0, 1]], "width": 160, "height": 120}
+_EXAMPLE_POSE = {"position": [0.0, 0.0, 0.5], "orientation": [0.0, 0.0, 0.0, 1.0]}
+
+
+class RenderRequest(StrictModel):
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {"model": "clamp", "pose": _EXAMPLE_POSE, "camera": _EXAMPLE_CAMERA, "outputs": ["rgb", "depth"]}
+            ]
+        }
+    )
+
+    model: ModelName
+    pose: Pose
+    joints: Joints | None = None
+    camera: Camera
+    outputs: list[RenderOutput] = Field(
+        default=["rgb"],
+        min_length=1,
+        max_length=3,
+        description="Images to return; with 'Accept: image/png' exactly one.",
+    )
+    mode: RenderMode = Field("narf", description="'narf': the configuration field; 'parts': the composed part fields")
+
+    @field_validator("outputs")
+    @classmethod
+    def _distinct(cls, outputs: list[str]) -> list[str]:
+        if len(set(outputs)) != len(outputs):
+            raise ValueError(f"each output at most once, got {outputs}")
+        return outputs
+
+
+class RenderResponse(BaseModel):
+    """Images as base64 PNG: ``rgb`` 8-bit sRGB, ``depth`` 16-bit millimetres with 0 = no return
+    (ROS 16UC1), ``opacity`` 8-bit (255 = opaque); the ones not asked for are null."""
+
+    model: str
+    width: int
+    height: int
+    mode: RenderMode
+    pose: PoseOut
+    joints: dict[str, float] = Field(description="The full configuration rendered (missing joints at mid-range)")
+    rgb: str | None = None
+    depth: str | None = None
+    opacity: str | None = None
+    seconds: float = Field(description="Render time, excluding the wait in the queue")
+
+
+class RefineOptions(StrictModel):
+    """Refiner settings (``narf_core.estimate.EstimateOptions``); a field left out keeps the library's
+    default, which follows the paper. Bounds here keep one request's cost within reason."""
+
+    lr_pose: float | None = Field(None, gt=0, le=10, description="Adam step, radians and object radii")
+    lr_theta: float | None = Field(None, gt=0, le=10, description="Adam step on the joints' sine parameter")
+    lr_decay: float | None = Field(None, gt=0, le=1, description="Final over first learning rate")
+    rays_per_iteration: int | None = Field(None, ge=16, le=65536)
+    mode: RenderMode | None = None
+    silhouette_weight: float | None = Field(None, ge=0, le=1e3)
+    depth_weight: float | None = Field(None, ge=0, le=1e3, description="Used when a depth part is sent")
+    theta_starts: int | None = Field(None, ge=1, le=16, description="Configurations tried at first")
+    coarse_to_fine: int | None = Field(None, ge=1, le=6, description="Image pyramid levels; 1 = the plain loss")
+    box_margin: float | None = Field(None, ge=0, le=10, description="Growth of the mask's box rays come from")
+    early_stop: bool | None = None
+    tolerance: float | None = Field(None, ge=0, le=1, description="Early stop: mean motion per iteration")
+    loss_tolerance: float | None = Field(None, ge=0, le=1, description="Early stop: relative loss change")
+    patience: int | None = Field(None, ge=1, le=10_000, description="Early stop: iterations looked back over")
+    seed: int | None = Field(None, ge=0, le=2**31 - 1)
+
+
+class GroundTruth(StrictModel):
+    """The true pose and full configuration; the answer then carries ADD, ADD-S and joint errors."""
+
+    pose: Pose
+    joints: Joints = Field(default_factory=dict)
+
+
+class EstimateRequest(StrictModel):
+    """The JSON ``request`` part of ``POST /v1/estimate``; the images come as file parts."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [{"model": "clamp", "camera": _EXAMPLE_CAMERA, "initial_pose": _EXAMPLE_POSE, "iterations": 100}]
+        }
+    )
+
+    model: ModelName
+    camera: Camera = Field(description="Must match the size of the uploaded images")
+    initial_pose: Pose
+    initial_joints: Joints | None = None
+    iterations: int | None = Field(
+        None, ge=0, le=100_000, description="Default: the library's (150); 0 scores the initial pose; capped by the server"
+    )
+    options: RefineOptions = Field(default_factory=RefineOptions)
+    ground_truth: GroundTruth | None = None
+
+
+class EstimateResponse(BaseModel):
+    model: str
+    pose: PoseOut
+    joints: dict[str, float]
+    loss: float | None = Field(description="Final loss; null if it was not finite")
+    iterations: int
+    status: str = Field(description="'converged', 'max_iterations', 'no_overlap' or 'non_finite'")
+    recovered_non_finite: bool = Field(description="True if a non-finite step was detected and undone")
+    seconds: float = Field(description="Refinement time")
+    wall_seconds: float = Field(description="Time in the server, queue and decoding included")
+    trace: list[tuple[float | None, float]] = Field(description="(loss, elapsed seconds) per iteration")
+    metrics: dict[str, float | None] | None = Field(
+        None, description="With ground truth: add, add_s (metres), joint_error/<name>"
+    )
+
+
+class ModelSummary(BaseModel):
+    name: str
+    links: list[str]
+    joints: list[JointInfo]
+    modes: list[RenderMode]
+
+
+class ModelList(BaseModel):
+    models: list[ModelSummary]
+
+
+class ModelInfo(ModelSummary):
+    bounds: list[list[float]] = Field(description="Object-frame box [[xmin, ymin, zmin], [xmax, ymax, zmax]], metres")
+    metrics: dict[str, Any] = Field(description="Evaluation metrics recorded at training")
+    metadata: dict[str, Any] = Field(description="The bundle's metadata (architecture, provenance, ...), URDF text left out")
+
+
+class Health(BaseModel):
+    status: Literal["ok"] = "ok"
+
+
+class Readiness(BaseModel):
+    status: Literal["ready", "not_ready"]
+    models: list[str]
+    failed: dict[str, str] = Field(description="Bundles that could not be loaded, with the reason")
+
+
+class ErrorDetail(BaseModel):
+    code: str = Field(description="Machine-readable: invalid_input, malformed_json, not_found, too_large, busy, ...")
+    message: str = Field(description="Human-readable, starting with the field it is about")
+    field: str | None = Field(None, description="Dotted path of the offending field or file part")
+
+
+class ErrorResponse(BaseModel):
+    error: ErrorDetail
