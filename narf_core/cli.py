@@ -51,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"narf {narf_core.__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_synth,):
+    for add in (_add_synth, _add_train, _add_eval, _add_render, _add_estimate, _add_bench, _add_serve):
         add(commands)
     return parser
 
@@ -197,6 +197,426 @@ def _synth_summary(r: dict[str, Any]) -> str:
         f"novel {frames['novel']}) of {r['tool']} at {r['size'][0]}x{r['size'][1]} to {r['dataset']} "
         f"in {r['seconds']:.1f} s ({r['bytes'] / 1e6:.1f} MB)"
     )
+
+
+
+# ---------------------------------------------------------------------------------------------
+# Inputs shared by render and estimate: poses, joints, intrinsics (JSON text or a JSON file)
+
+
+def _json_arg(text: str, what: str) -> Any:
+    """``text`` as JSON, or the JSON in the file it names."""
+    source = text
+    if not text.lstrip().startswith(("{", "[")):
+        path = Path(text)
+        if not path.is_file():
+            raise ValueError(f"{what}: {text!r} is neither JSON nor a JSON file")
+        source = path.read_text()
+    try:
+        return json.loads(source)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{what}: invalid JSON ({e.msg} at line {e.lineno} column {e.colno})") from None
+
+
+def _pose_arg(text: str, what: str):
+    """A pose from ``{"matrix": 4x4}`` or ``{"position": [x,y,z], "orientation": [qx,qy,qz,qw]}``."""
+    import numpy as np
+
+    value = _json_arg(text, what)
+    if isinstance(value, dict) and "pose" in value:
+        value = value["pose"]
+    if isinstance(value, list):
+        value = {"matrix": value}
+    if not isinstance(value, dict):
+        raise ValueError(f"{what}: expected {{'matrix': 4x4}} or {{'position', 'orientation'}}")
+    if "matrix" in value:
+        T = np.asarray(value["matrix"], dtype=np.float64)
+        if T.shape != (4, 4):
+            raise ValueError(f"{what}: matrix must be 4x4, got shape {T.shape}")
+    elif "position" in value and "orientation" in value:
+        p = np.asarray(value["position"], dtype=np.float64)
+        q = np.asarray(value["orientation"], dtype=np.float64)
+        if p.shape != (3,) or q.shape != (4,):
+            raise ValueError(f"{what}: position needs 3 values and orientation 4 (qx, qy, qz, qw)")
+        if not np.isfinite(q).all() or abs(np.linalg.norm(q) - 1) > 1e-3:
+            raise ValueError(f"{what}: orientation must be a unit quaternion, got norm {np.linalg.norm(q):.4g}")
+        T = _pose_from(p, q)
+    else:
+        raise ValueError(f"{what}: expected {{'matrix': 4x4}} or {{'position', 'orientation'}}")
+    if not np.isfinite(T).all():
+        raise ValueError(f"{what}: pose has NaN or infinite values")
+    R = T[:3, :3]
+    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
+        raise ValueError(f"{what}: rotation is not orthonormal (a proper rotation)")
+    return T
+
+
+def _pose_from(position, orientation):
+    import torch
+
+    from narf_core.geometry import pose_from_position_quaternion
+
+    return pose_from_position_quaternion(
+        torch.as_tensor(position, dtype=torch.float64), torch.as_tensor(orientation, dtype=torch.float64)
+    ).numpy()
+
+
+def _joints_arg(text: str | None, what: str = "--joints") -> dict[str, float] | None:
+    """``name=value,name=value`` or a JSON object."""
+    if text is None:
+        return None
+    if text.lstrip().startswith("{") or Path(text).is_file():
+        value = _json_arg(text, what)
+        if isinstance(value, dict) and "joints" in value and isinstance(value["joints"], dict):
+            value = value["joints"]
+        if not isinstance(value, dict):
+            raise ValueError(f"{what}: expected a JSON object {{name: value}}")
+        items = value.items()
+    else:
+        items = []
+        for part in text.split(","):
+            name, sep, number = part.partition("=")
+            if not sep:
+                raise ValueError(f"{what}: expected name=value pairs separated by commas, got {part!r}")
+            items.append((name.strip(), number))
+    out = {}
+    for name, number in items:
+        try:
+            out[str(name)] = float(number)
+        except (TypeError, ValueError):
+            raise ValueError(f"{what}: joint {name!r} has a non-numeric value {number!r}") from None
+    return out
+
+
+def _camera_arg(K_text: str, width: int, height: int):
+    """A :class:`~narf_core.geometry.Pinhole` from ``fx,fy,cx,cy`` or a JSON 3x3 matrix."""
+    import numpy as np
+    import torch
+
+    from narf_core.geometry import Pinhole
+
+    if K_text.lstrip().startswith("[") or Path(K_text).is_file():
+        K = np.asarray(_json_arg(K_text, "--K"), dtype=np.float64)
+    else:
+        try:
+            fx, fy, cx, cy = (float(v) for v in K_text.split(","))
+        except ValueError:
+            raise ValueError(f"--K: expected fx,fy,cx,cy or a JSON 3x3 matrix, got {K_text!r}") from None
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]])
+    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError(f"--K: expected a 3x3 matrix with positive focal lengths, got {K.tolist()}")
+    return Pinhole(torch.as_tensor(K, dtype=torch.float32), width, height)
+
+
+def _read_image(path: Path, what: str, mode: str | None = None):
+    import numpy as np
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return np.array(im.convert(mode) if mode else im)
+    except UnidentifiedImageError:
+        raise ValueError(f"{what}: {path} is not an image PIL can read") from None
+
+
+# ---------------------------------------------------------------------------------------------
+# narf train
+
+
+def _add_train(commands: argparse._SubParsersAction) -> None:
+    parser = commands.add_parser(
+        "train",
+        help="train a model (part fields, then the configuration field) from a dataset",
+        description=(
+            "Stage 1 trains one radiance field per rigid part on the dataset's train split; stage 2 "
+            "distils their composition (through the URDF's forward kinematics) into one field "
+            "F(x, d, theta). Writes one .narf bundle. Resumable: an interrupted run leaves MODEL.narf.work/ "
+            "and running the same command again continues from its last checkpoint."
+        ),
+    )
+    arg = parser.add_argument
+    arg("dataset", type=Path, help="dataset folder written by narf synth")
+    arg("--out", required=True, type=Path, metavar="MODEL.narf", help="bundle to write")
+    arg("--arch", choices=("kplanes", "fastnerf"), default="kplanes", help="field architecture (default: %(default)s)")
+    arg("--budget", type=_non_negative_float, metavar="SECONDS", help="total training time cap")
+    arg("--part-steps", type=_positive_int, metavar="N", help="stage-1 steps per part")
+    arg("--distill-steps", type=_positive_int, metavar="N", help="stage-2 steps")
+    arg("--batch-rays", type=_positive_int, metavar="N", help="rays per step")
+    arg("--composites", type=_non_negative_int, metavar="N", help="stage 2 on N pre-rendered composite views "
+        "(the paper: 5000) instead of fresh rays every step (0, the default)")
+    arg("--no-parts", action="store_true", help="leave the part fields out of the bundle (no 'parts' mode)")
+    arg("--seed", type=_non_negative_int, default=0)
+    parser.set_defaults(run=_run_train)
+
+
+def _run_train(args: argparse.Namespace) -> int:
+    from narf_core.train.pipeline import TrainConfig, train
+
+    config = TrainConfig(arch=args.arch, budget_s=args.budget, seed=args.seed, keep_parts=not args.no_parts)
+    overrides = {"part_steps": args.part_steps, "distill_steps": args.distill_steps, "batch_rays": args.batch_rays,
+                 "composites": args.composites}
+    config = replace(config.for_arch(), **{k: v for k, v in overrides.items() if v is not None})
+    start = time.perf_counter()
+    out = train(args.dataset, args.out, config, command=" ".join(["narf", *sys.argv[1:]]), progress=True)
+    print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB) in {time.perf_counter() - start:.0f} s")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# narf eval
+
+
+def _add_eval(commands: argparse._SubParsersAction) -> None:
+    parser = commands.add_parser(
+        "eval",
+        help="render error (per-pixel MSE, PSNR) and time of a model on a dataset split",
+        description=(
+            "Renders every frame of a split at its labelled pose and configuration and compares it "
+            "with the observation masked by the labels (the paper's per-pixel MSE over the full "
+            "image, RGB in [0, 1]). Prints MSE, PSNR, N and the median milliseconds per image."
+        ),
+    )
+    arg = parser.add_argument
+    arg("model", type=Path, metavar="MODEL.narf")
+    arg("dataset", type=Path)
+    arg("--split", choices=("train", "test", "novel"), default="test")
+    arg("--mode", choices=("narf", "parts"), default="narf")
+    arg("--limit", type=_positive_int, metavar="N", help="only the first N frames")
+    arg("--clean", action="store_true", help="score against the clean ground truth of a noisy dataset")
+    _add_json_flag(parser)
+    parser.set_defaults(run=_run_eval)
+
+
+def _run_eval(args: argparse.Namespace) -> int:
+    from narf_core.bundle import load_bundle
+    from narf_core.data.dataset import Dataset
+    from narf_core.evaluate import evaluate_render
+
+    model = load_bundle(args.model)
+    dataset = Dataset.open(args.dataset, clean=args.clean)
+    score = evaluate_render(model, dataset, split=args.split, mode=args.mode, limit=args.limit)
+    _emit(args, score.summary(), lambda r: (
+        f"{r['split']} ({r['mode']}, {r['width']}x{r['height']}): MSE {r['mse']:.5f}  PSNR {r['psnr']:.2f} dB  "
+        f"N {r['n']}  {r['ms_per_image']:.1f} ms/image"))
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# narf render
+
+
+def _add_render(commands: argparse._SubParsersAction) -> None:
+    parser = commands.add_parser(
+        "render", help="render a model at a pose and configuration to PNG",
+        description="Render RGB (and optionally depth as 16-bit PNG millimetres, 0 = none) of a model.",
+    )
+    arg = parser.add_argument
+    arg("model", type=Path, metavar="MODEL.narf")
+    arg("--pose", required=True, metavar="JSON|FILE", help="T_cam_obj: {\"matrix\": 4x4} or {\"position\", \"orientation\"}")
+    arg("--joints", metavar="NAME=V,...|JSON", help="joint values (default: mid-range)")
+    arg("--K", metavar="FX,FY,CX,CY|JSON", help="intrinsics (default: Primesense-like scaled to --size)")
+    arg("--size", nargs=2, type=_positive_int, default=(160, 120), metavar=("W", "H"))
+    arg("--mode", choices=("narf", "parts"), default="narf")
+    arg("--out", required=True, type=Path, metavar="PNG")
+    arg("--depth", type=Path, metavar="PNG", help="also write depth (uint16 millimetres)")
+    _add_json_flag(parser)
+    parser.set_defaults(run=_run_render)
+
+
+def _run_render(args: argparse.Namespace) -> int:
+    import numpy as np
+    import torch
+    from PIL import Image
+
+    from narf_core.bundle import load_bundle
+    from narf_core.data.dataset import write_png_depth
+    from narf_core.geometry import Pinhole
+
+    width, height = args.size
+    camera = _camera_arg(args.K, width, height) if args.K else Pinhole.primesense(width, height)
+    T = _pose_arg(args.pose, "--pose")
+    model = load_bundle(args.model)
+    theta = model.joint_vector(_joints_arg(args.joints))
+    outputs = ("rgb", "depth") if args.depth else ("rgb",)
+    start = time.perf_counter()
+    images = model.render(torch.as_tensor(T, dtype=torch.float32), theta, camera, outputs=outputs, mode=args.mode)
+    ms = 1000 * (time.perf_counter() - start)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray((images["rgb"].numpy() * 255 + 0.5).astype(np.uint8)).save(args.out)
+    if args.depth:
+        write_png_depth(args.depth, images["depth"].numpy())
+    result = {"rgb": str(args.out), "depth": str(args.depth) if args.depth else None, "ms": round(ms, 2),
+              "joints": model.joint_dict(theta)}
+    _emit(args, result, lambda r: f"wrote {r['rgb']}" + (f" and {r['depth']}" if r["depth"] else "") + f" in {r['ms']:.1f} ms")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# narf estimate
+
+
+def _add_estimate(commands: argparse._SubParsersAction) -> None:
+    parser = commands.add_parser(
+        "estimate", help="refine pose and joint configuration from an image, a mask and an initial pose",
+        description=(
+            "iNeRF-style render-and-compare: Adam on a left-multiplied se(3) pose increment and the "
+            "joint values (kept inside their limits) through the model's renderer, from an initial "
+            "pose. Defaults follow the paper: 150 iterations, masked photometric MSE."
+        ),
+    )
+    arg = parser.add_argument
+    arg("model", type=Path, metavar="MODEL.narf")
+    arg("--image", required=True, type=Path, metavar="PNG")
+    arg("--mask", required=True, type=Path, metavar="PNG", help="object mask (non-zero = object)")
+    arg("--K", required=True, metavar="FX,FY,CX,CY|JSON")
+    arg("--init-pose", required=True, metavar="JSON|FILE", help="initial T_cam_obj")
+    arg("--init-joints", metavar="NAME=V,...|JSON", help="initial joint values (default: mid-range)")
+    arg("--depth", type=Path, metavar="PNG", help="observed depth, uint16 millimetres (0 = none)")
+    arg("--gt", metavar="JSON|FILE", help="ground truth {\"pose\": ..., \"joints\": {...}}: report ADD and joint error")
+    arg("--iterations", type=_non_negative_int, metavar="N")
+    arg("--mode", choices=("narf", "parts"), default="narf")
+    arg("--robust", action="store_true", help="silhouette term, several joint starts and coarse-to-fine")
+    _add_json_flag(parser)
+    parser.set_defaults(run=_run_estimate)
+
+
+def _run_estimate(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from narf_core.bundle import load_bundle
+    from narf_core.data.dataset import read_depth
+    from narf_core.estimate import EstimateOptions, refine
+
+    image = _read_image(args.image, "--image", "RGB")
+    mask = _read_image(args.mask, "--mask")
+    if mask.ndim == 3:
+        mask = mask[..., 0]
+    depth = read_depth(args.depth) if args.depth else None
+    camera = _camera_arg(args.K, image.shape[1], image.shape[0])
+    T_init = _pose_arg(args.init_pose, "--init-pose")
+    ground_truth = None
+    if args.gt:
+        gt = _json_arg(args.gt, "--gt")
+        if not isinstance(gt, dict) or "pose" not in gt:
+            raise ValueError("--gt: expected {\"pose\": ..., \"joints\": {...}}")
+        ground_truth = (_pose_arg(json.dumps(gt["pose"]), "--gt pose"), _joints_arg(json.dumps(gt.get("joints", {})), "--gt joints"))
+    options = EstimateOptions.robust() if args.robust else EstimateOptions()
+    options = replace(options, mode=args.mode, **({"iterations": args.iterations} if args.iterations is not None else {}))
+    model = load_bundle(args.model)
+    result = refine(model, image, mask > 0, camera, T_init, joints_init=_joints_arg(args.init_joints, "--init-joints"),
+                    depth=depth, options=options, ground_truth=ground_truth)
+    out = {
+        "pose": {"matrix": np.asarray(result.T_cam_obj).tolist(), "position": list(map(float, result.position)),
+                 "orientation": list(map(float, result.quaternion))},
+        "joints": result.joints, "loss": result.loss, "iterations": result.iterations,
+        "seconds": round(result.seconds, 3), "status": result.status,
+        "recovered_non_finite": result.recovered_non_finite, "metrics": result.metrics,
+    }
+
+    def human(r: dict[str, Any]) -> str:
+        p = r["pose"]["position"]
+        lines = [f"{r['status']} after {r['iterations']} iterations in {r['seconds']:.2f} s, loss {r['loss']}",
+                 f"position [{p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}] m, joints " +
+                 ", ".join(f"{k}={v:.4f}" for k, v in r["joints"].items())]
+        if r["metrics"]:
+            lines.append("metrics: " + ", ".join(f"{k}={v:.4g}" for k, v in r["metrics"].items() if isinstance(v, (int, float))))
+        return "\n".join(lines)
+
+    _emit(args, out, human)
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# narf bench
+
+
+def _add_bench(commands: argparse._SubParsersAction) -> None:
+    parser = commands.add_parser(
+        "bench", help="benchmarks: error and run time side by side (render, estimate, service)",
+        description="Benchmarks shaped like the paper's tables, with run time beside every error figure.",
+    )
+    which = parser.add_subparsers(dest="bench", required=True, metavar="WHAT")
+    for name, help_text in (
+        ("render", "Table I: render MSE/PSNR and ms per image per tool, split and mode"),
+        ("estimate", "Table II: ADD and configuration error per tool, with seconds per scene"),
+    ):
+        sub = which.add_parser(name, help=help_text, description=help_text)
+        sub.add_argument("--work", type=Path, default=Path("runs/bench"), help="folder for data, models and results")
+        sub.add_argument("--tools", nargs="+", default=None, metavar="TOOL")
+        sub.add_argument("--noise", action="store_true", help="also on datasets with label noise")
+        sub.add_argument("--quick", action="store_true", help="reduced run on the bundled demo model(s), no training")
+        sub.add_argument("--models", type=Path, default=Path("models"), help="bundled models (for --quick)")
+        _add_json_flag(sub)
+        sub.set_defaults(run=_run_bench_render if name == "render" else _run_bench_estimate)
+    sub = which.add_parser("service", help="requests/s and latency of /v1/render and /v1/estimate under load")
+    sub.add_argument("--models", type=Path, default=Path("models"))
+    sub.add_argument("--clients", type=_positive_int, default=8)
+    sub.add_argument("--requests", type=_positive_int, default=200)
+    sub.add_argument("--duration", type=_non_negative_float, default=30.0, metavar="SECONDS")
+    sub.add_argument("--estimate-clients", type=_positive_int, default=16)
+    _add_json_flag(sub)
+    sub.set_defaults(run=_run_bench_service)
+
+
+def _bench_tools(args: argparse.Namespace) -> tuple[str, ...]:
+    if args.tools:
+        return tuple(args.tools)
+    if args.quick:
+        return tuple(sorted(p.stem for p in args.models.glob("*.narf")))
+    return ("clamp", "lineman-a", "lineman-b", "longnose")
+
+
+def _run_bench_render(args: argparse.Namespace) -> int:
+    from narf_benchmarks.render import RenderBenchConfig, markdown, run
+
+    tools = _bench_tools(args)
+    models = {t: args.models / f"{t}.narf" for t in tools if (args.models / f"{t}.narf").exists()}
+    config = RenderBenchConfig(tools=tools, noise=args.noise, models=models)
+    if args.quick:
+        config = config.quick_version()
+    result = run(args.work, config)
+    print(json.dumps(result, indent=1) if args.json else markdown(result))
+    return 0
+
+
+def _run_bench_estimate(args: argparse.Namespace) -> int:
+    from narf_benchmarks.estimate import main as bench_main
+
+    return bench_main(args)
+
+
+def _run_bench_service(args: argparse.Namespace) -> int:
+    from narf_benchmarks.service import markdown, run
+
+    result = run(models_dir=args.models, clients=args.clients, requests=args.requests, duration_s=args.duration,
+                 estimate_clients=args.estimate_clients)
+    print(json.dumps(result, indent=1) if args.json else markdown(result))
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# narf serve
+
+
+def _add_serve(commands: argparse._SubParsersAction) -> None:
+    parser = commands.add_parser(
+        "serve", help="serve the models of a folder over HTTP (/v1/render, /v1/estimate)",
+        description="Start the FastAPI service (uvicorn) on loopback by default. Settings also come from "
+                    "NARF_* environment variables (see the README).",
+    )
+    arg = parser.add_argument
+    arg("--models", type=Path, default=None, metavar="DIR", help="folder of .narf bundles (default: ./models)")
+    arg("--host", default="127.0.0.1")
+    arg("--port", type=_non_negative_int, default=8000)
+    arg("--token", default=None, help="require this bearer token (default: NARF_TOKEN, else no auth)")
+    parser.set_defaults(run=_run_serve)
+
+
+def _run_serve(args: argparse.Namespace) -> int:
+    from narf_service.main import serve
+
+    serve(models_dir=args.models, host=args.host, port=args.port, token=args.token)
+    return 0
 
 
 if __name__ == "__main__":

@@ -1,0 +1,283 @@
+"""The model bundle: one safetensors file per object (DESIGN §6), and the model it loads into.
+
+A bundle holds tensors only (never pickle):
+  ``field.*``              the configuration field F(x, d, θ)
+  ``grid``                 its occupancy grid, valid for every θ in the limits
+  ``part.<i>.*``           the part fields, if the bundle keeps them (render mode ``parts``)
+  ``part_grid.<i>``        their occupancy grids
+  ``points.<link>``        surface points per link, in the link frame, for ADD
+and one JSON document in the safetensors metadata under ``"narf"``: format and version, object
+name, links, joints with limits, bounds, field architectures and hyper-parameters, the URDF text
+(for FK), training provenance and metrics.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field as dataclass_field
+from pathlib import Path
+
+import numpy as np
+import torch
+from safetensors import SafetensorError
+from safetensors.torch import load_file, save_file
+from torch import Tensor
+
+from narf_core.fields import make_field
+from narf_core.fields.composed import ComposedField
+from narf_core.geometry import Pinhole, Rays
+from narf_core.kinematics import KinematicTree, UrdfError
+from narf_core.render import OccupancyGrid, RenderOutput, render_image, render_rays
+
+FORMAT = "narf-bundle"
+FORMAT_VERSION = 1
+RENDER_MODES = ("narf", "parts")
+
+
+class BundleError(ValueError):
+    """A bundle file that cannot be used: missing, corrupt, foreign or of another version."""
+
+
+@dataclass(frozen=True)
+class JointSpec:
+    """A movable joint: its name, URDF type and limits (radians or metres)."""
+
+    name: str
+    type: str
+    lower: float
+    upper: float
+
+
+@dataclass
+class NarfModel:
+    """A trained object: the configuration field, optionally its part fields, and its kinematics.
+
+    ``field`` is any field callable ``(x [n,3], d [n,3], θ [n,k]) -> (σ [n], rgb [n,3])`` (a trained
+    :class:`~narf_core.fields.base.RadianceField` in practice); ``grid`` is its occupancy grid over
+    the object box, valid for every θ within the limits.
+    """
+
+    name: str
+    kinematics: KinematicTree
+    field: torch.nn.Module
+    grid: OccupancyGrid
+    part_fields: list[torch.nn.Module] | None = None
+    part_grids: list[OccupancyGrid] | None = None
+    metadata: dict = dataclass_field(default_factory=dict)
+    step: float | None = None
+    sample_points: dict[str, np.ndarray] = dataclass_field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        kin = self.kinematics
+        self.links = list(kin.links)
+        self.joints = [JointSpec(j.name, j.type, float(j.lower), float(j.upper)) for j in kin.movable]
+        self.lower = kin.lower.to(torch.float32)
+        self.upper = kin.upper.to(torch.float32)
+        self.aabb = self.grid.aabb.to(torch.float32)
+        if self.step is None:
+            self.step = float((self.aabb[1] - self.aabb[0]).norm()) / 256
+        if not self.sample_points:
+            self.sample_points = kin.sample_points()
+        self._composed = (
+            ComposedField(self.part_fields, self.part_grids, kin.part_poses) if self.part_fields else None
+        )
+        points = np.concatenate(list(self.sample_points.values())) if self.sample_points else np.zeros((0, 3))
+        self.diameter = float(self.metadata.get("diameter") or _diameter(points, kin, self.sample_points))
+
+    @property
+    def has_parts(self) -> bool:
+        return self._composed is not None
+
+    def joint_vector(self, joints: Mapping[str, float] | None) -> Tensor:
+        """θ ``[k]`` (float32) from ``{name: value}``; missing joints at mid-range.
+
+        Raises ``ValueError`` naming an unknown joint, a non-finite value or one outside its limits.
+        """
+        return self.kinematics.joint_vector(joints).to(torch.float32)
+
+    def joint_dict(self, theta: Tensor) -> dict[str, float]:
+        return self.kinematics.joint_dict(theta)
+
+    def _field_for(self, mode: str):
+        if mode == "narf":
+            return self.field, self.grid
+        if mode == "parts":
+            if self._composed is None:
+                raise ValueError(f"model {self.name!r} has no part fields: render mode 'parts' is unavailable")
+            return self._composed, None
+        raise ValueError(f"unknown render mode {mode!r}; expected one of {', '.join(RENDER_MODES)}")
+
+    def render_rays(
+        self,
+        rays_obj: Rays,
+        theta: Tensor,
+        *,
+        mode: str = "narf",
+        outputs: tuple[str, ...] = ("rgb",),
+        background: float = 0.0,
+    ) -> RenderOutput:
+        """Render rays given in the object frame at configuration ``θ [k]``; differentiable."""
+        field, grid = self._field_for(mode)
+        return render_rays(
+            field, rays_obj, self.aabb, theta=theta, grid=grid, step=self.step, outputs=outputs, background=background
+        )
+
+    def render(
+        self,
+        T_cam_obj: Tensor,
+        theta: Tensor,
+        camera: Pinhole,
+        *,
+        outputs: tuple[str, ...] = ("rgb",),
+        mode: str = "narf",
+    ) -> dict[str, Tensor]:
+        """Images of the object at pose ``T_cam_obj [4,4]`` and ``θ [k]``.
+
+        Returns the asked outputs: ``rgb [H,W,3]`` in [0, 1], ``depth [H,W]`` (metres, 0 = no return),
+        ``opacity [H,W]``.
+        """
+        field, grid = self._field_for(mode)
+        with torch.no_grad():
+            return render_image(
+                field,
+                camera,
+                T_cam_obj.to(torch.float32),
+                theta=theta.to(torch.float32),
+                aabb=self.aabb,
+                grid=grid,
+                outputs=outputs,
+                step=self.step,
+            )
+
+    def describe(self) -> dict:
+        """JSON-able description: links, joints and limits, bounds, metrics."""
+        return {
+            "name": self.name,
+            "links": self.links,
+            "joints": [j.__dict__ for j in self.joints],
+            "bounds": self.aabb.tolist(),
+            "diameter": self.diameter,
+            "modes": ["narf", "parts"] if self.has_parts else ["narf"],
+            "field": self.metadata.get("field", {}),
+            "metrics": self.metadata.get("metrics", {}),
+            "provenance": self.metadata.get("provenance", {}),
+        }
+
+
+def _diameter(points: np.ndarray, kin: KinematicTree, sample_points: dict[str, np.ndarray]) -> float:
+    """Largest distance between surface points of the object at mid-range θ."""
+    from narf_core.metrics import object_diameter
+
+    if len(points) == 0:
+        return 0.0
+    poses = kin.link_poses(kin.mid_configuration()).numpy()
+    world = [p @ poses[kin.links.index(name), :3, :3].T + poses[kin.links.index(name), :3, 3] for name, p in sample_points.items()]
+    return float(object_diameter(np.concatenate(world)))
+
+
+def save_bundle(path: str | Path, model: NarfModel) -> Path:
+    """Write ``model`` to ``path`` atomically (a temporary file renamed into place)."""
+    path = Path(path)
+    tensors: dict[str, Tensor] = {}
+    for key, value in model.field.state_dict().items():
+        tensors[f"field.{key}"] = value
+    tensors["grid"] = model.grid.occupancy.to(torch.uint8)
+    part_meta = []
+    for i, (pf, pg) in enumerate(zip(model.part_fields or [], model.part_grids or [])):
+        for key, value in pf.state_dict().items():
+            tensors[f"part.{i}.{key}"] = value
+        tensors[f"part_grid.{i}"] = pg.occupancy.to(torch.uint8)
+        part_meta.append({"field": pf.config(), "grid_aabb": pg.aabb.tolist()})
+    for link, pts in model.sample_points.items():
+        tensors[f"points.{link}"] = torch.as_tensor(pts, dtype=torch.float32)
+    meta = {
+        **{k: v for k, v in model.metadata.items() if k not in ("format", "version")},
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "name": model.name,
+        "links": model.links,
+        "joints": [j.__dict__ for j in model.joints],
+        "bounds": model.aabb.tolist(),
+        "step": model.step,
+        "diameter": model.diameter,
+        "field": model.field.config(),
+        "grid_aabb": model.grid.aabb.tolist(),
+        "parts": part_meta,
+        "part_links": model.kinematics.parts,
+        "urdf": model.kinematics.urdf_text,
+    }
+    tensors = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    os.close(fd)
+    try:
+        save_file(tensors, tmp, metadata={"narf": json.dumps(meta)})
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def read_metadata(path: str | Path) -> dict:
+    """The bundle's JSON metadata, checked for format and version, without loading weights."""
+    path = Path(path)
+    if not path.is_file():
+        raise BundleError(f"{path}: no such model file")
+    try:
+        with open(path, "rb") as f:
+            header_len = int.from_bytes(f.read(8), "little")
+            if not 0 < header_len < 100_000_000:
+                raise ValueError("bad header length")
+            header = json.loads(f.read(header_len))
+        meta = json.loads(header["__metadata__"]["narf"])
+    except (ValueError, KeyError, TypeError, OSError) as e:
+        raise BundleError(f"{path}: not a NARF model bundle ({type(e).__name__}: {e})") from None
+    if meta.get("format") != FORMAT:
+        raise BundleError(f"{path}: not a NARF model bundle (format {meta.get('format')!r})")
+    if meta.get("version") != FORMAT_VERSION:
+        raise BundleError(
+            f"{path}: bundle format version {meta.get('version')!r} is not supported (this NARF reads {FORMAT_VERSION})"
+        )
+    return meta
+
+
+def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> NarfModel:
+    """Load a ``.narf`` bundle; raises :class:`BundleError` with the reason if it cannot be used."""
+    meta = read_metadata(path)
+    try:
+        tensors = load_file(str(path), device=str(device))
+    except (SafetensorError, OSError, ValueError) as e:
+        raise BundleError(f"{path}: corrupt model bundle ({e})") from None
+    try:
+        kin = KinematicTree.from_urdf_string(meta["urdf"])
+        field = _load_module(meta["field"], tensors, "field.", device)
+        grid = OccupancyGrid(torch.tensor(meta["grid_aabb"], device=device), tensors["grid"].bool())
+        part_fields, part_grids = [], []
+        for i, part in enumerate(meta.get("parts", [])):
+            part_fields.append(_load_module(part["field"], tensors, f"part.{i}.", device))
+            part_grids.append(OccupancyGrid(torch.tensor(part["grid_aabb"], device=device), tensors[f"part_grid.{i}"].bool()))
+        points = {k[len("points."):]: v.cpu().numpy() for k, v in tensors.items() if k.startswith("points.")}
+    except (KeyError, RuntimeError, UrdfError, TypeError) as e:
+        raise BundleError(f"{path}: incomplete or inconsistent model bundle ({type(e).__name__}: {e})") from None
+    return NarfModel(
+        name=meta["name"],
+        kinematics=kin,
+        field=field,
+        grid=grid,
+        part_fields=part_fields or None,
+        part_grids=part_grids or None,
+        metadata=meta,
+        step=meta.get("step"),
+        sample_points=points,
+    )
+
+
+def _load_module(config: dict, tensors: dict[str, Tensor], prefix: str, device) -> torch.nn.Module:
+    module = make_field(config).to(device)
+    state = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
+    module.load_state_dict(state)
+    return module.eval()

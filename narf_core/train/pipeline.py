@@ -1,0 +1,238 @@
+"""``narf train``: dataset -> part fields -> composition -> configuration field -> bundle.
+
+Resumable: work in progress lives in ``<out>.work/`` beside the bundle. Each finished part field
+is written there as soon as it is done; each running stage checkpoints every few seconds. Running
+the same command again continues where it stopped; the folder is removed once the bundle exists.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+import subprocess
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import torch
+
+from narf_core import __version__
+from narf_core.bundle import NarfModel, save_bundle
+from narf_core.data.dataset import Dataset
+from narf_core.fields import make_field
+from narf_core.fields.composed import ComposedField, union_occupancy
+from narf_core.kinematics import KinematicTree
+from narf_core.render import OccupancyGrid, render_rays
+from narf_core.train.distill import composite_rays
+from narf_core.train.loop import run_stage, save_atomic
+from narf_core.train.parts import RayTargets, part_boxes, part_rays
+
+
+@dataclass
+class TrainConfig:
+    """Hyper-parameters of both stages; ``budget_s`` caps the total training time."""
+
+    arch: str = "kplanes"
+    part_steps: int = 1500
+    distill_steps: int = 3000
+    batch_rays: int = 4096
+    lr: float = 0.02
+    grid_resolution: int = 96
+    views_per_batch: int = 64
+    composites: int = 0
+    distance: tuple[float, float] = (0.4, 1.0)
+    depth_weight: float = 0.1
+    opacity_weight: float = 1.0
+    budget_s: float | None = None
+    seed: int = 0
+    keep_parts: bool = True
+
+    def for_arch(self) -> TrainConfig:
+        """This configuration with the learning rate suited to ``arch`` (MLPs want a smaller one)."""
+        return replace(self, lr=5e-4) if self.arch == "fastnerf" else self
+
+
+class TrainError(ValueError):
+    """Training cannot start or resume (e.g. a work folder left by a different run)."""
+
+
+def ray_loss(out, targets: RayTargets, config: TrainConfig) -> torch.Tensor:
+    """Colour (premultiplied on black), opacity and depth terms of a rendered batch."""
+    rgb_loss = ((out.rgb - targets.rgb * targets.opacity[:, None]) ** 2).mean()
+    opacity_loss = ((out.opacity - targets.opacity) ** 2).mean()
+    has_depth = targets.depth > 0
+    depth_loss = (
+        (out.depth[has_depth] - targets.depth[has_depth] * out.opacity[has_depth].detach()).abs().mean()
+        if bool(has_depth.any())
+        else out.rgb.new_zeros(())
+    )
+    return rgb_loss + config.opacity_weight * opacity_loss + config.depth_weight * depth_loss
+
+
+def _step_size(aabb: torch.Tensor) -> float:
+    return float((aabb[1] - aabb[0]).norm()) / 256
+
+
+def _git_commit() -> str | None:
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5, cwd=Path(__file__).parent
+        )
+        return out.stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+def train(
+    dataset_root: str | Path,
+    out: str | Path,
+    config: TrainConfig | None = None,
+    *,
+    command: str | None = None,
+    progress: bool = True,
+) -> Path:
+    """Train every stage on ``dataset_root`` and write the bundle to ``out``; resumes if interrupted."""
+    config = config or TrainConfig()
+    out = Path(out)
+    dataset = Dataset.open(dataset_root)
+    kin = KinematicTree.from_urdf(dataset.urdf_path)
+    dataset_hash = hashlib.sha256((Path(dataset_root) / "scene.json").read_bytes()).hexdigest()[:16]
+    work = out.parent / f"{out.name}.work"
+    _check_work_folder(work, config, dataset_hash)
+    torch.manual_seed(config.seed)
+    t_start = time.perf_counter()
+    budget_parts = None if config.budget_s is None else 0.35 * config.budget_s / len(kin.parts)
+
+    boxes = part_boxes(kin)
+    rays_per_part: list[RayTargets] | None = None
+    part_fields, part_grids, timings = [], [], {}
+    for p, box in enumerate(boxes):
+        done = work / f"part{p}.pt"
+        field = make_field({"arch": config.arch, "aabb": box.tolist()})
+        if done.exists():
+            state = torch.load(done, weights_only=True)
+            field.load_state_dict(state["field"])
+            grid = OccupancyGrid(box, state["grid"].bool())
+            timings[f"part{p}_s"] = float(state["seconds"])
+        else:
+            if rays_per_part is None:
+                rays_per_part = part_rays(dataset, kin, boxes)
+            grid, seconds = _train_part(field, box, rays_per_part[p], config, work / f"part{p}.ckpt", budget_parts, progress, kin.part_names[p])
+            save_atomic({"field": field.state_dict(), "grid": grid.occupancy.to(torch.uint8), "seconds": seconds}, done)
+            timings[f"part{p}_s"] = seconds
+        part_fields.append(field.eval())
+        part_grids.append(grid)
+
+    teacher = ComposedField(part_fields, part_grids, kin.part_poses)
+    aabb = torch.as_tensor(kin.bounds(), dtype=torch.float32)
+    lower, upper = kin.lower.float(), kin.upper.float()
+    union_path = work / "union_grid.pt"
+    if union_path.exists():
+        union = OccupancyGrid(aabb, torch.load(union_path, weights_only=True)["grid"].bool())
+    else:
+        poses = kin.part_poses(_theta_samples(kin.lower, kin.upper))
+        union = union_occupancy(part_grids, poses, aabb, config.grid_resolution)
+        save_atomic({"grid": union.occupancy.to(torch.uint8)}, union_path)
+    student = make_field({"arch": config.arch, "aabb": aabb.tolist(), "theta_lower": lower.tolist(), "theta_upper": upper.tolist()})
+    spent = time.perf_counter() - t_start
+    budget_distill = None if config.budget_s is None else max(config.budget_s - spent, 0.0)
+    seconds = _distill(student, teacher, union, aabb, lower, upper, config, work / "distill.ckpt", budget_distill, progress)
+    timings["distill_s"] = seconds
+
+    model = NarfModel(
+        name=out.stem,
+        kinematics=kin,
+        field=student.eval(),
+        grid=union,
+        part_fields=part_fields if config.keep_parts else None,
+        part_grids=part_grids if config.keep_parts else None,
+        metadata={
+            "provenance": {
+                "dataset": str(Path(dataset_root)),
+                "dataset_hash": dataset_hash,
+                "command": command,
+                "git_commit": _git_commit(),
+                "narf_version": __version__,
+                "config": asdict(config),
+                "timings_s": timings,
+            },
+        },
+        step=_step_size(aabb),
+    )
+    save_bundle(out, model)
+    shutil.rmtree(work, ignore_errors=True)
+    return out
+
+
+def _check_work_folder(work: Path, config: TrainConfig, dataset_hash: str) -> None:
+    key = {"config": {k: v for k, v in asdict(config).items() if k != "budget_s"}, "dataset_hash": dataset_hash}
+    key = json.loads(json.dumps(key))
+    marker = work / "run.json"
+    if marker.exists():
+        if json.loads(marker.read_text()) != key:
+            raise TrainError(
+                f"{work} holds an interrupted run with other settings or data; delete it to start afresh"
+            )
+        return
+    work.mkdir(parents=True, exist_ok=True)
+    marker.write_text(json.dumps(key, indent=1))
+
+
+def _theta_samples(lower: torch.Tensor, upper: torch.Tensor, total: int = 4096) -> torch.Tensor:
+    """``[m, k]`` configurations on a grid spanning the joint box, limits included, ``m <= total``."""
+    per_axis = max(2, int(total ** (1 / max(len(lower), 1))))
+    axes = [torch.linspace(float(lo), float(hi), per_axis) for lo, hi in zip(lower, upper)]
+    if not axes:
+        return torch.zeros(1, 0)
+    return torch.cartesian_prod(*axes).reshape(-1, len(axes))
+
+
+def _train_part(field, box, targets: RayTargets, config: TrainConfig, ckpt: Path, budget_s, progress: bool, name: str):
+    generator = torch.Generator().manual_seed(config.seed)
+    optimizer = torch.optim.Adam(field.parameters(), lr=config.lr, eps=1e-15)
+    step = _step_size(box)
+    grid = OccupancyGrid.full(box, config.grid_resolution)
+    warmup = config.part_steps // 4
+
+    def refresh(i: int) -> None:
+        nonlocal grid
+        if i >= warmup and i % 200 == warmup % 200:
+            grid = OccupancyGrid.from_field(field, box, config.grid_resolution)
+
+    def step_fn(i: int) -> float:
+        idx = torch.randint(len(targets), (config.batch_rays,), generator=generator)
+        batch = targets[idx]
+        out = render_rays(field, batch.rays, box, theta=None, grid=grid, step=step, outputs=("rgb", "opacity", "depth"), jitter=True)
+        loss = ray_loss(out, batch, config) + field.regularization()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        return loss.item()
+
+    result = run_stage(f"part {name}", field, optimizer, step_fn, steps=config.part_steps, budget_s=budget_s, checkpoint=ckpt, on_step=refresh, progress=progress)
+    return OccupancyGrid.from_field(field, box, config.grid_resolution), result.seconds
+
+
+def _distill(student, teacher, grid, aabb, lower, upper, config: TrainConfig, ckpt: Path, budget_s, progress: bool) -> float:
+    generator = torch.Generator().manual_seed(config.seed + 1)
+    optimizer = torch.optim.Adam(student.parameters(), lr=config.lr, eps=1e-15)
+    step = _step_size(aabb)
+    rays_per_view = max(config.batch_rays // config.views_per_batch, 1)
+
+    def teacher_render(field, rays, theta):
+        return render_rays(field, rays, aabb, theta=theta, grid=grid, step=step, outputs=("rgb", "opacity", "depth"))
+
+    def step_fn(i: int) -> float:
+        batch, theta = composite_rays(
+            teacher, teacher_render, aabb, lower, upper,
+            n_views=config.views_per_batch, rays_per_view=rays_per_view, distance=config.distance, generator=generator,
+        )
+        out = render_rays(student, batch.rays, aabb, theta=theta, grid=grid, step=step, outputs=("rgb", "opacity", "depth"), jitter=True)
+        loss = ray_loss(out, batch, config) + student.regularization()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        return loss.item()
+
+    return run_stage("configuration field", student, optimizer, step_fn, steps=config.distill_steps, budget_s=budget_s, checkpoint=ckpt, progress=progress).seconds
