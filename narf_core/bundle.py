@@ -215,6 +215,7 @@ def save_bundle(path: str | Path, model: NarfModel) -> Path:
     os.close(fd)
     try:
         save_file(tensors, tmp, metadata={"narf": json.dumps(meta)})
+        os.chmod(tmp, 0o644)  # mkstemp makes it private; a bundle is meant to be read by services
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):

@@ -136,6 +136,8 @@ def _add_synth(commands: argparse._SubParsersAction) -> None:
         "test and novel get max(17, N // 4) each")
     arg("--seed", type=_non_negative_int, default=0, help="random seed (default: %(default)s)")
     arg("--background", action="store_true", help="render a textured table under the object (background)")
+    arg("--supersample", type=_positive_int, default=3, metavar="S", help="S x S colour samples per pixel, odd "
+        "(default: %(default)s; 1 = TinyRenderer's aliased point samples)")
     arg("--overwrite", action="store_true", help="replace the dataset already in --out")
     noise = parser.add_argument_group("label noise").add_argument
     noise("--noise", choices=NOISE_PRESETS, default="none", help="preset (default: %(default)s)")
@@ -170,6 +172,7 @@ def _run_synth(args: argparse.Namespace) -> int:
         seed=args.seed,
         noise=noise if noise.active else None,
         background=args.background,
+        supersample=args.supersample,
         overwrite=args.overwrite,
         progress=True,
     )

@@ -143,6 +143,24 @@ def box_pose() -> tuple[np.ndarray, np.ndarray]:
 
 
 @pytest.mark.parametrize("name", list(CAMERAS))
+def test_supersampling_keeps_labels_and_depth_exact(box_scene, name):
+    camera = CAMERAS[name]
+    T_cam_obj = camera_looking_at((0.25, -0.2, 0.3), target=(0.01, -0.005, 0.0))
+    T_obj_box, size = box_pose()
+    hit, z = exact_box(camera, T_cam_obj @ T_obj_box, size)
+    point = box_scene.render(camera, T_cam_obj)
+    area = box_scene.render(camera, T_cam_obj, supersample=3)
+    assert np.count_nonzero((area.labels > 0) != hit) == 0
+    assert np.abs(area.depth[hit] - z[hit]).max() < 1e-4
+    # colour: the mean of the samples that share the pixel's label, so it never mixes in background
+    background = point.rgb[~hit].reshape(-1, 3)[0]
+    assert (area.rgb[~hit] == background).all()
+    assert np.abs(area.rgb[hit].astype(int) - background.astype(int)).sum(-1).min() > 0
+    with pytest.raises(ValueError, match="odd"):
+        box_scene.render(camera, T_cam_obj, supersample=2)
+
+
+@pytest.mark.parametrize("name", list(CAMERAS))
 @pytest.mark.parametrize("eye", [(0.25, -0.2, 0.3), (-0.1, 0.35, 0.15)])
 def test_render_matches_exact_box(box_scene, name, eye):
     camera = CAMERAS[name]

@@ -216,6 +216,7 @@ def synthesize(
     *,
     overwrite: bool = False,
     sampling: ViewSampling = ViewSampling(),
+    supersample: int = 3,
     progress: bool = False,
 ) -> Path:
     """Render a dataset of ``tool`` into ``out`` and return ``out``.
@@ -230,6 +231,8 @@ def synthesize(
         noise: label noise (the clean ground truth is kept as ``clean/`` and
             ``generator.clean_frames``).
         background: render a textured table under the object (labelled background).
+        supersample: colour samples per pixel along each axis (odd; labels and depth stay exact),
+            like a camera's integration over its pixel area.
         progress: show a tqdm progress bar on stderr.
     """
     width, height = (int(v) for v in size)
@@ -263,6 +266,7 @@ def synthesize(
             "views": {"train": views, "test": n_eval, "novel": n_eval},
             "configurations": {"train": train_configs, "novel": novel_configs},
             "background": background,
+            "supersample": supersample,
             "sampling": asdict(sampling),
             "noise": asdict(noise) if noise.active else None,
             "versions": _versions(),
@@ -275,7 +279,9 @@ def synthesize(
             for shot in tqdm(shots, desc=f"synth {Path(str(tool)).stem}", unit="view", disable=not progress):
                 if shot.configuration != scene.configuration:
                     scene.set_configuration(shot.configuration)
-                T_cam_obj, images = _visible_view(scene, camera, sampling, view_rngs[shot.split], min_pixels)
+                T_cam_obj, images = _visible_view(
+                    scene, camera, sampling, view_rngs[shot.split], min_pixels, supersample
+                )
                 if noise.active:
                     written = _add_noise(images, T_cam_obj, shot.configuration, urdf.joints, noise, noise_rng)
                     writer.add(shot.split, *written, clean=(images, T_cam_obj, shot.configuration))
@@ -285,7 +291,12 @@ def synthesize(
 
 
 def _visible_view(
-    scene: BulletScene, camera: Pinhole, sampling: ViewSampling, rng: np.random.Generator, min_pixels: int
+    scene: BulletScene,
+    camera: Pinhole,
+    sampling: ViewSampling,
+    rng: np.random.Generator,
+    min_pixels: int,
+    supersample: int,
 ) -> tuple[np.ndarray, FrameImages]:
     """Sample camera poses until the object covers at least ``min_pixels`` pixels."""
     bounds = scene.bounds()
@@ -293,7 +304,7 @@ def _visible_view(
     radius = 0.5 * float(np.linalg.norm(bounds[1] - bounds[0]))
     for _ in range(_MAX_VIEW_TRIES):
         T_cam_obj = sampling.sample(rng, centre, radius)
-        images = scene.render(camera, T_cam_obj)
+        images = scene.render(camera, T_cam_obj, supersample)
         if np.count_nonzero(images.labels) >= min_pixels:
             return T_cam_obj, images
     raise ValueError(
