@@ -11,6 +11,7 @@ Needs only the client package (httpx, numpy, pillow): ``pip install -e clients/p
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import sys
@@ -46,6 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--iterations", type=int, default=150)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--wait", type=float, default=60.0, help="seconds to wait for the server to be ready")
+    parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
     args = parser.parse_args(argv)
     rng = np.random.default_rng(args.seed)
     width, height = args.size
@@ -88,6 +90,13 @@ def main(argv: list[str] | None = None) -> int:
             return 1
 
     metrics = est.metrics or {}
+    if args.json:
+        print(json.dumps({
+            "model": model.name, "status": est.status, "iterations": est.iterations, "loss": est.loss,
+            "joints_true": joints_true, "joints": est.joints, "metrics": metrics,
+            "seconds": est.seconds, "round_trip_seconds": elapsed,
+        }))
+        return 0
 
     def show(key: str, scale: float, unit: str) -> str:
         value = metrics.get(key)

@@ -27,10 +27,9 @@ from safetensors.torch import load_file, save_file
 from torch import Tensor
 
 from narf_core.fields import make_field
-from narf_core.fields.composed import ComposedField
 from narf_core.geometry import Pinhole, Rays
-from narf_core.kinematics import KinematicTree, UrdfError
-from narf_core.render import OccupancyGrid, RenderOutput, render_image, render_rays
+from narf_core.kinematics import KinematicTree
+from narf_core.render import OccupancyGrid, RenderOutput, compose_parts, render_image, render_rays
 
 FORMAT = "narf-bundle"
 FORMAT_VERSION = 1
@@ -81,15 +80,12 @@ class NarfModel:
             self.step = float((self.aabb[1] - self.aabb[0]).norm()) / 256
         if not self.sample_points:
             self.sample_points = kin.sample_points()
-        self._composed = (
-            ComposedField(self.part_fields, self.part_grids, kin.part_poses) if self.part_fields else None
-        )
         points = np.concatenate(list(self.sample_points.values())) if self.sample_points else np.zeros((0, 3))
         self.diameter = float(self.metadata.get("diameter") or _diameter(points, kin, self.sample_points))
 
     @property
     def has_parts(self) -> bool:
-        return self._composed is not None
+        return bool(self.part_fields)
 
     def joint_vector(self, joints: Mapping[str, float] | None) -> Tensor:
         """θ ``[k]`` (float32) from ``{name: value}``; missing joints at mid-range.
@@ -101,13 +97,19 @@ class NarfModel:
     def joint_dict(self, theta: Tensor) -> dict[str, float]:
         return self.kinematics.joint_dict(theta)
 
-    def _field_for(self, mode: str):
+    def _field_for(self, mode: str, theta: Tensor):
+        """The field and occupancy to render in ``mode`` at ``θ [k]``.
+
+        ``parts`` composes the part fields at the part poses FK gives for ``θ`` (differentiable in
+        ``θ``); the composition is its own occupancy grid, so empty space is skipped there too.
+        """
         if mode == "narf":
             return self.field, self.grid
         if mode == "parts":
-            if self._composed is None:
+            if not self.has_parts:
                 raise ValueError(f"model {self.name!r} has no part fields: render mode 'parts' is unavailable")
-            return self._composed, None
+            composition = compose_parts(self.part_fields, self.part_grids, self.kinematics.part_poses(theta).to(torch.float32))
+            return composition, composition
         raise ValueError(f"unknown render mode {mode!r}; expected one of {', '.join(RENDER_MODES)}")
 
     def render_rays(
@@ -120,7 +122,7 @@ class NarfModel:
         background: float = 0.0,
     ) -> RenderOutput:
         """Render rays given in the object frame at configuration ``θ [k]``; differentiable."""
-        field, grid = self._field_for(mode)
+        field, grid = self._field_for(mode, theta)
         return render_rays(
             field, rays_obj, self.aabb, theta=theta, grid=grid, step=self.step, outputs=outputs, background=background
         )
@@ -139,7 +141,7 @@ class NarfModel:
         Returns the asked outputs: ``rgb [H,W,3]`` in [0, 1], ``depth [H,W]`` (metres, 0 = no return),
         ``opacity [H,W]``.
         """
-        field, grid = self._field_for(mode)
+        field, grid = self._field_for(mode, theta)
         with torch.no_grad():
             return render_image(
                 field,
@@ -226,19 +228,29 @@ def save_bundle(path: str | Path, model: NarfModel) -> Path:
 def read_metadata(path: str | Path) -> dict:
     """The bundle's JSON metadata, checked for format and version, without loading weights."""
     path = Path(path)
+    if path.is_dir():
+        raise BundleError(f"{path}: is a folder, not a model file")
     if not path.is_file():
         raise BundleError(f"{path}: no such model file")
     try:
         with open(path, "rb") as f:
             header_len = int.from_bytes(f.read(8), "little")
-            if not 0 < header_len < 100_000_000:
-                raise ValueError("bad header length")
-            header = json.loads(f.read(header_len))
-        meta = json.loads(header["__metadata__"]["narf"])
-    except (ValueError, KeyError, TypeError, OSError) as e:
-        raise BundleError(f"{path}: not a NARF model bundle ({type(e).__name__}: {e})") from None
-    if meta.get("format") != FORMAT:
-        raise BundleError(f"{path}: not a NARF model bundle (format {meta.get('format')!r})")
+            header = json.loads(f.read(header_len)) if 0 < header_len < 100_000_000 else None
+    except (ValueError, OSError) as e:
+        raise BundleError(f"{path}: not a NARF model bundle ({_one_line(e)})") from None
+    if header is None:
+        reason = "the file is empty" if path.stat().st_size == 0 else "no safetensors header"
+        raise BundleError(f"{path}: not a NARF model bundle ({reason})")
+    narf = header.get("__metadata__") if isinstance(header, dict) else None
+    if not isinstance(narf, dict) or "narf" not in narf:
+        raise BundleError(f"{path}: not a NARF model bundle (a safetensors file without 'narf' metadata)")
+    try:
+        meta = json.loads(narf["narf"])
+    except (ValueError, TypeError) as e:
+        raise BundleError(f"{path}: not a NARF model bundle (its 'narf' metadata is not JSON: {_one_line(e)})") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        found = meta.get("format") if isinstance(meta, dict) else meta
+        raise BundleError(f"{path}: not a NARF model bundle (format {found!r})")
     if meta.get("version") != FORMAT_VERSION:
         raise BundleError(
             f"{path}: bundle format version {meta.get('version')!r} is not supported (this NARF reads {FORMAT_VERSION})"
@@ -252,7 +264,7 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> NarfMod
     try:
         tensors = load_file(str(path), device=str(device))
     except (SafetensorError, OSError, ValueError) as e:
-        raise BundleError(f"{path}: corrupt model bundle ({e})") from None
+        raise BundleError(f"{path}: corrupt model bundle ({_one_line(e)})") from None
     try:
         kin = KinematicTree.from_urdf_string(meta["urdf"])
         field = _load_module(meta["field"], tensors, "field.", device)
@@ -262,23 +274,28 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> NarfMod
             part_fields.append(_load_module(part["field"], tensors, f"part.{i}.", device))
             part_grids.append(OccupancyGrid(torch.tensor(part["grid_aabb"], device=device), tensors[f"part_grid.{i}"].bool()))
         points = {k[len("points."):]: v.cpu().numpy() for k, v in tensors.items() if k.startswith("points.")}
-    except (KeyError, RuntimeError, UrdfError, TypeError) as e:
-        raise BundleError(f"{path}: incomplete or inconsistent model bundle ({type(e).__name__}: {e})") from None
-    return NarfModel(
-        name=meta["name"],
-        kinematics=kin,
-        field=field,
-        grid=grid,
-        part_fields=part_fields or None,
-        part_grids=part_grids or None,
-        metadata=meta,
-        step=meta.get("step"),
-        sample_points=points,
-    )
+        return NarfModel(
+            name=str(meta["name"]),
+            kinematics=kin,
+            field=field,
+            grid=grid,
+            part_fields=part_fields or None,
+            part_grids=part_grids or None,
+            metadata=meta,
+            step=meta.get("step"),
+            sample_points=points,
+        )
+    except (KeyError, RuntimeError, TypeError, ValueError) as e:  # ValueError: UrdfError, bad field config or grid
+        raise BundleError(f"{path}: incomplete or inconsistent model bundle ({_one_line(e)})") from None
+
+
+def _one_line(error: BaseException) -> str:
+    """``Type: message`` on one line (torch's state-dict errors span several)."""
+    return f"{type(error).__name__}: {' '.join(str(error).split())}"
 
 
 def _load_module(config: dict, tensors: dict[str, Tensor], prefix: str, device) -> torch.nn.Module:
     module = make_field(config).to(device)
     state = {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
     module.load_state_dict(state)
-    return module.eval()
+    return module.eval().requires_grad_(False)  # inference only: the refiner needs no weight gradients

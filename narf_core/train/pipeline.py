@@ -131,7 +131,8 @@ def train(
     if union_path.exists():
         union = OccupancyGrid(aabb, torch.load(union_path, weights_only=True)["grid"].bool())
     else:
-        poses = kin.part_poses(_theta_samples(kin.lower, kin.upper))
+        cell = float(OccupancyGrid.full(aabb, config.grid_resolution).cell_size.min())
+        poses = kin.part_poses(_theta_samples(kin, boxes, cell))
         union = union_occupancy(part_grids, poses, aabb, config.grid_resolution)
         save_atomic({"grid": union.occupancy.to(torch.uint8)}, union_path)
     student = make_field({"arch": config.arch, "aabb": aabb.tolist(), "theta_lower": lower.tolist(), "theta_upper": upper.tolist()})
@@ -166,7 +167,9 @@ def train(
 
 
 def _check_work_folder(work: Path, config: TrainConfig, dataset_hash: str) -> None:
-    key = {"config": {k: v for k, v in asdict(config).items() if k != "budget_s"}, "dataset_hash": dataset_hash}
+    # Step counts and the budget only say how long to train: a resumed run may change them.
+    how_long = ("budget_s", "part_steps", "distill_steps")
+    key = {"config": {k: v for k, v in asdict(config).items() if k not in how_long}, "dataset_hash": dataset_hash}
     key = json.loads(json.dumps(key))
     marker = work / "run.json"
     if marker.exists():
@@ -179,13 +182,33 @@ def _check_work_folder(work: Path, config: TrainConfig, dataset_hash: str) -> No
     marker.write_text(json.dumps(key, indent=1))
 
 
-def _theta_samples(lower: torch.Tensor, upper: torch.Tensor, total: int = 4096) -> torch.Tensor:
-    """``[m, k]`` configurations on a grid spanning the joint box, limits included, ``m <= total``."""
-    per_axis = max(2, int(total ** (1 / max(len(lower), 1))))
-    axes = [torch.linspace(float(lo), float(hi), per_axis) for lo, hi in zip(lower, upper)]
-    if not axes:
-        return torch.zeros(1, 0)
-    return torch.cartesian_prod(*axes).reshape(-1, len(axes))
+def _theta_samples(kin: KinematicTree, boxes: list[torch.Tensor], cell: float, max_total: int = 4096) -> torch.Tensor:
+    """``[m, k]`` configurations on a grid spanning the joint box, limits included, ``m <= max(max_total, 2^k)``.
+
+    The grid is refined (halving its spacing) until no point of any part box ``[2,3]`` (part frame)
+    moves more than ``cell`` metres between neighbouring samples, as :func:`union_occupancy` needs,
+    or until a finer grid would exceed ``max_total`` (then it has as many samples as fit).
+    A rigid motion displaces the points of a box by an affine function of the point, so the largest
+    displacement is at one of the box's eight corners.
+    """
+    k = len(kin.lower)
+    if k == 0:
+        return torch.zeros(1, 0, dtype=torch.float64)
+    corners = torch.stack([torch.cartesian_prod(*box.double().T) for box in boxes])  # [n_parts, 8, 3]
+    most = 2  # samples per axis within max_total
+    while (most + 1) ** k <= max_total:
+        most += 1
+    per_axis = 2
+    while True:
+        axes = [torch.linspace(float(lo), float(hi), per_axis, dtype=torch.float64) for lo, hi in zip(kin.lower, kin.upper)]
+        thetas = torch.cartesian_prod(*axes).reshape(-1, k)
+        T = kin.part_poses(thetas)  # [m, n_parts, 4, 4]
+        points = (T[:, :, None, :3, :3] @ corners[None, :, :, :, None])[..., 0] + T[:, :, None, :3, 3]
+        points = points.reshape(*[per_axis] * k, -1, 3)
+        move = max(float(points.diff(dim=axis).norm(dim=-1).max()) for axis in range(k))
+        if move <= cell or per_axis >= most:
+            return thetas
+        per_axis = min(2 * per_axis - 1, most)
 
 
 def _train_part(field, box, targets: RayTargets, config: TrainConfig, ckpt: Path, budget_s, progress: bool, name: str):
