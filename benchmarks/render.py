@@ -10,7 +10,7 @@ the work folder, so the full run is one command; ``--quick`` uses the bundled de
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from narf_core.bundle import NarfModel, load_bundle
@@ -40,6 +40,17 @@ class RenderBenchConfig:
     quick: bool = False
     models: dict[str, Path] = field(default_factory=dict)
 
+    def quick_version(self) -> RenderBenchConfig:
+        """The reduced run of ``--quick``: the given (bundled) models only, never training, at the
+        dataset size only, on 4 images of the test and novel splits of 24-view datasets, with a
+        3-step marching sweep."""
+        if self.noise:
+            raise ValueError("the quick run evaluates the bundled models, trained without label noise: leave out --noise")
+        return replace(
+            self, sizes=self.sizes[:1], splits=("test", "novel"), images_per_split=4, step_sweep=(64, 128, 256),
+            views=24, quick=True,
+        )
+
 
 def _dataset(work: Path, tool: str, size: tuple[int, int], views: int, noise: bool) -> Dataset:
     from narf_core.data.synth.generate import NoiseOptions, synthesize
@@ -56,6 +67,8 @@ def _model(work: Path, tool: str, dataset: Dataset, config: RenderBenchConfig, n
 
     if tool in config.models and not noise:
         return load_bundle(config.models[tool])
+    if config.quick:
+        raise ValueError(f"the quick run trains nothing, and no model was given for {tool!r}")
     path = work / "models" / f"{tool}{'-noise' if noise else ''}.narf"
     if not path.exists():
         train(dataset.root, path, TrainConfig(budget_s=config.train_budget_s), command="narf bench render", progress=True)
@@ -84,7 +97,7 @@ def run(work: Path, config: RenderBenchConfig) -> dict:
     for noise in (False, True) if config.noise else (False,):
         for tool in config.tools:
             for size in config.sizes:
-                dataset = _dataset(work, tool, size, config.views if not config.quick else 24, noise)
+                dataset = _dataset(work, tool, size, config.views, noise)
                 model = _model(work, tool, _dataset(work, tool, config.sizes[0], config.views, noise), config, noise)
                 for mode in config.modes if model.has_parts else ("narf",):
                     for split in config.splits:

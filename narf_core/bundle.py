@@ -207,6 +207,7 @@ def save_bundle(path: str | Path, model: NarfModel) -> Path:
         "diameter": model.diameter,
         "field": model.field.config(),
         "grid_aabb": model.grid.aabb.tolist(),
+        "grid_theta_range": None if model.grid.theta_range is None else model.grid.theta_range.tolist(),
         "parts": part_meta,
         "part_links": model.kinematics.parts,
         "urdf": model.kinematics.urdf_text,
@@ -268,7 +269,12 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> NarfMod
     try:
         kin = KinematicTree.from_urdf_string(meta["urdf"])
         field = _load_module(meta["field"], tensors, "field.", device)
-        grid = OccupancyGrid(torch.tensor(meta["grid_aabb"], device=device), tensors["grid"].bool())
+        theta_range = meta.get("grid_theta_range")
+        grid = OccupancyGrid(
+            torch.tensor(meta["grid_aabb"], device=device),
+            tensors["grid"].bool(),
+            None if theta_range is None else torch.tensor(theta_range, device=device),
+        )
         part_fields, part_grids = [], []
         for i, part in enumerate(meta.get("parts", [])):
             part_fields.append(_load_module(part["field"], tensors, f"part.{i}.", device))

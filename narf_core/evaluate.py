@@ -45,6 +45,8 @@ def evaluate_render(
     limit: int | None = None,
 ) -> RenderScore:
     """Render every frame of ``split`` (the first ``limit``) and compare with the masked observation."""
+    if limit is not None and limit < 1:
+        raise ValueError(f"limit must be a positive number of frames, got {limit}")
     frames = dataset.frames(split)[:limit]
     if not frames:
         raise ValueError(f"dataset {dataset.root} has no frames in split {split!r}")

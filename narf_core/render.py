@@ -10,8 +10,8 @@ ones shorter) and their positions do not depend on how tightly the ray was clipp
 is represented by one sample, at its middle or (``jitter``) at one random offset per ray.
 Samples in empty cells of the occupancy grid are never evaluated (their density counts as 0). Rays
 are marched together in rounds: each round looks ahead a window of intervals per ray, evaluates
-the field at the ray's next few occupied samples (its budget: 8 in the first round; then as many as
-its last round's optical depth per sample says it needs to become opaque, or twice as many as
+the field at the ray's next few occupied samples (its budget: 5 in the first round; then as many as
+its last round's optical depth per sample says it needs to become opaque, or 1.4 times as many as
 before, up to 128, while it is still in empty or faint space), composites them in a padded
 ``[rays, budget]`` layout, and retires the ray once its transmittance is below
 ``transmittance_eps`` (early termination; the colour error this adds is below that value) or it
@@ -41,8 +41,9 @@ OUTPUTS = ("rgb", "depth", "opacity")
 Field = Callable[[Tensor, Tensor, "Tensor | None"], tuple[Tensor, Tensor]]
 
 _DIR_EPS = 1e-12  # |direction| components below this are replaced by a signed epsilon
-_FIRST_ROUND = 8  # occupied samples evaluated per ray in the first round (bounds the work wasted past termination)
-_MAX_ROUND = 128  # ... doubling each round up to this (few rounds for translucent rays)
+_FIRST_ROUND = 5  # occupied samples evaluated per ray in the first round (bounds the work wasted past termination)
+_GROWTH = 1.4  # ... growing by this factor per round while a ray is in empty or faint space
+_MAX_ROUND = 128  # ... up to this many (few rounds for long translucent stretches)
 _LOOKAHEAD = 4  # window of intervals checked per round, in multiples of the samples evaluated
 _MAX_WINDOW = 512  # ... up to this many
 
@@ -183,7 +184,7 @@ def _tight_box(aabb: Tensor, occ: Tensor) -> Tensor | None:
     return torch.stack([aabb[0] + nz.amin(0) * size, aabb[0] + (nz.amax(0) + 1) * size])
 
 
-@dataclass
+@dataclass(frozen=True)
 class OccupancyGrid:
     """Which cells of a box may hold density, optionally per bin of the configuration.
 
@@ -191,7 +192,8 @@ class OccupancyGrid:
     ``k`` leading axes of ``B`` bins each that split ``theta_range [2,k]`` (lower, upper) evenly:
     then each 3D grid holds for every ``theta`` in its bin, and :attr:`union` for every ``theta``
     in the limits. Cell ``(i, j, l)`` covers ``aabb[0] + ([i, j, l] + [0, 1)) * cell_size``.
-    Stored as is in a model bundle (uint8 occupancy; ``aabb`` and ``theta_range`` as lists).
+    Immutable (lookup tables are derived once); ``aabb`` and ``theta_range`` are kept as float32.
+    In a model bundle: ``occupancy`` as uint8, ``aabb`` and ``theta_range`` as lists.
     """
 
     aabb: Tensor
@@ -199,39 +201,44 @@ class OccupancyGrid:
     theta_range: Tensor | None = None
 
     def __post_init__(self) -> None:
-        if tuple(self.aabb.shape) != (2, 3) or not bool((self.aabb[1] > self.aabb[0]).all()):
-            raise ValueError(f"grid aabb must be [2,3] with max > min, got {self.aabb.tolist()}")
-        self.occupancy = self.occupancy.bool()
-        k = self.occupancy.dim() - 3
+        aabb = self.aabb.to(torch.float32)
+        if tuple(aabb.shape) != (2, 3) or not bool((aabb[1] > aabb[0]).all()):
+            raise ValueError(f"grid aabb must be [2,3] with max > min, got {aabb.tolist()}")
+        occupancy = self.occupancy.bool()
+        k = occupancy.dim() - 3
         if k < 0:
-            raise ValueError(f"occupancy must be [Rx, Ry, Rz] or [bins.., Rx, Ry, Rz], got shape {tuple(self.occupancy.shape)}")
+            raise ValueError(f"occupancy must be [Rx, Ry, Rz] or [bins.., Rx, Ry, Rz], got shape {tuple(occupancy.shape)}")
+        theta_range = None if self.theta_range is None else self.theta_range.to(torch.float32)
         if k > 0:
-            bins = self.occupancy.shape[:k]
-            if self.theta_range is None or tuple(self.theta_range.shape) != (2, k):
+            if theta_range is None or tuple(theta_range.shape) != (2, k):
                 raise ValueError(f"an occupancy with {k} configuration axes needs theta_range [2, {k}]")
-            if len(set(bins)) != 1:
-                raise ValueError(f"every configuration axis needs the same number of bins, got {tuple(bins)}")
-            if not bool((self.theta_range[1] > self.theta_range[0]).all()):
-                raise ValueError(f"theta_range must have upper > lower, got {self.theta_range.tolist()}")
-        elif self.theta_range is not None:
+            if len(set(occupancy.shape[:k])) != 1:
+                raise ValueError(f"every configuration axis needs the same number of bins, got {tuple(occupancy.shape[:k])}")
+            if not bool((theta_range[1] > theta_range[0]).all()):
+                raise ValueError(f"theta_range must have upper > lower, got {theta_range.tolist()}")
+        elif theta_range is not None:
             raise ValueError("theta_range is only for an occupancy with configuration bins")
-        self._k = k
-        self._bins = self.occupancy.shape[0] if k else 1
-        self._cells = self.occupancy.shape[k:]
-        self._flat = self.occupancy.reshape(-1)
-        self.union = self.occupancy.reshape(-1, *self._cells).any(0)
-        self._union_flat = self.union.reshape(-1)
-        if self._union_flat.numel() >= 1 << 24:
-            raise ValueError(f"at most 2^24 cells per grid, got {self.resolution}")
-        self._bounds = _tight_box(self.aabb, self.union)
-        per_bin = self.occupancy.reshape(-1, *self._cells)
-        self._bin_bounds = [_tight_box(self.aabb, g) for g in per_bin] if k else [self._bounds]
-        cells = torch.tensor(self._cells, dtype=torch.float32, device=self.aabb.device)
-        self._scale = cells / (self.aabb[1] - self.aabb[0])
-        self._last = cells - 1
-        self._strides = torch.tensor(
-            [self._cells[1] * self._cells[2], self._cells[2], 1], dtype=torch.float32, device=self.aabb.device
-        )
+        cells = tuple(occupancy.shape[k:])
+        per_bin = occupancy.reshape(-1, *cells)
+        union = per_bin.any(0)
+        if union.numel() >= 1 << 24:
+            raise ValueError(f"at most 2^24 cells per grid, got {cells}")
+        derived = {
+            "aabb": aabb,
+            "occupancy": occupancy,
+            "theta_range": theta_range,
+            "union": union,  # [Rx, Ry, Rz]: valid for every theta
+            "_k": k,
+            "_bins": occupancy.shape[0] if k else 1,
+            "_cells": cells,
+            "_flat": occupancy.reshape(-1),
+            "_union_flat": union.reshape(-1),
+            "_scale": torch.tensor(cells, dtype=torch.float32, device=aabb.device) / (aabb[1] - aabb[0]),
+            "_bounds": _tight_box(aabb, union),
+            "_bin_bounds": [_tight_box(aabb, g) for g in per_bin] if k else [],
+        }
+        for name, value in derived.items():
+            object.__setattr__(self, name, value)
 
     @property
     def resolution(self) -> tuple[int, int, int]:
@@ -275,7 +282,8 @@ class OccupancyGrid:
         the maximum over the configurations is kept. Configurations: the rows of ``theta_samples
         [m, k]`` if given (one grid, their union); otherwise, for a field with joint limits
         (``theta_lower``/``theta_upper``), ``theta_bins`` bins per axis (default 8 for one joint,
-        fewer for more), each sampled at 4 (k = 1) evenly spaced points, its edges included.
+        fewer for more; ignored with ``theta_samples``), each sampled at 4 (k = 1) evenly spaced
+        points, its edges included.
         ``threshold`` (1/m) defaults to the density that gives 1% opacity across one cell's
         diagonal. ``resolution``: cells along the longest axis (cubic cells), or three counts.
         From 16 cells per axis up, only the cells under a (generously thresholded, dilated) grid
@@ -336,19 +344,13 @@ class OccupancyGrid:
         ``theta`` (``[k]`` or ``[n,k]``) picks the configuration bin; without it, or for a grid
         without bins, the union over the configurations is used.
         """
-        aabb = self.aabb.to(x.dtype)
-        inside = ((x >= aabb[0]) & (x <= aabb[1])).all(-1)
-        return self.occupied_inside(x, theta) & inside
+        x = x.float()
+        inside = ((x >= self.aabb[0]) & (x <= self.aabb[1])).all(-1)
+        cells = (x - self.aabb[0]) * self._scale
+        hit = self.occupied_along(cells, torch.zeros_like(cells), x.new_zeros(x.shape[0], 1), self.bin_offset(theta))
+        return hit[:, 0] & inside
 
-    def occupied_inside(self, x: Tensor, theta: Tensor | None = None) -> Tensor:
-        """:meth:`occupied` for points known to be inside the box (those outside read the nearest cell)."""
-        cell = ((x.float() - self.aabb[0]) * self._scale).floor_()
-        flat = (torch.minimum(cell.clamp_min_(0), self._last) @ self._strides).long()
-        if self._k == 0 or theta is None:
-            return self._union_flat[flat]
-        return self._flat[flat + self._bin_offset(theta)]
-
-    def occupied_along(self, cell_o: Tensor, cell_d: Tensor, t: Tensor, bin_offset: Tensor | int = 0) -> Tensor:
+    def occupied_along(self, cell_o: Tensor, cell_d: Tensor, t: Tensor, bin_offset: Tensor | int = -1) -> Tensor:
         """Occupancy at ``t [m, w]`` along rays given in cell units (``cell_o``, ``cell_d [m,3]``) -> ``[m, w]``.
 
         The renderer's fast path (one contiguous ``[m, w]`` pass per axis): ``cell_o = (o -
@@ -449,125 +451,160 @@ def render_rays(
     if max_samples < 3:
         raise ValueError(f"max_samples must be >= 3, got {max_samples}")
     n = len(rays)
-    origins, directions = rays.origins, rays.directions
-    dtype, device = origins.dtype, origins.device
     theta, per_ray = _ray_theta(theta, n)
-    bg = torch.as_tensor(background, dtype=dtype, device=device).expand(3)
-
-    with torch.no_grad():
-        box = _clip_box(aabb, grid, None if per_ray else theta)
-        if box is None:
-            hit = torch.zeros(n, dtype=torch.bool, device=device)
-            t_near = t_far = origins.new_zeros(n)
-        else:
-            t_near, t_far, hit = ray_aabb(origins, directions, box)
-    ids = hit.nonzero().squeeze(-1)
-
-    want_rgb, want_depth = "rgb" in outputs, "depth" in outputs
-    density = None if want_rgb else getattr(field, "density_only", None)
-    seg_ids: list[Tensor] = []  # per round: the ray of each sample, its weighted colour and depth
-    seg_rgb: list[Tensor] = []
-    seg_z: list[Tensor] = []
-    done_ids: list[Tensor] = []  # retired rays and their optical depth
-    done_tau: list[Tensor] = []
+    dtype = rays.origins.dtype
+    live = _start(rays, aabb, grid, theta, per_ray, step, max_samples, generator if jitter else None)
+    density = None if "rgb" in outputs else getattr(field, "density_only", None)
+    tau_stop = -math.log(transmittance_eps)
+    sample_ray: list[Tensor] = []  # per round: the ray of each sample, its weighted colour and depth
+    sample_rgb: list[Tensor] = []
+    sample_z: list[Tensor] = []
+    retired_ids: list[Tensor] = []  # rays done, and their optical depth
+    retired_tau: list[Tensor] = []
     n_samples = 0
 
-    # State of the live rays (rows follow `ids`).
-    o, d = origins[ids], directions[ids]
-    with torch.no_grad():
-        cell_o = cell_d = o.new_zeros(ids.shape[0], 1)
-        bins: Tensor | int = -1
-        if isinstance(grid, OccupancyGrid):  # the rays in cell units, and the configuration bin(s)
-            cell_o = (o.detach().float() - grid.aabb[0]) * grid._scale
-            cell_d = d.detach().float() * grid._scale
-            bins = grid.bin_offset(theta[ids] if per_ray else theta)
-        t0, t1 = t_near[ids], t_far[ids]
-        step_r = torch.maximum((t1 - t0) / (max_samples - 2), torch.full_like(t0, step))  # <= max_samples cut by the lattice
-        k0 = torch.floor(t0 / step_r)  # the lattice is anchored at t = 0, not at the clipped t_near
-        n_steps = torch.ceil(t1 / step_r) - k0
-        if jitter:
-            offset = torch.rand(ids.shape[0], generator=generator).to(device, dtype)
-        else:
-            offset = torch.full_like(t0, 0.5)
-        j = torch.zeros_like(n_steps)  # next interval (a whole number, in the rays' dtype)
-        budget = torch.full_like(n_steps, _FIRST_ROUND, dtype=torch.int32)  # occupied samples to evaluate this round
-    tau = o.new_zeros(ids.shape[0])  # optical depth so far
-    tau_stop = -math.log(transmittance_eps)
-
-    while ids.numel() > 0:
-        m, most = ids.shape[0], int(budget.max())
-        width = min(_LOOKAHEAD * most, _MAX_WINDOW)
+    while live.ids.numel() > 0:
+        most = int(live.budget.max())
         with torch.no_grad():
-            lattice = (k0 + j)[:, None] + torch.arange(width, device=device, dtype=dtype)  # [m, width]
-            start = torch.maximum(lattice * step_r[:, None], t0[:, None])
-            end = torch.minimum((lattice + 1) * step_r[:, None], t1[:, None])  # = the next start: exact tiling
-            delta = (end - start).clamp_min_(0)
-            t = torch.addcmul(start, offset[:, None], delta)
-            occ = delta > 0
-            if isinstance(grid, OccupancyGrid):
-                occ &= grid.occupied_along(cell_o, cell_d, t, bins)
-            elif grid is not None:
-                x_all = (o.detach()[:, None, :] + t[..., None] * d.detach()[:, None, :]).reshape(-1, 3)
-                th_all = theta[ids].repeat_interleave(width, 0) if per_ray else theta
-                occ &= grid.occupied(x_all, th_all).reshape(m, width)
+            t, delta, occ = _candidates(live, grid, theta, per_ray, min(_LOOKAHEAD * most, _MAX_WINDOW))
             rank = occ.to(torch.int32).cumsum(1, dtype=torch.int32)  # int32: many times faster than bool -> int64
-            take = occ & (rank <= budget[:, None])
-            full = rank[:, -1] >= budget
-            advance = torch.where(full, (rank < budget[:, None]).sum(1) + 1, width)
+            take = occ & (rank <= live.budget[:, None])
+            full = rank[:, -1] >= live.budget
+            advance = torch.where(full, (rank < live.budget[:, None]).sum(1, dtype=torch.int32) + 1, occ.shape[1])
             row, col = take.nonzero(as_tuple=True)
             slot = rank[row, col] - 1
             t_s, delta_s = t[row, col], delta[row, col]
         added = None
         if row.numel() > 0:
-            x = o[row] + t_s[:, None] * d[row]
-            th = None
-            if theta is not None:
-                th = theta[ids[row]] if per_ray else theta.expand(row.shape[0], -1)
-            if density is not None:
-                sigma, rgb = density(x, th), None
-            else:
-                sigma, rgb = field(x, d[row], th)
+            ids = live.ids[row]
+            x = live.o[row] + t_s[:, None] * live.d[row]
+            th = None if theta is None else theta[ids] if per_ray else theta.expand(row.shape[0], -1)
+            sigma, rgb = (density(x, th), None) if density is not None else field(x, live.d[row], th)
             n_samples += row.shape[0]
-            tau_pad = o.new_zeros(m, most).index_put((row, slot), sigma.to(dtype) * delta_s)
-            weights_pad, _ = _weights_from_optical_depth(tau_pad, tau)
-            w = weights_pad[row, slot]
-            seg_ids.append(ids[row])
-            if want_rgb:
-                seg_rgb.append(w[:, None] * rgb.to(dtype))
-            if want_depth:
-                seg_z.append(w * (t_s * rays.z_per_t[ids[row]].to(dtype)))
-            added = tau_pad.sum(1)
-            tau = tau + added
+            tau = live.o.new_zeros(live.ids.shape[0], most).index_put((row, slot), sigma.to(dtype) * delta_s)
+            w = _weights_from_optical_depth(tau, live.tau)[0][row, slot]
+            sample_ray.append(ids)
+            if "rgb" in outputs:
+                sample_rgb.append(w[:, None] * rgb.to(dtype))
+            if "depth" in outputs:
+                sample_z.append(w * t_s * rays.z_per_t[ids].to(dtype))
+            added = tau.sum(1)
+            live.tau = live.tau + added
         with torch.no_grad():
-            j = j + advance
-            live = (j < n_steps) & (tau < tau_stop)
-            budget = _next_budget(budget, added, take.sum(1), tau, tau_stop)
-        if not bool(live.all()):
-            done_ids.append(ids[~live])
-            done_tau.append(tau[~live])
-            keep = live.nonzero().squeeze(-1)
-            ids, o, d, cell_o, cell_d, t0, t1, step_r, k0, n_steps, offset, j, budget, tau = (
-                v[keep] for v in (ids, o, d, cell_o, cell_d, t0, t1, step_r, k0, n_steps, offset, j, budget, tau)
-            )
-            if isinstance(bins, Tensor):
-                bins = bins[keep]
+            live.j = live.j + advance
+            going = (live.j < live.n_steps) & (live.tau < tau_stop)
+            live.budget = _next_budget(live.budget, added, take.sum(1, dtype=torch.int32), live.tau, tau_stop)
+        if not bool(going.all()):
+            retired_ids.append(live.ids[~going])
+            retired_tau.append(live.tau[~going])
+            live = live.select(going.nonzero().squeeze(-1))
 
-    tau_all = (origins[:, 0] + directions[:, 0]) * 0  # zeros, but part of the graph even if no ray hits
-    if done_ids:
-        tau_all = tau_all.index_put((torch.cat(done_ids),), torch.cat(done_tau))
-    opacity = -torch.expm1(-tau_all)
-    all_ids = torch.cat(seg_ids) if seg_ids else ids.new_zeros(0)
+    # Zeros that stay in the graph even when no ray meets the box, so that backward() still works.
+    tau_total = (rays.origins[:, 0] + rays.directions[:, 0]) * 0
+    if retired_ids:
+        tau_total = tau_total.index_put((torch.cat(retired_ids),), torch.cat(retired_tau))
+    opacity = -torch.expm1(-tau_total)
+    ray_of = torch.cat(sample_ray) if sample_ray else live.ids
     rgb_out = depth_out = None
-    if want_rgb:
-        acc = origins.new_zeros(n, 3)
-        if seg_rgb:
-            acc = acc.index_add(0, all_ids, torch.cat(seg_rgb))
-        rgb_out = acc + (1 - opacity)[:, None] * bg
-    if want_depth:
-        depth_out = origins.new_zeros(n)
-        if seg_z:
-            depth_out = depth_out.index_add(0, all_ids, torch.cat(seg_z))
+    if "rgb" in outputs:
+        rgb_out = rays.origins.new_zeros(n, 3)
+        if sample_rgb:
+            rgb_out = rgb_out.index_add(0, ray_of, torch.cat(sample_rgb))
+        bg = torch.as_tensor(background, dtype=dtype, device=rgb_out.device).expand(3)
+        rgb_out = rgb_out + (1 - opacity)[:, None] * bg
+    if "depth" in outputs:
+        depth_out = rays.origins.new_zeros(n)
+        if sample_z:
+            depth_out = depth_out.index_add(0, ray_of, torch.cat(sample_z))
     return RenderOutput(rgb_out, depth_out, opacity if "opacity" in outputs else None, n_samples)
+
+
+@dataclass
+class _LiveRays:
+    """The rays still being marched, one row each (all ``[m]`` or ``[m, ...]``)."""
+
+    ids: Tensor  # index into the caller's rays
+    o: Tensor  # origins and directions [m, 3], differentiable
+    d: Tensor
+    cell_o: Tensor  # the same in grid-cell units (OccupancyGrid only) [m, 3]
+    cell_d: Tensor
+    bins: Tensor | int  # the grid's configuration-bin offset: [m, 1] per ray, or one int
+    t0: Tensor  # the clipped segment
+    t1: Tensor
+    step: Tensor  # interval length
+    k0: Tensor  # lattice index of the first interval (whole number, rays' dtype)
+    n_steps: Tensor  # intervals in the segment
+    offset: Tensor  # where in its interval a sample sits, in [0, 1)
+    j: Tensor  # next interval, from k0
+    budget: Tensor  # occupied samples to evaluate next round (int32)
+    tau: Tensor  # optical depth so far, differentiable
+
+    def select(self, keep: Tensor) -> _LiveRays:
+        return _LiveRays(**{
+            name: value if isinstance(value, int) else value[keep] for name, value in vars(self).items()
+        })
+
+
+def _start(
+    rays: Rays, aabb: Tensor, grid: Occupancy | None, theta: Tensor | None, per_ray: bool, step: float,
+    max_samples: int, generator: torch.Generator | None,
+) -> _LiveRays:
+    """Clip the rays to the (grid-tightened) box and set up marching for those that meet it.
+
+    ``generator``: jitter each ray's sample offset with it; ``None`` samples interval middles.
+    """
+    origins, directions = rays.origins, rays.directions
+    with torch.no_grad():
+        box = _clip_box(aabb, grid, None if per_ray else theta)
+        if box is None:
+            ids = torch.zeros(0, dtype=torch.long, device=origins.device)
+            t_near = t_far = origins.new_zeros(0)
+        else:
+            t_near, t_far, hit = ray_aabb(origins, directions, box)
+            ids = hit.nonzero().squeeze(-1)
+            t_near, t_far = t_near[ids], t_far[ids]
+    o, d = origins[ids], directions[ids]
+    with torch.no_grad():
+        cell_o = cell_d = o.new_zeros(ids.shape[0], 1)
+        bins: Tensor | int = -1
+        if isinstance(grid, OccupancyGrid):
+            cell_o = (o.detach().float() - grid.aabb[0]) * grid._scale
+            cell_d = d.detach().float() * grid._scale
+            bins = grid.bin_offset(theta[ids] if per_ray else theta)
+        step_r = torch.maximum((t_far - t_near) / (max_samples - 2), torch.full_like(t_near, step))
+        k0 = torch.floor(t_near / step_r)  # the lattice is anchored at t = 0, not at the clipped t_near
+        if generator is not None:
+            offset = torch.rand(ids.shape[0], generator=generator).to(o)
+        else:
+            offset = torch.full_like(t_near, 0.5)
+    return _LiveRays(
+        ids=ids, o=o, d=d, cell_o=cell_o, cell_d=cell_d, bins=bins, t0=t_near, t1=t_far,
+        step=step_r, k0=k0, n_steps=torch.ceil(t_far / step_r) - k0, offset=offset, j=torch.zeros_like(k0),
+        budget=torch.full(ids.shape, _FIRST_ROUND, dtype=torch.int32, device=ids.device), tau=origins.new_zeros(ids.shape[0]),
+    )
+
+
+def _candidates(
+    live: _LiveRays, grid: Occupancy | None, theta: Tensor | None, per_ray: bool, width: int
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The next ``width`` intervals of every live ray: sample ``t``, length ``delta`` and occupancy, ``[m, width]``.
+
+    The intervals are ``[max(a, t0), min(a + 1, t1)] * step`` for lattice indices ``a``; computing
+    each end as the next one's start makes them tile the segment exactly.
+    """
+    lattice = (live.k0 + live.j)[:, None] + torch.arange(width, device=live.k0.device, dtype=live.k0.dtype)
+    start = torch.maximum(lattice * live.step[:, None], live.t0[:, None])
+    end = torch.minimum((lattice + 1) * live.step[:, None], live.t1[:, None])
+    delta = (end - start).clamp_min_(0)
+    t = torch.addcmul(start, live.offset[:, None], delta)
+    occ = delta > 0
+    if isinstance(grid, OccupancyGrid):
+        occ &= grid.occupied_along(live.cell_o, live.cell_d, t, live.bins)
+    elif grid is not None:
+        x = (live.o.detach()[:, None, :] + t[..., None] * live.d.detach()[:, None, :]).reshape(-1, 3)
+        th = theta[live.ids].repeat_interleave(width, 0) if per_ray else theta
+        occ &= grid.occupied(x, th).reshape(t.shape)
+    return t, delta, occ
 
 
 def _clip_box(aabb: Tensor, grid: Occupancy | None, theta: Tensor | None) -> Tensor | None:
@@ -585,9 +622,10 @@ def _next_budget(budget: Tensor, added: Tensor | None, taken: Tensor, tau: Tenso
     """Occupied samples each live ray evaluates next round ``[m]``.
 
     A ray that is accumulating density gets about as many as its last round's rate says it needs to
-    become opaque (at least 2); a ray in empty or faint space doubles its budget, up to 128.
+    become opaque (at least 2); a ray in empty or faint space grows its budget by 1.4x, up to 128.
+    (Measured on a fitted K-planes field: 17% fewer samples than 8 then doubling, for a few more rounds.)
     """
-    grow = (2 * budget).clamp_max(_MAX_ROUND)
+    grow = (budget * _GROWTH).ceil().to(budget.dtype).clamp_max(_MAX_ROUND)
     if added is None:
         return grow
     rate = added.detach() / taken.clamp_min(1)

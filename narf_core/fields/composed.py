@@ -8,6 +8,7 @@ same call signature as the distilled configuration field, so one renderer serves
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable, Sequence
 
 import torch
@@ -38,6 +39,8 @@ class ComposedField(nn.Module):
 
     def forward(self, x: Tensor, d: Tensor, theta: Tensor | None) -> tuple[Tensor, Tensor]:
         n = x.shape[0]
+        if n == 0:
+            return x.new_zeros(0), x.new_zeros(0, 3)
         shared = theta is None or theta.dim() == 1 or (theta.shape[0] > 0 and bool((theta == theta[:1]).all()))
         theta_one = theta if theta is None or theta.dim() == 1 else theta[0]
         T_part_obj = invert_pose(self.part_poses(theta_one if shared else theta).to(x.dtype))
@@ -63,27 +66,48 @@ def _inside(x: Tensor, aabb: Tensor) -> Tensor:
     return ((x >= aabb[0]) & (x <= aabb[1])).all(-1)
 
 
-def union_occupancy(part_grids: Sequence, T_obj_part: Tensor, aabb: Tensor, resolution: int) -> OccupancyGrid:
-    """The object-frame grid occupied by any part at any of the given poses ``T_obj_part [m, n_parts, 4, 4]``.
+def union_occupancy(
+    part_grids: Sequence,
+    part_poses: Callable[[Tensor], Tensor],
+    lower: Tensor,
+    upper: Tensor,
+    aabb: Tensor,
+    resolution: int,
+    *,
+    bins: int = 8,
+    samples_per_bin: int = 8,
+) -> OccupancyGrid:
+    """The object-frame occupancy of the composition, per bin of the configuration.
 
-    Every occupied part cell is moved rigidly by each pose and splatted (its centre and eight
-    corners) into the object grid, which is then dilated by one cell: cheaper and tighter than
-    probing the composed density, and valid for every configuration whose part motion between
-    neighbouring samples stays below a cell.
+    Each axis of the joint box ``[lower, upper] [k]`` is split into ``bins``; for each bin, every
+    occupied part cell (its centre and eight corners) is moved rigidly by the part poses at
+    ``samples_per_bin`` configurations per axis spanning the bin (edges included; dense enough
+    that no part moves more than a cell between neighbours, as the caller ensures) and splatted
+    into the object grid, which is then dilated by one cell. Cheaper and tighter than probing the
+    composed density, and a renderer at a given ``θ`` only marches the cells of its bin.
+    ``part_poses(θ [m, k]) -> T_obj_part [m, n_parts, 4, 4]`` is the forward kinematics.
     """
+    k = len(lower)
+    bins = bins if k <= 1 else max(2, int(64 ** (1 / k)))
     cells = OccupancyGrid.full(aabb, resolution).occupancy.shape
-    occ = torch.zeros(cells, dtype=torch.bool)
     res = torch.tensor(cells)
     size = (aabb[1] - aabb[0]) / res
-    corners = torch.tensor([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)] + [[0.5, 0.5, 0.5]], dtype=aabb.dtype)
-    for p, grid in enumerate(part_grids):
+    corners = torch.tensor([[i, j, l] for i in (0, 1) for j in (0, 1) for l in (0, 1)] + [[0.5, 0.5, 0.5]], dtype=aabb.dtype)
+    points = []
+    for grid in part_grids:
         idx = grid.occupancy.nonzero().to(aabb.dtype)
-        pts = (grid.aabb[0] + (idx[:, None, :] + corners) * grid.cell_size).reshape(-1, 3)
-        for T in T_obj_part[:, p].to(aabb.dtype):
-            x = transform_points(T, pts)
-            ijk = ((x - aabb[0]) / size).floor().long()
-            ok = ((ijk >= 0) & (ijk < res)).all(-1)
-            ijk = ijk[ok]
-            occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
-    occ = F.max_pool3d(occ[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
-    return OccupancyGrid(aabb, occ)
+        points.append((grid.aabb[0] + (idx[:, None, :] + corners) * grid.cell_size).reshape(-1, 3))
+    edges = [torch.linspace(float(lo), float(hi), bins + 1, dtype=torch.float64) for lo, hi in zip(lower, upper)]
+    occ = torch.zeros((bins,) * k + tuple(cells), dtype=torch.bool)
+    for b in itertools.product(range(bins), repeat=k):
+        axes = [torch.linspace(float(e[i]), float(e[i + 1]), samples_per_bin, dtype=torch.float64) for e, i in zip(edges, b)]
+        theta = torch.cartesian_prod(*axes).reshape(-1, k) if k else torch.zeros(1, 0, dtype=torch.float64)
+        target = occ[b]
+        for T_obj_part in part_poses(theta).to(aabb.dtype):
+            for p, pts in enumerate(points):
+                ijk = ((transform_points(T_obj_part[p], pts) - aabb[0]) / size).floor().long()
+                ijk = ijk[((ijk >= 0) & (ijk < res)).all(-1)]
+                target[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+    flat = occ.reshape(-1, 1, *cells).float()
+    occ = (F.max_pool3d(flat, 3, stride=1, padding=1) > 0).reshape(occ.shape)
+    return OccupancyGrid(aabb, occ, torch.stack([lower, upper]).to(aabb.dtype) if k else None)

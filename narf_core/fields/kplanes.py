@@ -3,9 +3,9 @@
 The axes are ``(x, y, z)`` and, for the configuration field, ``(theta_1 .. theta_k)``. There is one
 plane per pair of axes (``k = 0``: xy xz yz; ``k = 1``: xy xz yz x.theta y.theta z.theta), at a few
 scales. A sample's features are the Hadamard product over the planes of their bilinear lookups,
-concatenated over scales, then decoded by a small MLP into a density and a hidden vector; colour
-is a linear read-out of that vector (plus, optionally, spherical harmonics of the view direction)
-through a sigmoid. Spatial planes are sized so that cells are about cubic on an elongated box.
+concatenated over scales, then decoded by a small MLP whose last linear layer gives the density and
+the colour logits (plus, optionally, a linear term in the spherical harmonics of the view
+direction), then a sigmoid. Spatial planes are sized so that cells are about cubic on an elongated box.
 """
 
 from __future__ import annotations
@@ -66,7 +66,8 @@ class KPlanesField(RadianceField):
             raise ValueError(f"plane resolutions must be >= 2, got {resolution} and {theta_resolution}")
         if features < 1 or hidden < 1 or layers < 1:
             raise ValueError(f"features, hidden and layers must be >= 1, got {features}, {hidden}, {layers}")
-        spherical_harmonics(self.aabb[:1], dir_degree)  # validates the degree
+        if not 0 <= dir_degree <= 4:
+            raise ValueError(f"dir_degree must be in 0..4 (spherical-harmonics bands), got {dir_degree}")
         self.resolution, self.theta_resolution = resolution, theta_resolution
         self.features, self.hidden, self.layers = features, hidden, layers
         self.dir_degree, self.tv_weight = dir_degree, float(tv_weight)
@@ -92,10 +93,10 @@ class KPlanesField(RadianceField):
             mlp += [nn.Linear(width, hidden), nn.ReLU(inplace=True)]
             width = hidden
         self.decoder = nn.Sequential(*mlp)
-        self.sigma_head = nn.Linear(hidden, 1)
-        self.color_head = nn.Linear(hidden + dir_degree**2, 3)
+        self.head = nn.Linear(hidden, 4)  # raw density and the view-independent colour logits
+        self.direction_head = nn.Linear(dir_degree**2, 3, bias=False) if dir_degree > 0 else None
         with torch.no_grad():  # untrained: about 10% opacity across the whole box
-            self.sigma_head.bias.fill_(math.log(0.1 / float(extent.norm())))
+            self.head.bias[0] = math.log(0.1 / float(extent.norm()))
 
     def plane_features(self, x: Tensor, theta: Tensor | None = None) -> Tensor:
         """``x [n,3]``, ``theta [n,k] | [k] | None`` -> the decoder's input ``[n, features * scales]``.
@@ -108,7 +109,8 @@ class KPlanesField(RadianceField):
         if th is not None:
             z = torch.cat([z, th], dim=-1)
         n_pairs = len(self.pairs)
-        coords = z[:, self._pair_axes].reshape(-1, n_pairs, 2).transpose(0, 1)  # [pairs, n, 2]
+        coords = torch.stack([z[:, a] for a in self._pair_axes], dim=-1)  # cheaper backward than z[:, list]
+        coords = coords.reshape(-1, n_pairs, 2).transpose(0, 1)  # [pairs, n, 2]
         scales = []
         for s in range(len(self.resolution)):
             f = None
@@ -119,13 +121,14 @@ class KPlanesField(RadianceField):
         return torch.cat(scales, dim=0).t()
 
     def density(self, x: Tensor, theta: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        h = self.decoder(self.plane_features(x, theta))
-        return trunc_exp(self.sigma_head(h)[:, 0]), h
+        """``sigma [n]`` and, as features, the view-independent colour logits ``[n, 3]``."""
+        out = self.head(self.decoder(self.plane_features(x, theta)))
+        return trunc_exp(out[:, 0]), out[:, 1:]
 
     def color(self, features: Tensor, d: Tensor) -> Tensor:
-        if self.dir_degree > 0:
-            features = torch.cat([features, spherical_harmonics(d, self.dir_degree)], dim=-1)
-        return torch.sigmoid(self.color_head(features))
+        if self.direction_head is not None:
+            features = features + self.direction_head(spherical_harmonics(d, self.dir_degree))
+        return torch.sigmoid(features)
 
     def total_variation(self) -> Tensor:
         """Mean over the planes of :func:`total_variation` (a scalar)."""

@@ -53,11 +53,14 @@ def run_stage(
     checkpoint_every_s: float = 20.0,
     on_step: Callable[[int], None] | None = None,
     progress: bool = True,
+    generator: torch.Generator | None = None,
 ) -> StageResult:
     """Run ``step_fn(step) -> loss`` until ``steps`` are done or ``budget_s`` seconds are spent.
 
     Resumes from ``checkpoint`` if it exists. ``on_step(step)`` runs after each step (schedules,
-    occupancy refresh). Returns when done; the checkpoint then marks the stage finished.
+    occupancy refresh). ``generator``, the stage's own random stream (batches), is checkpointed
+    too, so a resumed stage draws the batches an uninterrupted one would have. Returns when done;
+    the checkpoint then marks the stage finished.
     """
     start_step, spent, loss = 0, 0.0, float("nan")
     if checkpoint.exists():
@@ -65,6 +68,8 @@ def run_stage(
         module.load_state_dict(state["module"])
         optimizer.load_state_dict(state["optimizer"])
         torch.set_rng_state(state["rng"])
+        if generator is not None and "generator" in state:
+            generator.set_state(state["generator"])
         start_step, spent, loss = int(state["step"]), float(state["seconds"]), float(state["loss"])
         if state["finished"]:
             return StageResult(start_step, spent, loss)
@@ -75,6 +80,7 @@ def run_stage(
                 "module": module.state_dict(),
                 "optimizer": optimizer.state_dict(),
                 "rng": torch.get_rng_state(),
+                **({"generator": generator.get_state()} if generator is not None else {}),
                 "step": step,
                 "seconds": spent,
                 "loss": loss,

@@ -86,10 +86,11 @@ def part_rays(dataset: Dataset, kin: KinematicTree, boxes: list[Tensor], split: 
             _, _, hit = ray_aabb(rays.origins, rays.directions, box)
             keep, rays = keep[hit], rays[hit]
             collected[p].append(RayTargets(rays, rgb[keep], mine[keep].float(), depth[keep] * mine[keep]))
-    return [_concat(chunks) for chunks in collected]
+    return [concat_targets(chunks) for chunks in collected]
 
 
-def _concat(chunks: list[RayTargets]) -> RayTargets:
+def concat_targets(chunks: list[RayTargets]) -> RayTargets:
+    """One :class:`RayTargets` from several, in order."""
     if not chunks:
         raise ValueError("no training frames")
     return RayTargets(

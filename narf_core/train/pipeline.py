@@ -26,7 +26,7 @@ from narf_core.kinematics import KinematicTree
 from narf_core.render import OccupancyGrid, render_rays
 from narf_core.train.distill import composite_rays
 from narf_core.train.loop import run_stage, save_atomic
-from narf_core.train.parts import RayTargets, part_boxes, part_rays
+from narf_core.train.parts import RayTargets, concat_targets as _concat_targets, part_boxes, part_rays
 
 
 @dataclass
@@ -129,12 +129,17 @@ def train(
     lower, upper = kin.lower.float(), kin.upper.float()
     union_path = work / "union_grid.pt"
     if union_path.exists():
-        union = OccupancyGrid(aabb, torch.load(union_path, weights_only=True)["grid"].bool())
+        state = torch.load(union_path, weights_only=True)
+        union = OccupancyGrid(aabb, state["grid"].bool(), state["theta_range"])
     else:
         cell = float(OccupancyGrid.full(aabb, config.grid_resolution).cell_size.min())
-        poses = kin.part_poses(_theta_samples(kin, boxes, cell))
-        union = union_occupancy(part_grids, poses, aabb, config.grid_resolution)
-        save_atomic({"grid": union.occupancy.to(torch.uint8)}, union_path)
+        per_axis = round(len(_theta_samples(kin, boxes, cell)) ** (1 / max(len(lower), 1)))
+        bins = 8
+        union = union_occupancy(
+            part_grids, kin.part_poses, lower, upper, aabb, config.grid_resolution,
+            bins=bins, samples_per_bin=max(2, -(-(per_axis - 1) // bins) + 1),
+        )
+        save_atomic({"grid": union.occupancy.to(torch.uint8), "theta_range": union.theta_range}, union_path)
     student = make_field({"arch": config.arch, "aabb": aabb.tolist(), "theta_lower": lower.tolist(), "theta_upper": upper.tolist()})
     spent = time.perf_counter() - t_start
     budget_distill = None if config.budget_s is None else max(config.budget_s - spent, 0.0)
@@ -233,7 +238,10 @@ def _train_part(field, box, targets: RayTargets, config: TrainConfig, ckpt: Path
         optimizer.step()
         return loss.item()
 
-    result = run_stage(f"part {name}", field, optimizer, step_fn, steps=config.part_steps, budget_s=budget_s, checkpoint=ckpt, on_step=refresh, progress=progress)
+    result = run_stage(
+        f"part {name}", field, optimizer, step_fn, steps=config.part_steps, budget_s=budget_s, checkpoint=ckpt,
+        on_step=refresh, progress=progress, generator=generator,
+    )
     return OccupancyGrid.from_field(field, box, config.grid_resolution), result.seconds
 
 
@@ -246,11 +254,24 @@ def _distill(student, teacher, grid, aabb, lower, upper, config: TrainConfig, ck
     def teacher_render(field, rays, theta):
         return render_rays(field, rays, aabb, theta=theta, grid=grid, step=step, outputs=("rgb", "opacity", "depth"))
 
-    def step_fn(i: int) -> float:
-        batch, theta = composite_rays(
+    def draw(n_views: int) -> tuple[RayTargets, torch.Tensor]:
+        return composite_rays(
             teacher, teacher_render, aabb, lower, upper,
-            n_views=config.views_per_batch, rays_per_view=rays_per_view, distance=config.distance, generator=generator,
+            n_views=n_views, rays_per_view=rays_per_view, distance=config.distance, generator=generator,
         )
+
+    if config.composites:
+        # The paper's variant: a fixed pool of composited views, rendered once, sampled every step.
+        chunks = [draw(min(config.views_per_batch, config.composites - v)) for v in range(0, config.composites, config.views_per_batch)]
+        pool = _concat_targets([c[0] for c in chunks])
+        pool_theta = torch.cat([c[1] for c in chunks])
+
+    def step_fn(i: int) -> float:
+        if config.composites:
+            idx = torch.randint(len(pool), (config.batch_rays,), generator=generator)
+            batch, theta = pool[idx], pool_theta[idx]
+        else:
+            batch, theta = draw(config.views_per_batch)
         out = render_rays(student, batch.rays, aabb, theta=theta, grid=grid, step=step, outputs=("rgb", "opacity", "depth"), jitter=True)
         loss = ray_loss(out, batch, config) + student.regularization()
         optimizer.zero_grad(set_to_none=True)
@@ -258,4 +279,7 @@ def _distill(student, teacher, grid, aabb, lower, upper, config: TrainConfig, ck
         optimizer.step()
         return loss.item()
 
-    return run_stage("configuration field", student, optimizer, step_fn, steps=config.distill_steps, budget_s=budget_s, checkpoint=ckpt, progress=progress).seconds
+    return run_stage(
+        "configuration field", student, optimizer, step_fn, steps=config.distill_steps, budget_s=budget_s,
+        checkpoint=ckpt, progress=progress, generator=generator,
+    ).seconds
