@@ -67,10 +67,12 @@ def test_sample_plane_matches_grid_sample(dtype):
     plane = torch.randn(5, 7, 3, dtype=dtype)
     coords = torch.rand(50, 2, dtype=dtype) * 2.4 - 1.2
     ref = F.grid_sample(plane.permute(2, 0, 1)[None], coords[None, None], align_corners=True, padding_mode="border")
-    torch.testing.assert_close(sample_plane(plane, coords), ref[0, :, 0].T)
+    close = {"atol": 3e-5, "rtol": 0}  # coordinates are pulled 1e-6 off the border (about 1e-5 texel here)
+    torch.testing.assert_close(sample_plane(plane, coords), ref[0, :, 0].T, **close)
     # corners of the plane are its corner texels
     corners = torch.tensor([[-1.0, -1.0], [1.0, -1.0], [-1.0, 1.0], [1.0, 1.0]], dtype=dtype)
-    torch.testing.assert_close(sample_plane(plane, corners), torch.stack([plane[0, 0], plane[0, -1], plane[-1, 0], plane[-1, -1]]))
+    expected = torch.stack([plane[0, 0], plane[0, -1], plane[-1, 0], plane[-1, -1]])
+    torch.testing.assert_close(sample_plane(plane, corners), expected, **close)
 
 
 def test_sample_plane_gradients_are_exact():
@@ -84,8 +86,9 @@ def test_sample_plane_gradient_at_and_beyond_the_border():
     coords = torch.tensor([[1.0, 0.0], [-1.0, 1.0], [1.5, 0.0]], dtype=torch.float64, requires_grad=True)
     sample_plane(plane, coords).sum().backward()
     # d value / d u = 1 per column = (W - 1) / 2 per normalised unit; one-sided at the edge, 0 beyond
-    torch.testing.assert_close(coords.grad[:, 0], torch.tensor([1.5, 1.5, 0.0], dtype=torch.float64))
-    torch.testing.assert_close(coords.grad[1, 1], torch.tensor(4.0, dtype=torch.float64))
+    close = {"atol": 0, "rtol": 1e-5}
+    torch.testing.assert_close(coords.grad[:, 0], torch.tensor([1.5, 1.5, 0.0], dtype=torch.float64), **close)
+    torch.testing.assert_close(coords.grad[1, 1], torch.tensor(4.0, dtype=torch.float64), **close)
 
 
 def test_sample_plane_rejects_bad_shapes():
@@ -158,6 +161,7 @@ def test_config_round_trip_rebuilds_the_same_field(arch):
     field = small_field(arch, 1, **({"dir_degree": 2} if arch == "kplanes" else {}))
     config = json.loads(json.dumps(field.config()))  # JSON-able
     clone = make_field(config)
+    assert type(clone) is {"kplanes": KPlanesField, "fastnerf": FastNeRFField}[arch]
     clone.load_state_dict(field.state_dict())
     x, d = points(16), F.normalize(torch.randn(16, 3), dim=-1)
     theta = torch.tensor([0.1])

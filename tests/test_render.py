@@ -72,8 +72,7 @@ class Blob(torch.nn.Module):
     def forward(self, x, d, theta=None):
         c = self.center if theta is None else self.center + 0.05 * theta[:, :1] * torch.tensor([1.0, 0.0, 0.0], dtype=x.dtype)
         sigma = self.scale * torch.exp(-((x - c) ** 2).sum(-1) / 0.03**2)
-        rgb = torch.sigmoid(torch.cat([x * 10, d[:, :0]], -1))
-        return sigma, rgb
+        return sigma, torch.sigmoid(10 * x)
 
 
 def rays_along_z(xy, z0=-1.0, dtype=torch.float32, z_per_t=1.0) -> Rays:
@@ -224,7 +223,7 @@ def test_extreme_densities_and_tiny_steps_stay_finite_with_gradients():
     origins = torch.tensor([[0.0, 0.0, -1.0], [0.03, -0.02, -1.0]], dtype=torch.float64, requires_grad=True)
     rays = Rays(origins, torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=torch.float64), torch.ones(2, dtype=torch.float64))
     out = render_rays(blob, rays, BOX, step=STEP, outputs=("rgb", "depth", "opacity"))
-    assert out.opacity[0].item() == 1.0
+    assert 1 - 1e-3 < out.opacity[0].item() <= 1  # stopped once T < 1e-3
     (out.rgb.sum() + out.depth.sum()).backward()
     assert torch.isfinite(origins.grad).all() and torch.isfinite(blob.scale.grad)
     tiny_box = torch.tensor([[0.0, 0.0, 0.0], [1e-7, 1e-7, 1e-7]], dtype=torch.float64)  # intervals of 1e-9
