@@ -27,6 +27,7 @@ from safetensors.torch import load_file, save_file
 from torch import Tensor
 
 from narf_core.fields import make_field
+from narf_core.fields.composed import ComposedField
 from narf_core.geometry import Pinhole, Rays
 from narf_core.kinematics import KinematicTree
 from narf_core.render import OccupancyGrid, RenderOutput, compose_parts, render_image, render_rays
@@ -100,14 +101,17 @@ class NarfModel:
     def _field_for(self, mode: str, theta: Tensor):
         """The field and occupancy to render in ``mode`` at ``θ [k]``.
 
-        ``parts`` composes the part fields at the part poses FK gives for ``θ`` (differentiable in
-        ``θ``); the composition is its own occupancy grid, so empty space is skipped there too.
+        ``parts`` composes the part fields at the part poses FK gives for ``θ [k]`` (differentiable
+        in ``θ``); the composition is its own occupancy grid, so empty space is skipped there too.
+        With one ``θ`` per ray (``[n, k]``), FK runs per sample instead.
         """
         if mode == "narf":
             return self.field, self.grid
         if mode == "parts":
             if not self.has_parts:
                 raise ValueError(f"model {self.name!r} has no part fields: render mode 'parts' is unavailable")
+            if theta.dim() == 2:  # one θ per ray (several starts in one batch): FK per sample
+                return ComposedField(self.part_fields, self.part_grids, self.kinematics.part_poses), None
             composition = compose_parts(self.part_fields, self.part_grids, self.kinematics.part_poses(theta).to(torch.float32))
             return composition, composition
         raise ValueError(f"unknown render mode {mode!r}; expected one of {', '.join(RENDER_MODES)}")
