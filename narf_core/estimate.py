@@ -72,6 +72,7 @@ STATUSES = ("converged", "max_iterations", "no_overlap", "non_finite")
 MIN_MASK_PIXELS = 4
 _U_LIMIT = 0.2  # a start keeps u this far inside ±π/2 (where dθ/du = 0): 2% of the half-range from a limit
 _MAX_RECOVERIES = 8  # consecutive non-finite iterations before giving up
+_COARSE_SHARE = float(__import__("os").environ.get("E_SHARE", "0.5"))  # of the iterations spent on coarse pyramid levels
 _EVAL_RAYS = 4096  # the final loss is measured on at most this many rays of the box
 _ADAM_BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
@@ -713,10 +714,11 @@ class _Run:
 
 
 def _level(iteration: int, iterations: int, levels: int) -> int:
-    """The pyramid level of an iteration: coarse levels share the first half of the run equally."""
-    if levels == 1:
-        return 0
-    return min(2 * iteration * (levels - 1) // max(iterations, 1), levels - 1)
+    """The pyramid level of an iteration: coarse levels share the first ``_COARSE_SHARE`` equally."""
+    coarse = int(_COARSE_SHARE * iterations)
+    if levels == 1 or iteration >= coarse:
+        return levels - 1
+    return iteration * (levels - 1) // coarse
 
 
 @torch.no_grad()
