@@ -80,15 +80,17 @@ def _clean_frames(dataset: Dataset) -> dict[int, Frame]:
     return {f.id: f for f in clean.frames()}
 
 
-def _add_along_run(model: NarfModel, result: EstimateResult, truth: Frame) -> list[tuple[int, float, float]]:
-    """``(iteration, seconds, ADD)`` of every recorded snapshot of a run."""
+def _add_along_run(model: NarfModel, result: EstimateResult, truth: Frame, T_init: np.ndarray) -> list[tuple[int, float, float]]:
+    """``(iteration, seconds, ADD)`` at the start (mid-range θ) and at every recorded snapshot of a run."""
     kin = model.kinematics
     links_true = kin.link_poses(kin.joint_vector(truth.joints)).numpy()
-    rows = []
+
+    def add_at(T: np.ndarray, links: np.ndarray) -> float:
+        return float(add(model.sample_points, links_true, truth.T_cam_obj, links, T, model.links))
+
+    rows = [(0, 0.0, add_at(T_init, kin.link_poses(kin.mid_configuration()).numpy()))]
     for s in result.history:
-        links_est = kin.link_poses(kin.joint_vector(s.joints)).numpy()
-        value = add(model.sample_points, links_true, truth.T_cam_obj, links_est, s.T_cam_obj, model.links)
-        rows.append((s.iteration, s.seconds, float(value)))
+        rows.append((s.iteration, s.seconds, add_at(s.T_cam_obj, kin.link_poses(kin.joint_vector(s.joints)).numpy())))
     return rows
 
 
@@ -136,7 +138,7 @@ def run_scenes(
             "seconds": result.seconds,
             "loss": result.loss,
             "metrics": result.metrics,
-            "along_run": _add_along_run(model, result, gt) if result.history else [],
+            "along_run": _add_along_run(model, result, gt, T_init) if options.record_every else [],
         })
     return rows
 
@@ -166,21 +168,15 @@ def summarise(model: NarfModel, rows: list[dict]) -> dict:
 
 
 def _curve(rows: list[dict], iterations: int) -> dict:
-    """Mean ADD at each recorded iteration (a run that stopped early keeps its last value)."""
-    steps = list(range(RECORD_EVERY, iterations + 1, RECORD_EVERY))
-    add_at = np.full((len(rows), len(steps)), np.nan)
-    seconds_at = np.full((len(rows), len(steps)), np.nan)
-    for i, row in enumerate(rows):
-        seen = {it: (sec, value) for it, sec, value in row["along_run"]}
-        last = (0.0, row["metrics"]["add"])
-        for j, step in enumerate(steps):
-            last = seen.get(step, last)
-            seconds_at[i, j], add_at[i, j] = last
-    return {
-        "iteration": steps,
-        "seconds_mean": np.nanmean(seconds_at, axis=0).tolist() if rows else [],
-        "add_mean_m": np.nanmean(add_at, axis=0).tolist() if rows else [],
-    }
+    """Mean ADD (and seconds) at iteration 0 and every ``RECORD_EVERY``; a run that stopped early
+    counts with its final estimate from then on."""
+    steps = list(range(0, iterations + 1, RECORD_EVERY))
+    at = np.array([
+        [dict((it, (sec, value)) for it, sec, value in row["along_run"]).get(step, (row["seconds"], row["metrics"]["add"]))
+         for step in steps]
+        for row in rows
+    ]).reshape(len(rows), len(steps), 2)
+    return {"iteration": steps, "seconds_mean": at[..., 0].mean(0).tolist(), "add_mean_m": at[..., 1].mean(0).tolist()}
 
 
 def _as_model(item: NarfModel | str | Path) -> NarfModel:
@@ -229,8 +225,9 @@ def run(
 
     ``models`` and ``datasets`` pair one model with one dataset (mappings by tool name, or sequences
     in order; paths are opened). ``perturbation`` is ``(degrees, metres)``; ``quick`` runs 3 scenes,
-    the ``narf`` mode only and the sweep at its smallest and largest scale. Modes a model cannot
-    render (``parts`` without part fields) are skipped and listed under ``skipped``.
+    the first mode only and the sweep at its smallest and largest scale. Modes a model cannot
+    render (``parts`` without part fields) are skipped and listed under ``skipped``; the sweep runs
+    in the first mode the model renders.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -246,22 +243,27 @@ def run(
     table, curves, sweep, skipped = [], {}, [], []
     for tool, model, dataset in _pairs(models, datasets):
         frames = pick_frames(dataset, split, scenes, seed)
+        paper_rows = {}
         for mode in modes:
             if mode == "parts" and not model.has_parts:
                 skipped.append({"tool": tool, "mode": mode, "reason": "the model has no part fields"})
                 continue
             options = EstimateOptions(iterations=iterations, mode=mode, record_every=RECORD_EVERY, seed=seed)
-            rows = run_scenes(model, dataset, frames, options, perturbation=perturbation, seed=seed, progress=progress)
+            rows = paper_rows[mode] = run_scenes(model, dataset, frames, options, perturbation=perturbation, seed=seed, progress=progress)
             table.append({"tool": tool, "mode": mode, **summarise(model, rows), "scenes_detail": rows})
             curves[f"{tool} {mode}"] = _curve(rows, iterations)
-        for robust in (False, True):
-            options = (EstimateOptions.robust if robust else EstimateOptions)(iterations=iterations, mode=modes[0], seed=seed)
+        sweep_mode = next(iter(paper_rows), None)  # the first mode this model renders
+        for robust in (False, True) if sweep_mode else ():
+            options = (EstimateOptions.robust if robust else EstimateOptions)(iterations=iterations, mode=sweep_mode, seed=seed)
             for scale in scale_sweep:
-                rows = run_scenes(
-                    model, dataset, frames, options, scale=scale, perturbation=perturbation, seed=seed, progress=progress
-                )
+                if not robust and scale == 1:
+                    rows = paper_rows[sweep_mode]  # the same runs as the table's (same starts and seeds)
+                else:
+                    rows = run_scenes(
+                        model, dataset, frames, options, scale=scale, perturbation=perturbation, seed=seed, progress=progress
+                    )
                 s = summarise(model, rows)
-                sweep.append({"tool": tool, "mode": modes[0], "robust": robust, "scale": scale,
+                sweep.append({"tool": tool, "mode": sweep_mode, "robust": robust, "scale": scale,
                               "rotation_deg": perturbation[0] * scale, "translation_m": perturbation[1] * scale,
                               **{k: s[k] for k in ("add_mean_m", "add<1cm", "add<0.1d", "seconds_mean", "iterations_mean")}})
     result = {"config": config, "table": table, "curves": curves, "sweep": sweep, "skipped": skipped,

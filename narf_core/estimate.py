@@ -20,23 +20,25 @@ iterations. Ours are per normalised unit: ``lr_pose`` in radians / object radii,
 exponentially to ``lr_decay`` times their start. The paper's pose rate moves at most 150 * 0.001 rad
 = 8.6 deg in 150 steps, less than its own 10 deg perturbation, so ours is larger. The defaults
 (0.01, 0.05, decay 0.1) were the best of a sweep on the analytic toy clamp of tests/test_estimate.py
-at 64x48 (about the pixel footprint of the clamp at 160x120), 12 random scenes: ADD < 1 cm in 12/12
-at 10 deg / 2 cm, 5/12 at 20 deg / 4 cm. :meth:`EstimateOptions.robust` (silhouette term, 4 θ
-starts, 3 levels, ``lr_pose`` 0.02) gave 12/12 (mean ADD 1.6 mm instead of 2.5 mm), 9/12 and, at
-30 deg / 6 cm, 3/12 where the defaults gave 0/12.
+(64x48, about the pixel footprint of the clamp at 160x120; 12 random scenes): ADD < 1 cm in 12/12
+at 10 deg / 2 cm, 5/12 at 20 deg / 4 cm, 0/12 at 30 deg / 6 cm. :meth:`EstimateOptions.robust`
+gave 12/12 (mean ADD 1.0 mm instead of 2.5 mm), 10/12 and 3/12. On the bundled clamp model
+(models/clamp.narf, 12 test views at 160x120, 10 deg / 2 cm) the defaults reached a mean ADD of
+1.8 cm and joint error of 2.0 cm in about 6 s; the robust options 0.7 cm and 0.14 cm in about 10 s.
 
 Loss, averaged over the rays of one iteration: the paper's masked photometric MSE
 ``|render - image * mask|^2`` (rendered on a black background), plus ``silhouette_weight * (opacity
 - mask)^2`` and, where a depth is observed inside the mask, ``depth_weight * ((depth - observed) /
 r)^2``. Rays come only from the mask's box dilated by ``box_margin``. With ``coarse_to_fine = L``
-the first half of the iterations goes through L - 1 coarse levels whose targets are box-filtered
+the first quarter of the iterations goes through L - 1 coarse levels whose targets are box-filtered
 over ``2^l + 1`` pixels (l = L-1 .. 1), with rays jittered over the same square, so the loss seen
-is the fine loss smoothed over small image shifts; the second half uses the paper's plain loss at
-pixel centres.
+is the fine loss smoothed over small image shifts; the rest uses the paper's plain loss at pixel
+centres. (A 5-pixel level, or half the run spent coarse, cost accuracy on the thin clamp.)
 
 ``theta_starts = S`` runs S configurations (the given one and S-1 spread over the joint box) as
-ONE batch of ``S * rays_per_iteration`` rays for the first third of the iterations, then keeps
-the start with the lowest loss. A non-finite loss or gradient never reaches the parameters: the
+ONE batch of ``S * rays_per_iteration`` rays for the first third of the iterations (in ``parts``
+mode, whose composition takes one configuration, one render call per start), then keeps the
+start with the lowest loss. A non-finite loss or gradient never reaches the parameters: the
 best finite iterate is restored, Adam's moments reset and its rates halved.
 """
 
@@ -72,7 +74,7 @@ STATUSES = ("converged", "max_iterations", "no_overlap", "non_finite")
 MIN_MASK_PIXELS = 4
 _U_LIMIT = 0.2  # a start keeps u this far inside ±π/2 (where dθ/du = 0): 2% of the half-range from a limit
 _MAX_RECOVERIES = 8  # consecutive non-finite iterations before giving up
-_COARSE_SHARE = float(__import__("os").environ.get("E_SHARE", "0.5"))  # of the iterations spent on coarse pyramid levels
+_COARSE_SHARE = 0.25  # of the iterations go to the coarse pyramid levels
 _EVAL_RAYS = 4096  # the final loss is measured on at most this many rays of the box
 _ADAM_BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
@@ -141,9 +143,9 @@ class EstimateOptions:
 
     @classmethod
     def robust(cls, **overrides) -> EstimateOptions:
-        """The defaults plus a silhouette term, 4 configuration starts, 3 pyramid levels and twice
+        """The defaults plus a silhouette term, 4 configuration starts, 2 pyramid levels and twice
         the pose rate: a wider basin (see the module docstring for measurements)."""
-        return cls(**{"silhouette_weight": 1.0, "theta_starts": 4, "coarse_to_fine": 3, "lr_pose": 0.02, **overrides})
+        return cls(**{"silhouette_weight": 1.0, "theta_starts": 4, "coarse_to_fine": 2, "lr_pose": 0.02, **overrides})
 
 
 @dataclass
@@ -283,7 +285,7 @@ def _check_joints(model: NarfModel, joints: Mapping[str, float] | None, name: st
         if missing:
             raise EstimateInputError(f"{name} lacks joint(s) {', '.join(missing)}")
     try:
-        return model.joint_vector(joints).to(torch.float64)
+        return model.kinematics.joint_vector(joints)
     except ValueError as e:
         raise EstimateInputError(f"{name}: {e}") from None
 
@@ -329,7 +331,7 @@ def _box_filter(image: Tensor, width: int) -> Tensor:
 
 
 def _observation(
-    image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, box: tuple[int, int, int, int], levels: int
+    image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, box: tuple[int, int, int, int], levels: int, device
 ) -> _Observation:
     u0, v0, u1, v1 = box
     rgb = torch.tensor(image[v0:v1, u0:u1], dtype=torch.float32) / 255
@@ -342,7 +344,11 @@ def _observation(
         blurred = _box_filter(masked, width).reshape(-1, 4)
         targets.append(_Target(blurred[:, :3], blurred[:, 3], d if width == 1 else None, width))
     v, u = torch.meshgrid(torch.arange(v0, v1), torch.arange(u0, u1), indexing="ij")
-    return _Observation(torch.stack([u.reshape(-1), v.reshape(-1)], -1), targets)
+    pixels = torch.stack([u.reshape(-1), v.reshape(-1)], -1)
+    on = {"device": device}
+    return _Observation(
+        pixels.to(**on), [_Target(t.rgb.to(**on), t.mask.to(**on), None if t.depth is None else t.depth.to(**on), t.width) for t in targets]
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -373,6 +379,10 @@ class _Parameterisation:
 
     def thetas(self, p: Tensor) -> Tensor:
         return self.mid + self.half * torch.sin(p[:, 6:])
+
+    def joints(self, model: NarfModel, theta: Tensor) -> dict[str, float]:
+        """``θ [k]`` as ``{joint: value}``, rounding kept inside the limits."""
+        return model.kinematics.joint_dict(torch.minimum(torch.maximum(theta.detach(), self.mid - self.half), self.mid + self.half))
 
     def u_of(self, theta: Tensor) -> Tensor:
         """Inverse of :meth:`thetas` on ``[-π/2, π/2]``, kept ``_U_LIMIT`` inside."""
@@ -417,7 +427,7 @@ def _theta_starts(theta0: Tensor, param: _Parameterisation, count: int) -> Tenso
 
 def _object_rays(rays_cam: Rays, T_cam_obj: Tensor) -> Rays:
     """Camera rays ``[n]`` seen from every pose ``T_cam_obj [S,4,4]`` -> object-frame rays ``[S*n]``."""
-    T_obj_cam = invert_pose(T_cam_obj).to(rays_cam.origins.dtype)  # [S, 4, 4]
+    T_obj_cam = invert_pose(T_cam_obj).to(rays_cam.origins)  # [S, 4, 4], the rays' dtype and device
     n_starts, n = T_obj_cam.shape[0], len(rays_cam)
     origins = T_obj_cam[:, None, :3, 3].expand(n_starts, n, 3)
     directions = rays_cam.directions @ T_obj_cam[:, :3, :3].transpose(-1, -2)  # [S, n, 3]
@@ -461,7 +471,7 @@ class _Loss:
         (the composition poses its parts for one configuration).
         """
         n_starts, k = theta.shape
-        theta = theta.to(torch.float32)
+        theta = theta.to(rays_obj.origins)
         render = self.model.render_rays
         kw = dict(mode=self.options.mode, outputs=outputs, background=0.0)
         if n_starts == 1 or k == 0:
@@ -559,8 +569,9 @@ def refine(
     if opts.mode == "parts" and not model.has_parts:
         raise EstimateInputError(f"options.mode 'parts' needs part fields, which model {model.name!r} lacks")
 
-    camera = Pinhole(camera.K.detach().to(torch.float32).cpu(), camera.width, camera.height)
-    obs = _observation(image, mask, depth, _mask_box(mask, opts.box_margin), opts.coarse_to_fine)
+    device = model.aabb.device  # rays and targets live with the model; the pose parameters on the CPU
+    camera = Pinhole(camera.K.detach().to(device, torch.float32), camera.width, camera.height)
+    obs = _observation(image, mask, depth, _mask_box(mask, opts.box_margin), opts.coarse_to_fine, device)
     param = _Parameterisation.around(T0, model)
 
     def result(status: str, row: Tensor | None, loss: float | None, run: _Run | None = None) -> EstimateResult:
@@ -570,7 +581,7 @@ def refine(
             T_cam_obj=T.numpy().copy(),
             position=position.numpy().copy(),
             quaternion=quaternion.numpy().copy(),
-            joints=model.joint_dict(theta.to(torch.float32)),
+            joints=param.joints(model, theta),
             loss=loss,
             iterations=0 if run is None else run.iteration,
             seconds=time.perf_counter() - start_time,
@@ -653,13 +664,14 @@ class _Run:
         reaches the object)."""
         n_pixels = self.obs.pixels.shape[0]
         n_rays = min(self.opts.rays_per_iteration, n_pixels)
+        device = self.obs.pixels.device
         if n_rays == n_pixels and target.width == 1:
-            index = torch.arange(n_pixels)
+            index = torch.arange(n_pixels, device=device)
         else:
-            index = torch.randint(n_pixels, (n_rays,), generator=self.rng)
+            index = torch.randint(n_pixels, (n_rays,), generator=self.rng).to(device)
         pixels = self.obs.pixels[index].to(torch.float32)
         if target.width > 1:
-            pixels = pixels + (torch.rand(n_rays, 2, generator=self.rng) - 0.5) * target.width
+            pixels = pixels + (torch.rand(n_rays, 2, generator=self.rng).to(device) - 0.5) * target.width
         p = self.adam.params.clone().requires_grad_(True)
         per_start = self.loss_fn(self.camera.rays(pixels), target, index, self.param.poses(p), self.param.thetas(p))
         if not per_start.requires_grad:
@@ -735,6 +747,7 @@ def _final_choice(
     last iterate had to be replaced by the best finite one (``None`` if nothing is finite)."""
     n_pixels = obs.pixels.shape[0]
     index = torch.arange(n_pixels) if n_pixels <= _EVAL_RAYS else torch.randperm(n_pixels, generator=rng)[:_EVAL_RAYS]
+    index = index.to(obs.pixels.device)
     rays = camera.rays(obs.pixels[index])
     target = obs.levels[-1]
     for candidate, replaced in ((params, False), (best_params, True)):
@@ -748,15 +761,13 @@ def _final_choice(
 
 @torch.no_grad()
 def _overlaps(camera: Pinhole, pixels: Tensor, T_cam_obj: Tensor, aabb: Tensor) -> bool:
-    """Whether any ray through the box pixels ``[P, 2]`` meets the object's box under ``T_cam_obj``."""
-    corners = torch.stack(torch.meshgrid(*[aabb[:, i].double() for i in range(3)], indexing="ij"), -1).reshape(-1, 3)
+    """Whether any ray through the box pixels ``[P, 2]`` meets the object's box ``aabb [2,3]`` under
+    ``T_cam_obj [4,4]`` (in front of the camera)."""
+    corners = torch.stack(torch.meshgrid(*[aabb[:, i].cpu().double() for i in range(3)], indexing="ij"), -1).reshape(-1, 3)
     if bool((transform_points(T_cam_obj, corners)[:, 2] <= 0).all()):
         return False
-    rays = camera.rays(pixels)
-    T_obj_cam = invert_pose(T_cam_obj).to(torch.float32)
-    origins = transform_points(T_obj_cam, rays.origins)
-    directions = rays.directions @ T_obj_cam[:3, :3].T
-    _, t_far, hit = ray_aabb(origins, directions, aabb.to(torch.float32))
+    rays = _object_rays(camera.rays(pixels), T_cam_obj[None])
+    _, t_far, hit = ray_aabb(rays.origins, rays.directions, aabb)
     return bool((hit & (t_far > 0)).any())
 
 
@@ -769,7 +780,7 @@ def _snapshot(model: NarfModel, param: _Parameterisation, params: Tensor, losses
         seconds,
         float(losses[i]),
         param.poses(row)[0].numpy().copy(),
-        model.joint_dict(param.thetas(row)[0].to(torch.float32)),
+        param.joints(model, param.thetas(row)[0]),
     )
 
 
