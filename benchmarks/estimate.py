@@ -38,6 +38,7 @@ from narf_core.metrics import add
 
 PAPER_TABLE_II = {"clamp": {"add_m": (0.0107, 0.0043), "configuration_error_m": (0.0073, 0.0065)}}
 RECORD_EVERY = 10  # iterations between recorded poses for the error-vs-iterations curves
+SWEEP_FIGURES = ("add_mean_m", "add<1cm", "add<0.1d", "seconds_mean", "iterations_mean")
 
 
 def perturb_pose(
@@ -80,7 +81,9 @@ def _clean_frames(dataset: Dataset) -> dict[int, Frame]:
     return {f.id: f for f in clean.frames()}
 
 
-def _add_along_run(model: NarfModel, result: EstimateResult, truth: Frame, T_init: np.ndarray) -> list[tuple[int, float, float]]:
+def _add_along_run(
+    model: NarfModel, result: EstimateResult, truth: Frame, T_init: np.ndarray
+) -> list[tuple[int, float, float]]:
     """``(iteration, seconds, ADD)`` at the start (mid-range θ) and at every recorded snapshot of a run."""
     kin = model.kinematics
     links_true = kin.link_poses(kin.joint_vector(truth.joints)).numpy()
@@ -171,11 +174,10 @@ def _curve(rows: list[dict], iterations: int) -> dict:
     """Mean ADD (and seconds) at iteration 0 and every ``RECORD_EVERY``; a run that stopped early
     counts with its final estimate from then on."""
     steps = list(range(0, iterations + 1, RECORD_EVERY))
-    at = np.array([
-        [dict((it, (sec, value)) for it, sec, value in row["along_run"]).get(step, (row["seconds"], row["metrics"]["add"]))
-         for step in steps]
-        for row in rows
-    ]).reshape(len(rows), len(steps), 2)
+    at = np.zeros((len(rows), len(steps), 2))
+    for i, row in enumerate(rows):
+        seen = {it: (sec, value) for it, sec, value in row["along_run"]}
+        at[i] = [seen.get(step, (row["seconds"], row["metrics"]["add"])) for step in steps]
     return {"iteration": steps, "seconds_mean": at[..., 0].mean(0).tolist(), "add_mean_m": at[..., 1].mean(0).tolist()}
 
 
@@ -249,23 +251,24 @@ def run(
                 skipped.append({"tool": tool, "mode": mode, "reason": "the model has no part fields"})
                 continue
             options = EstimateOptions(iterations=iterations, mode=mode, record_every=RECORD_EVERY, seed=seed)
-            rows = paper_rows[mode] = run_scenes(model, dataset, frames, options, perturbation=perturbation, seed=seed, progress=progress)
+            rows = run_scenes(model, dataset, frames, options, perturbation=perturbation, seed=seed, progress=progress)
+            paper_rows[mode] = rows
             table.append({"tool": tool, "mode": mode, **summarise(model, rows), "scenes_detail": rows})
             curves[f"{tool} {mode}"] = _curve(rows, iterations)
         sweep_mode = next(iter(paper_rows), None)  # the first mode this model renders
         for robust in (False, True) if sweep_mode else ():
-            options = (EstimateOptions.robust if robust else EstimateOptions)(iterations=iterations, mode=sweep_mode, seed=seed)
+            make = EstimateOptions.robust if robust else EstimateOptions
+            options = make(iterations=iterations, mode=sweep_mode, seed=seed)
             for scale in scale_sweep:
                 if not robust and scale == 1:
                     rows = paper_rows[sweep_mode]  # the same runs as the table's (same starts and seeds)
                 else:
-                    rows = run_scenes(
-                        model, dataset, frames, options, scale=scale, perturbation=perturbation, seed=seed, progress=progress
-                    )
+                    rows = run_scenes(model, dataset, frames, options, scale=scale, perturbation=perturbation,
+                                      seed=seed, progress=progress)
                 s = summarise(model, rows)
                 sweep.append({"tool": tool, "mode": sweep_mode, "robust": robust, "scale": scale,
                               "rotation_deg": perturbation[0] * scale, "translation_m": perturbation[1] * scale,
-                              **{k: s[k] for k in ("add_mean_m", "add<1cm", "add<0.1d", "seconds_mean", "iterations_mean")}})
+                              **{k: s[k] for k in SWEEP_FIGURES}})
     result = {"config": config, "table": table, "curves": curves, "sweep": sweep, "skipped": skipped,
               "paper": PAPER_TABLE_II}
     (out_dir / "estimate.json").write_text(json.dumps(result, indent=1))
@@ -284,8 +287,8 @@ def markdown(result: dict) -> str:
     c = result["config"]
     lines = [
         f"Pose + configuration refinement: {c['scenes']} scenes of split `{c['split']}` per tool, initial pose "
-        f"perturbed by ±{c['perturbation_deg_m'][0]:g} deg (azimuth, elevation) and ≤ {100 * c['perturbation_deg_m'][1]:g} cm, "
-        f"θ at mid-range, {c['iterations']} iterations.",
+        f"perturbed by ±{c['perturbation_deg_m'][0]:g} deg (azimuth, elevation) and "
+        f"≤ {100 * c['perturbation_deg_m'][1]:g} cm, θ at mid-range, {c['iterations']} iterations.",
         "",
         "| tool | mode | N | ADD (m) | ADD (cm) | configuration error | ADD < 1 cm | ADD < 10% d | s/scene | iterations |",
         "|---|---|---|---|---|---|---|---|---|---|",
@@ -408,7 +411,8 @@ def main(args: argparse.Namespace) -> int:
                 continue
             models[name], datasets[name] = pair
     if not models:
-        raise ValueError(f"no model to benchmark: {args.models} has no bundled model for {', '.join(missing) or 'any tool'}")
+        names = ", ".join(missing) or "any tool"
+        raise ValueError(f"no model to benchmark: {args.models} has no bundled model for {names}")
     if missing:
         print(f"narf bench estimate: skipping {', '.join(missing)}: no bundled model in {args.models}", file=sys.stderr)
     result = run(models, datasets, out_dir=args.work / "estimate", quick=args.quick)

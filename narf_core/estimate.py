@@ -70,7 +70,6 @@ from narf_core.render import ray_aabb
 if TYPE_CHECKING:
     from narf_core.bundle import NarfModel
 
-STATUSES = ("converged", "max_iterations", "no_overlap", "non_finite")
 MIN_MASK_PIXELS = 4
 _U_LIMIT = 0.2  # a start keeps u this far inside ±π/2 (where dθ/du = 0): 2% of the half-range from a limit
 _MAX_RECOVERIES = 8  # consecutive non-finite iterations before giving up
@@ -345,10 +344,11 @@ def _observation(
         targets.append(_Target(blurred[:, :3], blurred[:, 3], d if width == 1 else None, width))
     v, u = torch.meshgrid(torch.arange(v0, v1), torch.arange(u0, u1), indexing="ij")
     pixels = torch.stack([u.reshape(-1), v.reshape(-1)], -1)
-    on = {"device": device}
-    return _Observation(
-        pixels.to(**on), [_Target(t.rgb.to(**on), t.mask.to(**on), None if t.depth is None else t.depth.to(**on), t.width) for t in targets]
-    )
+    targets = [
+        _Target(t.rgb.to(device), t.mask.to(device), None if t.depth is None else t.depth.to(device), t.width)
+        for t in targets
+    ]
+    return _Observation(pixels.to(device), targets)
 
 
 # --------------------------------------------------------------------------------------------
@@ -382,7 +382,8 @@ class _Parameterisation:
 
     def joints(self, model: NarfModel, theta: Tensor) -> dict[str, float]:
         """``θ [k]`` as ``{joint: value}``, rounding kept inside the limits."""
-        return model.kinematics.joint_dict(torch.minimum(torch.maximum(theta.detach(), self.mid - self.half), self.mid + self.half))
+        inside = torch.minimum(torch.maximum(theta.detach(), self.mid - self.half), self.mid + self.half)
+        return model.kinematics.joint_dict(inside)
 
     def u_of(self, theta: Tensor) -> Tensor:
         """Inverse of :meth:`thetas` on ``[-π/2, π/2]``, kept ``_U_LIMIT`` inside."""
@@ -450,7 +451,8 @@ class _Loss:
         n_starts, n = T.shape[0], len(rays_cam)
         depth = target.depth[index] if (self.uses_depth and target.depth is not None) else None
         outputs = ("rgb",) + (("opacity",) if opts.silhouette_weight > 0 or depth is not None else ())
-        rgb, opacity, rendered_depth = self._render(_object_rays(rays_cam, T), theta, outputs + (("depth",) if depth is not None else ()))
+        outputs += ("depth",) if depth is not None else ()
+        rgb, opacity, rendered_depth = self._render(_object_rays(rays_cam, T), theta, outputs)
         rgb = rgb.reshape(n_starts, n, 3)
         loss = ((rgb - target.rgb[index]) ** 2).mean(dim=(1, 2))
         if opts.silhouette_weight > 0:
@@ -463,7 +465,9 @@ class _Loss:
                 loss = loss + opts.depth_weight * (err**2 * valid).sum(-1) / valid.sum()
         return loss
 
-    def _render(self, rays_obj: Rays, theta: Tensor, outputs: tuple[str, ...]) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    def _render(
+        self, rays_obj: Rays, theta: Tensor, outputs: tuple[str, ...]
+    ) -> tuple[Tensor, Tensor | None, Tensor | None]:
         """``(rgb, opacity, depth)`` of the rays ``[S*n]``, start ``s`` at ``θ [S,k]`` row ``s``.
 
         One configuration: one call with ``θ [k]``. Several: one batched call with ``θ`` per ray in
@@ -555,6 +559,8 @@ def refine(
     opts = options if options is not None else EstimateOptions()
     if not isinstance(opts, EstimateOptions):
         raise EstimateInputError(f"options must be EstimateOptions, got {type(opts).__name__}")
+    if not isinstance(camera, Pinhole):
+        raise EstimateInputError(f"camera must be a narf_core.geometry.Pinhole, got {type(camera).__name__}")
     image, mask, depth = _check_observation(image, mask, depth, camera)
     T0 = torch.from_numpy(_check_pose(T_init, "T_init"))
     theta0 = _check_joints(model, joints_init, "joints_init", complete=False)
@@ -703,8 +709,8 @@ class _Run:
     def _keep_best_start(self) -> None:
         """Drop every start but the one with the lowest mean loss over the last iterations (paired:
         all starts saw the same rays)."""
-        recent = self.losses[-5:] or [torch.zeros(self.adam.params.shape[0])]
-        keep = torch.stack(recent).mean(0).argmin().reshape(1)
+        recent = self.losses[-5:] or [torch.zeros(self.adam.params.shape[0])]  # none left after a recovery: the first
+        keep = torch.stack(recent).mean(0).argmin().cpu().reshape(1)
         self.adam.keep(keep)
         self.best_params = self.adam.params.clone()
         self.best_loss = float(recent[-1][keep])
@@ -763,7 +769,8 @@ def _final_choice(
 def _overlaps(camera: Pinhole, pixels: Tensor, T_cam_obj: Tensor, aabb: Tensor) -> bool:
     """Whether any ray through the box pixels ``[P, 2]`` meets the object's box ``aabb [2,3]`` under
     ``T_cam_obj [4,4]`` (in front of the camera)."""
-    corners = torch.stack(torch.meshgrid(*[aabb[:, i].cpu().double() for i in range(3)], indexing="ij"), -1).reshape(-1, 3)
+    box = aabb.cpu().double()
+    corners = torch.stack(torch.meshgrid(box[:, 0], box[:, 1], box[:, 2], indexing="ij"), -1).reshape(-1, 3)
     if bool((transform_points(T_cam_obj, corners)[:, 2] <= 0).all()):
         return False
     rays = _object_rays(camera.rays(pixels), T_cam_obj[None])
@@ -772,7 +779,10 @@ def _overlaps(camera: Pinhole, pixels: Tensor, T_cam_obj: Tensor, aabb: Tensor) 
 
 
 @torch.no_grad()
-def _snapshot(model: NarfModel, param: _Parameterisation, params: Tensor, losses: Tensor, iteration: int, seconds: float) -> Snapshot:
+def _snapshot(
+    model: NarfModel, param: _Parameterisation, params: Tensor, losses: Tensor, iteration: int, seconds: float
+) -> Snapshot:
+    """The start with the lowest loss among ``params [S, d]`` as a :class:`Snapshot`."""
     i = int(losses.argmin())
     row = params[i : i + 1]
     return Snapshot(
@@ -797,7 +807,8 @@ def _metrics(model: NarfModel, truth: tuple[Tensor, Tensor], T: Tensor, theta: T
     out.update({f"joint_error/{j.name}": float(e) for j, e in zip(model.joints, errors)})
     if any(len(points) for points in model.sample_points.values()):
         kin = model.kinematics
-        args = (model.sample_points, kin.link_poses(theta_true).numpy(), T_true.numpy(), kin.link_poses(theta).numpy(), T.numpy(), model.links)
+        links_true, links_est = kin.link_poses(theta_true).numpy(), kin.link_poses(theta).numpy()
+        args = (model.sample_points, links_true, T_true.numpy(), links_est, T.numpy(), model.links)
         out["add"], out["add_s"] = float(add(*args)), float(add_s(*args))
         if model.diameter > 0:
             out.update(success_rates(np.array([out["add"]]), model.diameter))

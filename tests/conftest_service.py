@@ -172,6 +172,7 @@ def toy_refine(
     ground_truth: tuple[np.ndarray, dict[str, float]] | None = None,
 ) -> ToyResult:
     """Stands for ``refine``: checks its inputs like it, then "converges" to the ground truth if given."""
+    started = time.perf_counter()
     options = options or ToyOptions()
     assert image.dtype == np.uint8 and image.shape == (camera.height, camera.width, 3)
     assert mask.dtype == bool and mask.shape == image.shape[:2]
@@ -187,7 +188,8 @@ def toy_refine(
         metrics |= {f"joint_error/{k}": abs(joints[k] - v) for k, v in joints_true.items()}
     trace = [(1.0 / (i + 1), 0.001 * i) for i in range(options.iterations)]
     loss = trace[-1][0] if trace else None
-    return ToyResult(T, joints, loss, options.iterations, 0.001, trace, "max_iterations", False, metrics)
+    seconds = time.perf_counter() - started  # measured, so that it never exceeds the server's wall time
+    return ToyResult(T, joints, loss, options.iterations, seconds, trace, "max_iterations", False, metrics)
 
 
 def toy_load_bundle(path: Path, device: str = "cpu") -> ToyModel:
