@@ -1,14 +1,15 @@
 """``narf bench estimate``: the paper's pose + configuration experiment (Table II) on our data.
 
-Protocol (NARF22 §IV-C): per tool, ``scenes`` frames of a split picked with a fixed seed; the
-initial pose is the labelled pose perturbed by a rotation uniform within ±10 deg in azimuth and
-elevation (about the camera's vertical and horizontal axes, through the object's centre) and a
-translation of length uniform in [0, 2 cm] in a uniform direction; θ starts at mid-range; 150
-Adam iterations. Reported per tool and render mode: ADD mean/std (m and cm), configuration error
-mean/std per joint (m or deg), success rates (ADD < 1 cm, ADD < 10% of the diameter) and seconds per
-scene; the error along the iterations and along wall time (poses recorded every few iterations);
-and a sweep of the perturbation size (1x, 2x, 3x) with the robust options off (the paper's loss)
-and on (silhouette term, θ starts, coarse-to-fine).
+Protocol (NARF22 §IV-C): per tool, ``scenes`` frames of the ``test`` split (and separately of
+``novel``) picked with a fixed seed; the initial pose is the labelled pose perturbed by a rotation
+uniform within ±10 deg in azimuth and elevation (about the camera's vertical and horizontal axes,
+through the object's centre) and a translation of length uniform in [0, 2 cm] in a uniform
+direction; θ starts at mid-range; 150 Adam iterations. Each scene is refined with two presets of
+options: ``paper`` (the paper's masked photometric loss) and ``robust`` (plus silhouette and depth
+terms, 4 joint starts, coarse-to-fine). Reported per tool, split, render mode and preset: ADD
+mean/std, configuration error mean/std per joint (m or deg), success rates (ADD < 1 cm, ADD < 10% of
+the diameter) and seconds per scene; the error along the iterations and along wall time (poses
+recorded every few iterations); and a sweep of the perturbation size (1x, 2x, 3x) per preset.
 
 With datasets written with label noise, the refiner sees the noisy labels (mask and initial pose)
 and is scored against the generator's clean ground truth.
@@ -32,7 +33,7 @@ import torch
 
 from narf_core.bundle import NarfModel, load_bundle
 from narf_core.data.dataset import Dataset, Frame
-from narf_core.estimate import EstimateOptions, EstimateResult, refine
+from narf_core.estimate import PRESETS, EstimateOptions, EstimateResult, refine
 from narf_core.geometry import so3_exp, transform_points
 from narf_core.metrics import add
 
@@ -213,12 +214,13 @@ def run(
     datasets: Mapping[str, Dataset | str | Path] | Sequence[Dataset | str | Path],
     *,
     out_dir: str | Path,
-    split: str = "test",
+    splits: tuple[str, ...] = ("test", "novel"),
     scenes: int = 17,
     perturbation: tuple[float, float] = (10.0, 0.02),
     scale_sweep: tuple[float, ...] = (1.0, 2.0, 3.0),
     iterations: int = 150,
     modes: tuple[str, ...] = ("narf", "parts"),
+    presets: tuple[str, ...] = PRESETS,
     seed: int = 0,
     quick: bool = False,
     progress: bool = True,
@@ -226,47 +228,59 @@ def run(
     """Run the protocol; writes ``estimate.json``, ``estimate.md`` and ``estimate_*.png`` into ``out_dir``.
 
     ``models`` and ``datasets`` pair one model with one dataset (mappings by tool name, or sequences
-    in order; paths are opened). ``perturbation`` is ``(degrees, metres)``; ``quick`` runs 3 scenes,
-    the first mode only and the sweep at its smallest and largest scale. Modes a model cannot
-    render (``parts`` without part fields) are skipped and listed under ``skipped``; the sweep runs
-    in the first mode the model renders.
+    in order; paths are opened). The table has one row per tool, split, render mode and refiner
+    preset (:meth:`EstimateOptions.preset`); the curves and the perturbation sweep (every preset,
+    ``perturbation * scale``) use the first split and the first mode the model renders.
+    ``perturbation`` is ``(degrees, metres)``; ``quick`` runs 3 scenes of the first split, the first
+    mode only and the sweep at its smallest and largest scale. Modes a model cannot render
+    (``parts`` without part fields) and splits a dataset lacks are skipped and listed under ``skipped``.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     if quick:
-        scenes, modes = min(scenes, 3), modes[:1]
+        scenes, modes, splits = min(scenes, 3), modes[:1], splits[:1]
         scale_sweep = tuple(sorted({min(scale_sweep), max(scale_sweep)}))
     config = {
-        "split": split, "scenes": scenes, "perturbation_deg_m": list(perturbation), "scale_sweep": list(scale_sweep),
-        "iterations": iterations, "modes": list(modes), "seed": seed, "quick": quick,
-        "options_paper": asdict(EstimateOptions(iterations=iterations)),
-        "options_robust": asdict(EstimateOptions.robust(iterations=iterations)),
+        "splits": list(splits), "scenes": scenes, "perturbation_deg_m": list(perturbation),
+        "scale_sweep": list(scale_sweep), "iterations": iterations, "modes": list(modes), "presets": list(presets),
+        "seed": seed, "quick": quick,
+        "options": {name: asdict(EstimateOptions.preset(name, iterations=iterations)) for name in presets},
     }
     table, curves, sweep, skipped = [], {}, [], []
     for tool, model, dataset in _pairs(models, datasets):
-        frames = pick_frames(dataset, split, scenes, seed)
-        paper_rows = {}
-        for mode in modes:
-            if mode == "parts" and not model.has_parts:
-                skipped.append({"tool": tool, "mode": mode, "reason": "the model has no part fields"})
+        first: dict[str, list[dict]] = {}  # preset -> rows of the first split and mode (reused by the sweep)
+        sweep_frames, sweep_mode = None, None
+        for split in splits:
+            if not dataset.frames(split):
+                skipped.append({"tool": tool, "split": split, "reason": "the dataset has no frames in this split"})
                 continue
-            options = EstimateOptions(iterations=iterations, mode=mode, record_every=RECORD_EVERY, seed=seed)
-            rows = run_scenes(model, dataset, frames, options, perturbation=perturbation, seed=seed, progress=progress)
-            paper_rows[mode] = rows
-            table.append({"tool": tool, "mode": mode, **summarise(model, rows), "scenes_detail": rows})
-            curves[f"{tool} {mode}"] = _curve(rows, iterations)
-        sweep_mode = next(iter(paper_rows), None)  # the first mode this model renders
-        for robust in (False, True) if sweep_mode else ():
-            make = EstimateOptions.robust if robust else EstimateOptions
-            options = make(iterations=iterations, mode=sweep_mode, seed=seed)
+            frames = pick_frames(dataset, split, scenes, seed)
+            for mode in modes:
+                if mode == "parts" and not model.has_parts:
+                    skipped.append({"tool": tool, "mode": mode, "reason": "the model has no part fields"})
+                    continue
+                sweep_frames, sweep_mode = (frames, mode) if sweep_mode is None else (sweep_frames, sweep_mode)
+                for preset in presets:
+                    options = EstimateOptions.preset(
+                        preset, iterations=iterations, mode=mode, record_every=RECORD_EVERY, seed=seed
+                    )
+                    rows = run_scenes(model, dataset, frames, options, perturbation=perturbation, seed=seed, progress=progress)
+                    table.append({"tool": tool, "split": split, "mode": mode, "preset": preset, **summarise(model, rows),
+                                  "scenes_detail": rows})
+                    if frames is sweep_frames:
+                        curves[f"{tool} {mode} {preset}"] = _curve(rows, iterations)
+                        if mode == sweep_mode:
+                            first[preset] = rows
+        for preset in presets if sweep_mode else ():
+            options = EstimateOptions.preset(preset, iterations=iterations, mode=sweep_mode, seed=seed)
             for scale in scale_sweep:
-                if not robust and scale == 1:
-                    rows = paper_rows[sweep_mode]  # the same runs as the table's (same starts and seeds)
+                if scale == 1:
+                    rows = first[preset]  # the same runs as the table's (same starts and seeds)
                 else:
-                    rows = run_scenes(model, dataset, frames, options, scale=scale, perturbation=perturbation,
+                    rows = run_scenes(model, dataset, sweep_frames, options, scale=scale, perturbation=perturbation,
                                       seed=seed, progress=progress)
                 s = summarise(model, rows)
-                sweep.append({"tool": tool, "mode": sweep_mode, "robust": robust, "scale": scale,
+                sweep.append({"tool": tool, "mode": sweep_mode, "preset": preset, "scale": scale,
                               "rotation_deg": perturbation[0] * scale, "translation_m": perturbation[1] * scale,
                               **{k: s[k] for k in SWEEP_FIGURES}})
     result = {"config": config, "table": table, "curves": curves, "sweep": sweep, "skipped": skipped,
@@ -283,43 +297,46 @@ def _fmt_joints(joints: dict) -> str:
 
 
 def markdown(result: dict) -> str:
-    """Table II's shape per tool and mode, the paper's clamp row, and the perturbation sweep."""
+    """Table II's shape per tool, split, mode and preset, the paper's clamp row, and the perturbation sweep."""
     c = result["config"]
     lines = [
-        f"Pose + configuration refinement: {c['scenes']} scenes of split `{c['split']}` per tool, initial pose "
-        f"perturbed by ±{c['perturbation_deg_m'][0]:g} deg (azimuth, elevation) and "
-        f"≤ {100 * c['perturbation_deg_m'][1]:g} cm, θ at mid-range, {c['iterations']} iterations.",
+        f"Pose + configuration refinement: {c['scenes']} scenes per tool and split, initial pose perturbed by "
+        f"±{c['perturbation_deg_m'][0]:g} deg (azimuth, elevation) and ≤ {100 * c['perturbation_deg_m'][1]:g} cm, "
+        f"θ at mid-range, {c['iterations']} iterations. Presets: `paper` = the paper's masked photometric loss "
+        "and settings; `robust` = plus silhouette and depth terms, 4 joint starts, coarse-to-fine.",
         "",
-        "| tool | mode | N | ADD (m) | ADD (cm) | configuration error | ADD < 1 cm | ADD < 10% d | s/scene | iterations |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| tool | split | mode | preset | N | ADD (cm) | configuration error | ADD < 1 cm | ADD < 10% d "
+        "| s/scene | iterations |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result["table"]:
         lines.append(
-            f"| {r['tool']} | {r['mode']} | {r['scenes']} | {r['add_mean_m']:.4f} ± {r['add_std_m']:.4f} "
+            f"| {r['tool']} | {r['split']} | {r['mode']} | {r['preset']} | {r['scenes']} "
             f"| {100 * r['add_mean_m']:.2f} ± {100 * r['add_std_m']:.2f} | {_fmt_joints(r['joints'])} "
             f"| {100 * r['add<1cm']:.0f}% | {100 * r['add<0.1d']:.0f}% | {r['seconds_mean']:.2f} | {r['iterations_mean']:.0f} |"
         )
     for tool, p in result["paper"].items():
         lines.append(
-            f"| {tool} (paper, real data, GPU) | FastNeRF | 17 | {p['add_m'][0]:.4f} ± {p['add_m'][1]:.4f} "
+            f"| {tool} (paper: real data, GPU, FastNeRF) | test | narf | paper | 17 "
             f"| {100 * p['add_m'][0]:.2f} ± {100 * p['add_m'][1]:.2f} "
             f"| {p['configuration_error_m'][0]:.4f} ± {p['configuration_error_m'][1]:.4f} m | - | - | - | 150 |"
         )
     lines += [
         "",
-        "Perturbation sweep (robust = silhouette term, θ starts, coarse-to-fine):",
+        "Perturbation sweep (first split and mode):",
         "",
-        "| tool | mode | robust | rotation (deg) | translation (cm) | ADD (cm) | ADD < 1 cm | ADD < 10% d | s/scene |",
+        "| tool | mode | preset | rotation (deg) | translation (cm) | ADD (cm) | ADD < 1 cm | ADD < 10% d | s/scene |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for s in result["sweep"]:
         lines.append(
-            f"| {s['tool']} | {s['mode']} | {'on' if s['robust'] else 'off'} | ±{s['rotation_deg']:g} "
+            f"| {s['tool']} | {s['mode']} | {s['preset']} | ±{s['rotation_deg']:g} "
             f"| ≤ {100 * s['translation_m']:g} | {100 * s['add_mean_m']:.2f} | {100 * s['add<1cm']:.0f}% "
             f"| {100 * s['add<0.1d']:.0f}% | {s['seconds_mean']:.2f} |"
         )
     for s in result["skipped"]:
-        lines.append(f"\nSkipped {s['tool']} / {s['mode']}: {s['reason']}.")
+        what = s.get("mode") or f"split {s['split']}"
+        lines.append(f"\nSkipped {s['tool']} / {what}: {s['reason']}.")
     return "\n".join(lines) + "\n"
 
 
@@ -353,13 +370,13 @@ def plot_curves(curves: dict[str, dict], path: Path) -> None:
 
 
 def plot_sweep(sweep: list[dict], path: Path) -> None:
-    """Success rate (ADD < 10% d) and seconds against the perturbation scale, robust off vs on."""
+    """Success rate (ADD < 10% d) and seconds against the perturbation scale, one line per tool and preset."""
     plt = _pyplot()
     fig, (left, right) = plt.subplots(1, 2, figsize=(10, 4))
-    for key in sorted({(s["tool"], s["robust"]) for s in sweep}):
-        rows = sorted((s for s in sweep if (s["tool"], s["robust"]) == key), key=lambda s: s["scale"])
-        label = f"{key[0]} robust {'on' if key[1] else 'off'}"
-        style = "o-" if key[1] else "s--"
+    for key in sorted({(s["tool"], s["preset"]) for s in sweep}):
+        rows = sorted((s for s in sweep if (s["tool"], s["preset"]) == key), key=lambda s: s["scale"])
+        label = f"{key[0]} {key[1]}"
+        style = "s--" if key[1] == "paper" else "o-"
         left.plot([s["scale"] for s in rows], [100 * s["add<0.1d"] for s in rows], style, label=label)
         right.plot([s["scale"] for s in rows], [s["seconds_mean"] for s in rows], style, label=label)
     left.set_ylabel("success, ADD < 10% diameter (%)")

@@ -2,9 +2,10 @@
 
     python examples/robot_client.py --url http://127.0.0.1:8000 [--model clamp] [--size 160 120]
 
-Renders a view of the model at a known pose and configuration (standing in for a camera image and
-its segmentation mask), perturbs the pose by 10 degrees and 2 cm (the paper's protocol), asks the
-service to estimate pose and joints from the view, and prints the ADD, the joint errors and the time.
+Renders a view of the model at a known pose and configuration (standing in for a camera's RGB-D
+image and its segmentation mask), perturbs the pose by 10 degrees and 2 cm (the paper's protocol),
+asks the service to estimate pose and joints from the view (with the ``robust`` options unless
+``--preset paper``), and prints the ADD, the joint errors and the time.
 Needs only the client package (httpx, numpy, pillow): ``pip install -e clients/python``.
 """
 
@@ -45,6 +46,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--model", default=None, help="default: the first served model")
     parser.add_argument("--size", type=int, nargs=2, default=(160, 120), metavar=("W", "H"))
     parser.add_argument("--iterations", type=int, default=150)
+    parser.add_argument("--preset", choices=("paper", "robust"), default="robust", help="the refiner's options")
+    parser.add_argument("--no-depth", action="store_true", help="estimate from RGB alone")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--wait", type=float, default=60.0, help="seconds to wait for the server to be ready")
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object")
@@ -71,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
             T_true[:3, 3] = [0, 0, 2 * diameter * f / min(width, height)] - T_true[:3, :3] @ centre
             joints_true = {j.name: float(rng.uniform(j.lower, j.upper)) for j in model.joints}
 
-            view = narf.render(model.name, T_true, K, width, height, joints=joints_true, outputs=("rgb", "opacity"))
+            view = narf.render(model.name, T_true, K, width, height, joints=joints_true, outputs=("rgb", "depth", "opacity"))
             T_init = perturb(T_true, 10.0, 0.02, rng)
             start = time.perf_counter()
             est = narf.estimate(
@@ -81,7 +84,9 @@ def main(argv: list[str] | None = None) -> int:
                 Pose(T_init),
                 model=model.name,
                 initial_joints=model.mid_joints,
+                depth=None if args.no_depth else view.depth,
                 iterations=args.iterations,
+                options={"preset": args.preset},
                 ground_truth=(T_true, joints_true),
             )
             elapsed = time.perf_counter() - start

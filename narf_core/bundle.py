@@ -2,9 +2,9 @@
 
 A bundle holds tensors only (never pickle):
   ``field.*``              the configuration field F(x, d, θ)
-  ``grid``                 its occupancy grid, valid for every θ in the limits
+  ``grid``                 its occupancy grid, valid for every θ in the limits (bits, packed)
   ``part.<i>.*``           the part fields, if the bundle keeps them (render mode ``parts``)
-  ``part_grid.<i>``        their occupancy grids
+  ``part_grid.<i>``        their occupancy grids (bits, packed)
   ``points.<link>``        surface points per link, in the link frame, for ADD
 and one JSON document in the safetensors metadata under ``"narf"``: format and version, object
 name, links, joints with limits, bounds, field architectures and hyper-parameters, the URDF text
@@ -33,7 +33,7 @@ from narf_core.kinematics import KinematicTree
 from narf_core.render import OccupancyGrid, RenderOutput, compose_parts, render_image, render_rays
 
 FORMAT = "narf-bundle"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: occupancy grids stored as packed bits, their shapes in the metadata
 RENDER_MODES = ("narf", "parts")
 
 
@@ -190,13 +190,13 @@ def save_bundle(path: str | Path, model: NarfModel) -> Path:
     tensors: dict[str, Tensor] = {}
     for key, value in model.field.state_dict().items():
         tensors[f"field.{key}"] = value
-    tensors["grid"] = model.grid.occupancy.to(torch.uint8)
+    tensors["grid"] = _pack_bits(model.grid.occupancy)
     part_meta = []
     for i, (pf, pg) in enumerate(zip(model.part_fields or [], model.part_grids or [])):
         for key, value in pf.state_dict().items():
             tensors[f"part.{i}.{key}"] = value
-        tensors[f"part_grid.{i}"] = pg.occupancy.to(torch.uint8)
-        part_meta.append({"field": pf.config(), "grid_aabb": pg.aabb.tolist()})
+        tensors[f"part_grid.{i}"] = _pack_bits(pg.occupancy)
+        part_meta.append({"field": pf.config(), "grid_aabb": pg.aabb.tolist(), "grid_shape": list(pg.occupancy.shape)})
     for link, pts in model.sample_points.items():
         tensors[f"points.{link}"] = torch.as_tensor(pts, dtype=torch.float32)
     meta = {
@@ -211,6 +211,7 @@ def save_bundle(path: str | Path, model: NarfModel) -> Path:
         "diameter": model.diameter,
         "field": model.field.config(),
         "grid_aabb": model.grid.aabb.tolist(),
+        "grid_shape": list(model.grid.occupancy.shape),
         "grid_theta_range": None if model.grid.theta_range is None else model.grid.theta_range.tolist(),
         "parts": part_meta,
         "part_links": model.kinematics.parts,
@@ -276,13 +277,14 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> NarfMod
         theta_range = meta.get("grid_theta_range")
         grid = OccupancyGrid(
             torch.tensor(meta["grid_aabb"], device=device),
-            tensors["grid"].bool(),
+            _unpack_bits(tensors["grid"], meta["grid_shape"]),
             None if theta_range is None else torch.tensor(theta_range, device=device),
         )
         part_fields, part_grids = [], []
         for i, part in enumerate(meta.get("parts", [])):
             part_fields.append(_load_module(part["field"], tensors, f"part.{i}.", device))
-            part_grids.append(OccupancyGrid(torch.tensor(part["grid_aabb"], device=device), tensors[f"part_grid.{i}"].bool()))
+            occupancy = _unpack_bits(tensors[f"part_grid.{i}"], part["grid_shape"])
+            part_grids.append(OccupancyGrid(torch.tensor(part["grid_aabb"], device=device), occupancy))
         points = {k[len("points."):]: v.cpu().numpy() for k, v in tensors.items() if k.startswith("points.")}
         return NarfModel(
             name=str(meta["name"]),
@@ -297,6 +299,21 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> NarfMod
         )
     except (KeyError, RuntimeError, TypeError, ValueError) as e:  # ValueError: UrdfError, bad field config or grid
         raise BundleError(f"{path}: incomplete or inconsistent model bundle ({_one_line(e)})") from None
+
+
+def _pack_bits(occupancy: Tensor) -> Tensor:
+    """A bool grid of any shape as ``uint8 [ceil(numel / 8)]`` (row-major, big-endian bits)."""
+    return torch.from_numpy(np.packbits(occupancy.detach().cpu().numpy().reshape(-1)))
+
+
+def _unpack_bits(packed: Tensor, shape) -> Tensor:
+    """The bool grid of ``shape`` that :func:`_pack_bits` packed; ``ValueError`` if the sizes disagree."""
+    shape = tuple(int(s) for s in shape)
+    count = int(np.prod(shape))
+    if packed.dtype != torch.uint8 or packed.dim() != 1 or packed.numel() != -(-count // 8):
+        raise ValueError(f"a packed occupancy grid of shape {shape} needs {-(-count // 8)} bytes, got {tuple(packed.shape)}")
+    bits = np.unpackbits(packed.cpu().numpy(), count=count).reshape(shape)
+    return torch.from_numpy(bits.astype(bool)).to(packed.device)
 
 
 def _one_line(error: BaseException) -> str:

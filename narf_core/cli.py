@@ -490,7 +490,9 @@ def _add_estimate(commands: argparse._SubParsersAction) -> None:
     arg("--gt", metavar="JSON|FILE", help="ground truth {\"pose\": ..., \"joints\": {...}}: report ADD and joint error")
     arg("--iterations", type=_non_negative_int, metavar="N")
     arg("--mode", choices=("narf", "parts"), default="narf")
-    arg("--robust", action="store_true", help="silhouette term, several joint starts and coarse-to-fine")
+    arg("--preset", choices=("paper", "robust"), default="paper",
+        help="paper: the paper's loss and settings (default); robust: adds silhouette and depth (with --depth) "
+             "terms, several joint starts and coarse-to-fine")
     _add_json_flag(parser)
     parser.set_defaults(run=_run_estimate)
 
@@ -515,8 +517,9 @@ def _run_estimate(args: argparse.Namespace) -> int:
         if not isinstance(gt, dict) or "pose" not in gt:
             raise ValueError("--gt: expected {\"pose\": ..., \"joints\": {...}}")
         ground_truth = (_pose_arg(json.dumps(gt["pose"]), "--gt pose"), _joints_arg(json.dumps(gt.get("joints", {})), "--gt joints"))
-    options = EstimateOptions.robust() if args.robust else EstimateOptions()
-    options = replace(options, mode=args.mode, **({"iterations": args.iterations} if args.iterations is not None else {}))
+    options = EstimateOptions.preset(
+        args.preset, mode=args.mode, **({"iterations": args.iterations} if args.iterations is not None else {})
+    )
     model = load_bundle(args.model)
     result = refine(model, image, mask > 0, camera, T_init, joints_init=_joints_arg(args.init_joints, "--init-joints"),
                     depth=depth, options=options, ground_truth=ground_truth)

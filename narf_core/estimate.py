@@ -70,10 +70,12 @@ from narf_core.render import ray_aabb
 if TYPE_CHECKING:
     from narf_core.bundle import NarfModel
 
+PRESETS = ("paper", "robust")
 MIN_MASK_PIXELS = 4
 _U_LIMIT = 0.2  # a start keeps u this far inside ±π/2 (where dθ/du = 0): 2% of the half-range from a limit
 _MAX_RECOVERIES = 8  # consecutive non-finite iterations before giving up
 _COARSE_SHARE = 0.25  # of the iterations go to the coarse pyramid levels
+_PRUNE_SHARE = 1 / 3  # of the iterations run every θ start; then the best is kept
 _EVAL_RAYS = 4096  # the final loss is measured on at most this many rays of the box
 _ADAM_BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
@@ -142,9 +144,23 @@ class EstimateOptions:
 
     @classmethod
     def robust(cls, **overrides) -> EstimateOptions:
-        """The defaults plus a silhouette term, 4 configuration starts, 2 pyramid levels and twice
-        the pose rate: a wider basin (see the module docstring for measurements)."""
-        return cls(**{"silhouette_weight": 1.0, "theta_starts": 4, "coarse_to_fine": 2, "lr_pose": 0.02, **overrides})
+        """The defaults plus a silhouette term, a depth term (used when a depth image is given), 4
+        configuration starts, 2 pyramid levels and twice the pose rate: a wider basin and a
+        well-determined distance (see the module docstring for measurements)."""
+        return cls(**{
+            "silhouette_weight": 1.0, "depth_weight": 1.0, "theta_starts": 4, "coarse_to_fine": 2, "lr_pose": 0.02,
+            **overrides,
+        })
+
+    @classmethod
+    def preset(cls, name: str = "paper", **overrides) -> EstimateOptions:
+        """The options of a named preset (``paper``: the defaults; ``robust``: :meth:`robust`) with
+        ``overrides`` applied."""
+        if name == "paper":
+            return cls(**overrides)
+        if name == "robust":
+            return cls.robust(**overrides)
+        raise EstimateInputError(f"options.preset must be one of {', '.join(PRESETS)}, got {name!r}")
 
 
 @dataclass
@@ -642,7 +658,7 @@ class _Run:
 
     def optimise(self) -> None:
         opts, n_levels = self.opts, len(self.obs.levels)
-        prune_at = opts.iterations // 3
+        prune_at = int(opts.iterations * _PRUNE_SHARE)
         failures = 0
         while self.iteration < opts.iterations:
             level = _level(self.iteration, opts.iterations, n_levels)

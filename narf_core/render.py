@@ -442,6 +442,12 @@ def render_rays(
         transmittance_eps: a ray stops once its transmittance falls below this.
         max_samples: at most this many intervals per ray (longer rays get longer intervals).
         jitter: sample each interval at one random offset per ray (training) instead of its middle.
+
+    Without gradients the rays are marched and composited in one pass. When gradients are needed
+    (grad mode on, and the rays, ``theta`` or the field's parameters require them), the march runs
+    without a graph, on densities only, to find each ray's samples; then the field is evaluated
+    once on all of them and composited in one differentiable pass: the same samples and the same
+    result, with one small autograd graph instead of one per marching round.
     """
     outputs = _check_outputs(outputs)
     if not (math.isfinite(step) and step > 0):
@@ -450,73 +456,192 @@ def render_rays(
         raise ValueError(f"transmittance_eps must be in (0, 1), got {transmittance_eps}")
     if max_samples < 3:
         raise ValueError(f"max_samples must be >= 3, got {max_samples}")
-    n = len(rays)
-    theta, per_ray = _ray_theta(theta, n)
-    dtype = rays.origins.dtype
-    live = _start(rays, aabb, grid, theta, per_ray, step, max_samples, generator if jitter else None)
-    density = None if "rgb" in outputs else getattr(field, "density_only", None)
-    tau_stop = -math.log(transmittance_eps)
-    sample_ray: list[Tensor] = []  # per round: the ray of each sample, its weighted colour and depth
-    sample_rgb: list[Tensor] = []
-    sample_z: list[Tensor] = []
-    retired_ids: list[Tensor] = []  # rays done, and their optical depth
-    retired_tau: list[Tensor] = []
-    n_samples = 0
+    theta, per_ray = _ray_theta(theta, len(rays))
+    march = _Marcher(grid, theta, per_ray, step, max_samples, transmittance_eps, generator if jitter else None)
+    if not _needs_grad(field, rays, theta):
+        return march.render(field, rays, aabb, outputs, background)
+    with torch.no_grad():
+        samples = march.samples(_density_fn(field), Rays(rays.origins.detach(), rays.directions.detach(), rays.z_per_t), aabb)
+    return _composite(field, rays, theta, per_ray, samples, outputs, background)
 
-    while live.ids.numel() > 0:
-        most = int(live.budget.max())
-        with torch.no_grad():
-            t, delta, occ = _candidates(live, grid, theta, per_ray, min(_LOOKAHEAD * most, _MAX_WINDOW))
-            rank = occ.to(torch.int32).cumsum(1, dtype=torch.int32)  # int32: many times faster than bool -> int64
-            take = occ & (rank <= live.budget[:, None])
-            full = rank[:, -1] >= live.budget
-            advance = torch.where(full, (rank < live.budget[:, None]).sum(1, dtype=torch.int32) + 1, occ.shape[1])
-            row, col = take.nonzero(as_tuple=True)
-            slot = rank[row, col] - 1
-            t_s, delta_s = t[row, col], delta[row, col]
-        added = None
-        if row.numel() > 0:
+
+def _needs_grad(field, rays: Rays, theta: Tensor | None) -> bool:
+    """Whether a render must be differentiable: grad mode on and any input or parameter requiring it
+    (a field without ``parameters()`` is assumed to have some)."""
+    if not torch.is_grad_enabled():
+        return False
+    if rays.origins.requires_grad or rays.directions.requires_grad or (theta is not None and theta.requires_grad):
+        return True
+    parameters = getattr(field, "parameters", None)
+    return parameters is None or any(p.requires_grad for p in parameters())
+
+
+@dataclass
+class _Samples:
+    """The samples a march kept, grouped by ray in ascending ``t``: ``ray``, ``t`` and ``delta [s]``."""
+
+    ray: Tensor
+    t: Tensor
+    delta: Tensor
+
+
+def _composite(
+    field: Field, rays: Rays, theta: Tensor | None, per_ray: bool, samples: _Samples, outputs: tuple[str, ...],
+    background: float | Tensor,
+) -> RenderOutput:
+    """Evaluate ``field`` once at ``samples`` and composite them per ray; differentiable in the rays
+    (through the sample positions ``o + t d``), ``theta`` and the field."""
+    n, dtype = len(rays), rays.origins.dtype
+    ray, t, delta = samples.ray, samples.t.to(dtype), samples.delta.to(dtype)
+    zero = (rays.origins[:, 0] + rays.directions[:, 0]) * 0  # [n] zeros in the graph, so backward() always works
+    tau_total, rgb_out, depth_out = zero, zero[:, None].expand(n, 3), zero
+    if ray.numel() > 0:
+        rays_hit, slot_ray, counts = torch.unique_consecutive(ray, return_inverse=True, return_counts=True)
+        slot = torch.arange(ray.shape[0], device=ray.device) - (counts.cumsum(0) - counts)[slot_ray]
+        d = rays.directions[ray]
+        x = rays.origins[ray] + t[:, None] * d
+        th = None if theta is None else theta[ray] if per_ray else theta.expand(ray.shape[0], -1)
+        if "rgb" in outputs:
+            sigma, rgb = field(x, d, th)
+        else:
+            sigma, rgb = _density_fn(field)(x, th), None
+        tau = sigma.to(dtype) * delta
+        padded = tau.new_zeros(rays_hit.shape[0], int(counts.max())).index_put((slot_ray, slot), tau)
+        w = _weights_from_optical_depth(padded, None)[0][slot_ray, slot]
+        tau_total = zero.index_add(0, ray, tau)
+        if "rgb" in outputs:
+            rgb_out = rgb_out.index_add(0, ray, w[:, None] * rgb.to(dtype))
+        if "depth" in outputs:
+            depth_out = zero.index_add(0, ray, w * t * rays.z_per_t[ray].to(dtype))
+    opacity = -torch.expm1(-tau_total)
+    if "rgb" in outputs:
+        rgb_out = rgb_out + (1 - opacity)[:, None] * torch.as_tensor(background, dtype=dtype, device=opacity.device).expand(3)
+    return RenderOutput(
+        rgb_out if "rgb" in outputs else None,
+        depth_out if "depth" in outputs else None,
+        opacity if "opacity" in outputs else None,
+        int(ray.shape[0]),
+    )
+
+
+@dataclass
+class _Marcher:
+    """Marching settings of one :func:`render_rays` call (see the module docstring for the rounds)."""
+
+    grid: Occupancy | None
+    theta: Tensor | None
+    per_ray: bool
+    step: float
+    max_samples: int
+    transmittance_eps: float
+    generator: torch.Generator | None
+
+    def _rounds(
+        self, rays: Rays, aabb: Tensor, evaluate: Callable[[_LiveRays, Tensor, Tensor, Tensor, Tensor], Tensor]
+    ) -> tuple[list[Tensor], list[Tensor]]:
+        """March every ray in rounds; ``evaluate(live, row, slot, t, delta)`` gives the optical depth
+        ``[s]`` of a round's samples (live row, slot among the row's samples of the round, position
+        and length). Returns the retired rays and their optical depths, in batches."""
+        theta, per_ray = self.theta, self.per_ray
+        live = _start(rays, aabb, self.grid, theta, per_ray, self.step, self.max_samples, self.generator)
+        tau_stop = -math.log(self.transmittance_eps)
+        retired_ids: list[Tensor] = []
+        retired_tau: list[Tensor] = []
+        while live.ids.numel() > 0:
+            most = int(live.budget.max())
+            with torch.no_grad():
+                t, delta, occ = _candidates(live, self.grid, theta, per_ray, min(_LOOKAHEAD * most, _MAX_WINDOW))
+                rank = occ.to(torch.int32).cumsum(1, dtype=torch.int32)  # int32: many times faster than bool -> int64
+                take = occ & (rank <= live.budget[:, None])
+                full = rank[:, -1] >= live.budget
+                advance = torch.where(full, (rank < live.budget[:, None]).sum(1, dtype=torch.int32) + 1, occ.shape[1])
+                row, col = take.nonzero(as_tuple=True)
+                slot = rank[row, col] - 1
+                t_s, delta_s = t[row, col], delta[row, col]
+            added = None
+            if row.numel() > 0:
+                tau_s = evaluate(live, row, slot, t_s, delta_s)
+                added = live.o.new_zeros(live.ids.shape[0]).index_add(0, row, tau_s)
+                live.tau = live.tau + added
+            with torch.no_grad():
+                live.j = live.j + advance
+                going = (live.j < live.n_steps) & (live.tau < tau_stop)
+                live.budget = _next_budget(live.budget, added, take.sum(1, dtype=torch.int32), live.tau, tau_stop)
+            if not bool(going.all()):
+                retired_ids.append(live.ids[~going])
+                retired_tau.append(live.tau[~going])
+                live = live.select(going.nonzero().squeeze(-1))
+        return retired_ids, retired_tau
+
+    def samples(self, density: Callable[[Tensor, Tensor | None], Tensor], rays: Rays, aabb: Tensor) -> _Samples:
+        """The samples the march evaluates, found from densities alone (call without grad)."""
+        kept: list[tuple[Tensor, Tensor, Tensor]] = []
+
+        def evaluate(live: _LiveRays, row: Tensor, slot: Tensor, t: Tensor, delta: Tensor) -> Tensor:
             ids = live.ids[row]
-            x = live.o[row] + t_s[:, None] * live.d[row]
-            th = None if theta is None else theta[ids] if per_ray else theta.expand(row.shape[0], -1)
+            x = live.o[row] + t[:, None] * live.d[row]
+            sigma = density(x, self._sample_theta(ids))
+            kept.append((ids, t, delta))
+            return sigma.to(t.dtype) * delta
+
+        self._rounds(rays, aabb, evaluate)
+        if not kept:
+            empty = rays.origins.new_zeros(0)
+            return _Samples(torch.zeros(0, dtype=torch.long, device=empty.device), empty, empty)
+        ray, t, delta = (torch.cat(parts) for parts in zip(*kept))
+        order = torch.sort(ray, stable=True).indices  # by ray; within a ray rounds and slots are in t order
+        return _Samples(ray[order], t[order], delta[order])
+
+    def render(self, field: Field, rays: Rays, aabb: Tensor, outputs: tuple[str, ...], background: float | Tensor) -> RenderOutput:
+        """March and composite in one pass, accumulating each round's weighted colour and depth."""
+        n, dtype = len(rays), rays.origins.dtype
+        density = None if "rgb" in outputs else getattr(field, "density_only", None)
+        sample_ray: list[Tensor] = []  # per round: the ray of each sample, its weighted colour and depth
+        sample_rgb: list[Tensor] = []
+        sample_z: list[Tensor] = []
+        n_samples = 0
+
+        def evaluate(live: _LiveRays, row: Tensor, slot: Tensor, t: Tensor, delta: Tensor) -> Tensor:
+            nonlocal n_samples
+            ids = live.ids[row]
+            x = live.o[row] + t[:, None] * live.d[row]
+            th = self._sample_theta(ids)
             sigma, rgb = (density(x, th), None) if density is not None else field(x, live.d[row], th)
             n_samples += row.shape[0]
-            tau = live.o.new_zeros(live.ids.shape[0], most).index_put((row, slot), sigma.to(dtype) * delta_s)
+            tau_s = sigma.to(dtype) * delta
+            tau = live.o.new_zeros(live.ids.shape[0], int(slot.max()) + 1).index_put((row, slot), tau_s)
             w = _weights_from_optical_depth(tau, live.tau)[0][row, slot]
             sample_ray.append(ids)
             if "rgb" in outputs:
                 sample_rgb.append(w[:, None] * rgb.to(dtype))
             if "depth" in outputs:
-                sample_z.append(w * t_s * rays.z_per_t[ids].to(dtype))
-            added = tau.sum(1)
-            live.tau = live.tau + added
-        with torch.no_grad():
-            live.j = live.j + advance
-            going = (live.j < live.n_steps) & (live.tau < tau_stop)
-            live.budget = _next_budget(live.budget, added, take.sum(1, dtype=torch.int32), live.tau, tau_stop)
-        if not bool(going.all()):
-            retired_ids.append(live.ids[~going])
-            retired_tau.append(live.tau[~going])
-            live = live.select(going.nonzero().squeeze(-1))
+                sample_z.append(w * t * rays.z_per_t[ids].to(dtype))
+            return tau_s
 
-    # Zeros that stay in the graph even when no ray meets the box, so that backward() still works.
-    tau_total = (rays.origins[:, 0] + rays.directions[:, 0]) * 0
-    if retired_ids:
-        tau_total = tau_total.index_put((torch.cat(retired_ids),), torch.cat(retired_tau))
-    opacity = -torch.expm1(-tau_total)
-    ray_of = torch.cat(sample_ray) if sample_ray else live.ids
-    rgb_out = depth_out = None
-    if "rgb" in outputs:
-        rgb_out = rays.origins.new_zeros(n, 3)
-        if sample_rgb:
-            rgb_out = rgb_out.index_add(0, ray_of, torch.cat(sample_rgb))
-        bg = torch.as_tensor(background, dtype=dtype, device=rgb_out.device).expand(3)
-        rgb_out = rgb_out + (1 - opacity)[:, None] * bg
-    if "depth" in outputs:
-        depth_out = rays.origins.new_zeros(n)
-        if sample_z:
-            depth_out = depth_out.index_add(0, ray_of, torch.cat(sample_z))
-    return RenderOutput(rgb_out, depth_out, opacity if "opacity" in outputs else None, n_samples)
+        retired_ids, retired_tau = self._rounds(rays, aabb, evaluate)
+        tau_total = rays.origins.new_zeros(n)
+        if retired_ids:
+            tau_total = tau_total.index_put((torch.cat(retired_ids),), torch.cat(retired_tau))
+        opacity = -torch.expm1(-tau_total)
+        ray_of = torch.cat(sample_ray) if sample_ray else torch.zeros(0, dtype=torch.long, device=opacity.device)
+        rgb_out = depth_out = None
+        if "rgb" in outputs:
+            rgb_out = rays.origins.new_zeros(n, 3)
+            if sample_rgb:
+                rgb_out = rgb_out.index_add(0, ray_of, torch.cat(sample_rgb))
+            bg = torch.as_tensor(background, dtype=dtype, device=rgb_out.device).expand(3)
+            rgb_out = rgb_out + (1 - opacity)[:, None] * bg
+        if "depth" in outputs:
+            depth_out = rays.origins.new_zeros(n)
+            if sample_z:
+                depth_out = depth_out.index_add(0, ray_of, torch.cat(sample_z))
+        return RenderOutput(rgb_out, depth_out, opacity if "opacity" in outputs else None, n_samples)
+
+    def _sample_theta(self, ids: Tensor) -> Tensor | None:
+        """The configuration of each sample of the rays ``ids [s]``: ``[s, k]``, ``None`` for a part field."""
+        if self.theta is None:
+            return None
+        return self.theta[ids] if self.per_ray else self.theta.expand(ids.shape[0], -1)
 
 
 @dataclass

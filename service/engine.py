@@ -19,8 +19,8 @@ if TYPE_CHECKING:
 @dataclass(frozen=True)
 class Engine:
     """``load_bundle(path, device)``, ``refine(model, image, mask, camera, T_init, **kw)``, the
-    refiner's options type (built from the request's ``options`` fields) and the exception type
-    ``refine`` raises for unusable input (answered 422)."""
+    refiner's options from the request's ``options`` fields (``preset`` names the starting set) and
+    the exception type ``refine`` raises for unusable input (answered 422)."""
 
     load_bundle: Callable[[Path, str], NarfModel]
     refine: Callable[..., EstimateResult]
@@ -32,4 +32,7 @@ class Engine:
         from narf_core.bundle import load_bundle
         from narf_core.estimate import EstimateInputError, EstimateOptions, refine
 
-        return cls(load_bundle=load_bundle, refine=refine, options=EstimateOptions, input_error=EstimateInputError)
+        def options(preset: str = "paper", **fields) -> EstimateOptions:
+            return EstimateOptions.preset(preset, **fields)
+
+        return cls(load_bundle=load_bundle, refine=refine, options=options, input_error=EstimateInputError)

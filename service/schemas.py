@@ -206,9 +206,11 @@ class RenderResponse(BaseModel):
 
 
 class RefineOptions(StrictModel):
-    """Refiner settings (``narf_core.estimate.EstimateOptions``); a field left out keeps the library's
-    default, which follows the paper. Bounds here keep one request's cost within reason."""
+    """Refiner settings (``narf_core.estimate.EstimateOptions``); a field left out keeps the value of
+    the preset (``paper``, the default, follows the paper; ``robust`` adds silhouette and depth
+    terms, several joint starts and coarse-to-fine). Bounds here keep one request's cost within reason."""
 
+    preset: Literal["paper", "robust"] | None = Field(None, description="The starting set of options")
     lr_pose: float | None = Field(None, gt=0, le=10, description="Adam step, radians and object radii")
     lr_theta: float | None = Field(None, gt=0, le=10, description="Adam step on the joints' sine parameter")
     lr_decay: float | None = Field(None, gt=0, le=1, description="Final over first learning rate")

@@ -128,6 +128,7 @@ class ToyInputError(ValueError):
 class ToyOptions:
     """Stands for ``narf_core.estimate.EstimateOptions`` (same fields and defaults where given)."""
 
+    preset: str = "paper"
     iterations: int = 150
     lr_pose: float = 0.01
     lr_theta: float = 0.05

@@ -229,6 +229,15 @@ def test_a_truncated_header_is_refused(tiny_bundle, tmp_path):
 
 
 @pytest.mark.slow
+def test_a_grid_of_another_shape_than_its_bits_is_refused(tiny_bundle, tmp_path):
+    def grow(meta: dict) -> dict:
+        return {**meta, "grid_shape": [2 * s for s in meta["grid_shape"]]}
+
+    path = rewrite_metadata(tiny_bundle, tmp_path / "shape.narf", grow)
+    assert_refused(path, "incomplete or inconsistent", "packed occupancy grid of shape")
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize(("drop", "words"), [("grid", "'grid'"), ("part_grid.1", "'part_grid.1'"), ("points.", "mesh")])
 def test_a_bundle_without_some_of_its_tensors_is_refused(tiny_bundle, tmp_path, drop, words):
     tensors = {k: v for k, v in load_file(str(tiny_bundle)).items() if not k.startswith(drop)}

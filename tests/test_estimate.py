@@ -405,13 +405,17 @@ def test_benchmark_writes_table_curves_and_sweep(model, tmp_path):
             image, mask, _ = observe(model, T, TRUTH)
             writer.add("test", FrameImages(image, None, mask.astype(np.uint8)), T, TRUTH)
     result = run({"toy": model}, {"toy": root}, out_dir=tmp_path / "out", scenes=2, iterations=12, scale_sweep=(1.0,))
-    assert [(r["tool"], r["mode"], r["scenes"]) for r in result["table"]] == [("toy", "narf", 2), ("toy", "parts", 2)]
+    assert [(r["tool"], r["split"], r["mode"], r["preset"], r["scenes"]) for r in result["table"]] == [
+        ("toy", "test", mode, preset, 2) for mode in ("narf", "parts") for preset in ("paper", "robust")
+    ]
+    assert result["skipped"] == [{"tool": "toy", "split": "novel", "reason": "the dataset has no frames in this split"}]
     row = result["table"][0]
     assert row["add_mean_m"] > 0 and 0 <= row["add<0.1d"] <= 1 and row["joints"]["slide"]["unit"] == "m"
-    curve = result["curves"]["toy narf"]
+    curve = result["curves"]["toy narf paper"]
     assert curve["iteration"] == [0, 10] and curve["seconds_mean"][0] == 0 and curve["add_mean_m"][0] > 0.005
-    assert [(s["robust"], s["scale"]) for s in result["sweep"]] == [(False, 1.0), (True, 1.0)]
+    assert [(s["preset"], s["scale"]) for s in result["sweep"]] == [("paper", 1.0), ("robust", 1.0)]
+    assert result["sweep"][1]["add_mean_m"] == result["table"][1]["add_mean_m"]  # the table's runs, reused
     for name in ("estimate.json", "estimate.md", "estimate_error_vs_iterations.png", "estimate_sweep.png"):
         assert (tmp_path / "out" / name).stat().st_size > 0
     assert json.loads((tmp_path / "out" / "estimate.json").read_text())["config"]["scenes"] == 2
-    assert "| toy | narf | 2 |" in (tmp_path / "out" / "estimate.md").read_text()
+    assert "| toy | test | narf | robust | 2 |" in (tmp_path / "out" / "estimate.md").read_text()

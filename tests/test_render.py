@@ -195,9 +195,16 @@ def test_outputs_come_back_only_when_asked():
 def test_rays_missing_the_box_are_never_evaluated():
     field = Sphere()
     rays = rays_along_z([[0.0, 0.0], [0.5, 0.0], [0.0, -0.3], [0.09, 0.09]])
-    out = render_rays(field, rays, BOX, step=STEP, outputs=("rgb", "opacity"), background=torch.tensor([0.0, 0.0, 1.0]))
+    with torch.no_grad():  # one pass: every sample evaluated once
+        out = render_rays(field, rays, BOX, step=STEP, outputs=("rgb", "opacity"), background=torch.tensor([0.0, 0.0, 1.0]))
     evaluated = torch.cat(field.points)
     assert out.n_samples == evaluated.shape[0] > 0
+    field.points.clear()  # differentiable: the same samples, once for the march and once for the composite
+    differentiable = render_rays(field, rays, BOX, step=STEP, outputs=("rgb", "opacity"), background=torch.tensor([0.0, 0.0, 1.0]))
+    march, composite = torch.cat(field.points).split(evaluated.shape[0])
+    torch.testing.assert_close(march, evaluated)
+    torch.testing.assert_close(composite.unique(dim=0), evaluated.unique(dim=0))  # grouped by ray there
+    torch.testing.assert_close(differentiable.rgb, out.rgb)
     assert ((evaluated >= BOX[0] - 1e-6) & (evaluated <= BOX[1] + 1e-6)).all()
     assert (evaluated[:, :2].abs() < 0.1).all()  # only the two rays through the box were marched
     assert out.rgb[1].tolist() == [0.0, 0.0, 1.0] and out.opacity[1] == 0

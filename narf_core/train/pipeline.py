@@ -34,11 +34,12 @@ class TrainConfig:
     """Hyper-parameters of both stages; ``budget_s`` caps the total training time."""
 
     arch: str = "kplanes"
-    part_steps: int = 1500
-    distill_steps: int = 3000
-    batch_rays: int = 4096
+    part_steps: int = 800
+    distill_steps: int = 1000
+    batch_rays: int = 2048
     lr: float = 0.02
-    grid_resolution: int = 96
+    grid_resolution: int = 192
+    theta_bins: int = 16  # occupancy bins over the joint box (per axis: the k-th root)
     views_per_batch: int = 64
     composites: int = 0
     distance: tuple[float, float] = (0.4, 1.0)
@@ -134,7 +135,7 @@ def train(
     else:
         cell = float(OccupancyGrid.full(aabb, config.grid_resolution).cell_size.min())
         per_axis = round(len(_theta_samples(kin, boxes, cell)) ** (1 / max(len(lower), 1)))
-        bins = 8
+        bins = max(2, round(config.theta_bins ** (1 / max(len(lower), 1))))  # per axis
         union = union_occupancy(
             part_grids, kin.part_poses, lower, upper, aabb, config.grid_resolution,
             bins=bins, samples_per_bin=max(2, -(-(per_axis - 1) // bins) + 1),
