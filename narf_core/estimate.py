@@ -19,12 +19,15 @@ iterations. Ours are per normalised unit: ``lr_pose`` in radians / object radii,
 ``u`` (near mid-range one step moves θ by about ``lr_theta * half_range``); both decay
 exponentially to ``lr_decay`` times their start. The paper's pose rate moves at most 150 * 0.001 rad
 = 8.6 deg in 150 steps, less than its own 10 deg perturbation, so ours is larger. The defaults
-(0.01, 0.05, decay 0.1) were the best of a sweep on the analytic toy clamp of tests/test_estimate.py
-(64x48, about the pixel footprint of the clamp at 160x120; 12 random scenes): ADD < 1 cm in 12/12
-at 10 deg / 2 cm, 5/12 at 20 deg / 4 cm, 0/12 at 30 deg / 6 cm. :meth:`EstimateOptions.robust`
-gave 12/12 (mean ADD 1.0 mm instead of 2.5 mm), 10/12 and 3/12. On the bundled clamp model
-(models/clamp.narf, 12 test views at 160x120, 10 deg / 2 cm) the defaults reached a mean ADD of
-1.8 cm and joint error of 2.0 cm in about 6 s; the robust options 0.7 cm and 0.14 cm in about 10 s.
+(0.01, 0.05, decay 0.1) were the best of a sweep on the analytic toy clamp of tests/test_estimate.py.
+
+Presets (:meth:`EstimateOptions.preset`): ``paper`` is the defaults: the paper's loss, one start at
+mid-range. ``robust`` adds a silhouette term, a depth term (when a depth image is given), 4 joint
+starts, 2 pyramid levels and twice the pose rate. On the bundled clamp (160x120, the paper's
+protocol, 17 test views; ``narf bench estimate`` has the figures) the paper preset rarely finds the
+jaw from mid-range: its 18 cm travel is 7 jaw widths, and where the rendered and the observed jaw do
+not overlap the photometric loss is flat in θ. The robust preset does, and the depth term fixes the
+distance that a 160x120 view hardly constrains.
 
 Loss, averaged over the rays of one iteration: the paper's masked photometric MSE
 ``|render - image * mask|^2`` (rendered on a black background), plus ``silhouette_weight * (opacity
@@ -38,8 +41,9 @@ centres. (A 5-pixel level, or half the run spent coarse, cost accuracy on the th
 ``theta_starts = S`` runs S configurations (the given one and S-1 spread over the joint box) as
 ONE batch of ``S * rays_per_iteration`` rays for the first third of the iterations (in ``parts``
 mode, whose composition takes one configuration, one render call per start), then keeps the
-start with the lowest loss. A non-finite loss or gradient never reaches the parameters: the
-best finite iterate is restored, Adam's moments reset and its rates halved.
+start with the lowest loss on one fixed set of up to 4096 fine rays. A non-finite loss or gradient
+never reaches the parameters: the best finite iterate is restored, Adam's moments reset and its
+rates halved.
 """
 
 from __future__ import annotations
@@ -76,7 +80,7 @@ _U_LIMIT = 0.2  # a start keeps u this far inside ±π/2 (where dθ/du = 0): 2% 
 _MAX_RECOVERIES = 8  # consecutive non-finite iterations before giving up
 _COARSE_SHARE = 0.25  # of the iterations go to the coarse pyramid levels
 _PRUNE_SHARE = 1 / 3  # of the iterations run every θ start; then the best is kept
-_EVAL_RAYS = 4096  # the final loss is measured on at most this many rays of the box
+_EVAL_RAYS = 4096  # starts are compared, and the final loss measured, on at most this many rays of the box
 _ADAM_BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
 _ROTATION_ATOL = 1e-3  # tolerance on R^T R = I and det R = 1 for an input pose
@@ -723,13 +727,13 @@ class _Run:
             self.history.append(_snapshot(self.model, self.param, self.adam.params, per_start, self.iteration, elapsed))
 
     def _keep_best_start(self) -> None:
-        """Drop every start but the one with the lowest mean loss over the last iterations (paired:
-        all starts saw the same rays)."""
-        recent = self.losses[-5:] or [torch.zeros(self.adam.params.shape[0])]  # none left after a recovery: the first
-        keep = torch.stack(recent).mean(0).argmin().cpu().reshape(1)
+        """Drop every start but the one with the lowest loss on a fixed set of fine rays (the same
+        for all starts, and many more than one iteration's share)."""
+        losses = _fixed_rays_loss(self.loss_fn, self.obs, self.camera, self.param, self.adam.params, self.rng)
+        keep = torch.where(torch.isfinite(losses), losses, math.inf).argmin().cpu().reshape(1)
         self.adam.keep(keep)
         self.best_params = self.adam.params.clone()
-        self.best_loss = float(recent[-1][keep])
+        self.best_loss = math.inf
         self.losses = [row[keep] for row in self.losses]
         self.past = [row[keep] for row in self.past]
 
@@ -767,18 +771,25 @@ def _final_choice(
 ) -> tuple[Tensor, float, bool] | None:
     """The row ``[1, d]`` with the lowest loss on a fixed set of fine rays, its loss, and whether the
     last iterate had to be replaced by the best finite one (``None`` if nothing is finite)."""
-    n_pixels = obs.pixels.shape[0]
-    index = torch.arange(n_pixels) if n_pixels <= _EVAL_RAYS else torch.randperm(n_pixels, generator=rng)[:_EVAL_RAYS]
-    index = index.to(obs.pixels.device)
-    rays = camera.rays(obs.pixels[index])
-    target = obs.levels[-1]
     for candidate, replaced in ((params, False), (best_params, True)):
-        loss = loss_fn(rays, target, index, param.poses(candidate), param.thetas(candidate))
+        loss = _fixed_rays_loss(loss_fn, obs, camera, param, candidate, rng)
         loss = torch.where(torch.isfinite(loss), loss, torch.full_like(loss, math.inf))
         i = int(loss.argmin())
         if math.isfinite(float(loss[i])):
             return candidate[i : i + 1], float(loss[i]), replaced
     return None
+
+
+@torch.no_grad()
+def _fixed_rays_loss(
+    loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, params: Tensor, rng: torch.Generator
+) -> Tensor:
+    """Loss ``[S]`` of every row of ``params [S, d]`` on the same up to ``_EVAL_RAYS`` pixels of the
+    box, at the finest level."""
+    n_pixels = obs.pixels.shape[0]
+    index = torch.arange(n_pixels) if n_pixels <= _EVAL_RAYS else torch.randperm(n_pixels, generator=rng)[:_EVAL_RAYS]
+    index = index.to(obs.pixels.device)
+    return loss_fn(camera.rays(obs.pixels[index]), obs.levels[-1], index, param.poses(params), param.thetas(params))
 
 
 @torch.no_grad()

@@ -264,7 +264,10 @@ def test_theta_starts_run_as_one_batch_and_keep_the_best(model, monkeypatch):
     n, theta = calls[0]
     assert n == 4 * 512 and theta.shape == (n, 1)  # four starts in one call: a batch of 4 x 512 rays
     assert torch.unique(theta).tolist() == pytest.approx([-0.045, -0.015, 0.015, 0.05], abs=1e-6)  # 3 strata + the start
-    assert [c[0] for c in calls[:-1]] == [4 * 512] * 26 + [512] * 54  # the best start alone after a third
+    assert [c[0] for c in calls[:26]] == [4 * 512] * 26
+    compared = calls[26][0]  # after a third, the starts are compared on one larger fixed set of rays ...
+    assert compared % 4 == 0 and compared > 4 * 512
+    assert [c[0] for c in calls[27:-1]] == [512] * 54  # ... and the best goes on alone
     calls.clear()
     parts = refine(model, image, mask, CAMERA, T, joints_init=init, options=EstimateOptions(theta_starts=2, iterations=3, mode="parts"))
     assert [(n, tuple(theta.shape)) for n, theta in calls[:2]] == [(1024, (1,)), (1024, (1,))]  # parts: a call per start
