@@ -101,7 +101,9 @@ def run(work: Path, config: RenderBenchConfig) -> dict:
                 model = _model(work, tool, _dataset(work, tool, config.sizes[0], config.views, noise), config, noise)
                 for mode in config.modes if model.has_parts else ("narf",):
                     for split in config.splits:
-                        score = evaluate_render(model, dataset, split=split, mode=mode, limit=config.images_per_split)
+                        score = evaluate_render(
+                            model, dataset, split=split, mode=mode, limit=config.images_per_split, progress=True
+                        )
                         rows.append({"tool": tool, "noise": noise, **score.summary(), "paper_mse": PAPER_MSE.get(tool, {}).get(split)})
                 if size == config.sizes[0]:
                     sweeps[f"{tool}{' (noise)' if noise else ''}"] = step_sweep(model, dataset, config.step_sweep, limit=config.images_per_split or 8)

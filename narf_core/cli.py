@@ -409,7 +409,7 @@ def _run_eval(args: argparse.Namespace) -> int:
 
     model = load_bundle(args.model)
     dataset = Dataset.open(args.dataset, clean=args.clean)
-    score = evaluate_render(model, dataset, split=args.split, mode=args.mode, limit=args.limit)
+    score = evaluate_render(model, dataset, split=args.split, mode=args.mode, limit=args.limit, progress=True)
     _emit(args, score.summary(), lambda r: (
         f"{r['split']} ({r['mode']}, {r['width']}x{r['height']}): MSE {r['mse']:.5f}  PSNR {r['psnr']:.2f} dB  "
         f"N {r['n']}  {r['ms_per_image']:.1f} ms/image"))

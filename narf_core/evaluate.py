@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from narf_core.bundle import NarfModel
 from narf_core.data.dataset import Dataset
@@ -43,8 +44,11 @@ def evaluate_render(
     split: str = "test",
     mode: str = "narf",
     limit: int | None = None,
+    progress: bool = False,
 ) -> RenderScore:
-    """Render every frame of ``split`` (the first ``limit``) and compare with the masked observation."""
+    """Render every frame of ``split`` (the first ``limit``) and compare with the masked observation
+    (``progress``: a progress bar on stderr)."""
+
     if limit is not None and limit < 1:
         raise ValueError(f"limit must be a positive number of frames, got {limit}")
     frames = dataset.frames(split)[:limit]
@@ -52,7 +56,7 @@ def evaluate_render(
         raise ValueError(f"dataset {dataset.root} has no frames in split {split!r}")
     camera = dataset.camera
     errors, times = [], []
-    for frame in frames:
+    for frame in tqdm(frames, desc=f"eval {split} {mode} {camera.width}x{camera.height}", disable=not progress, leave=False):
         images = dataset.load(frame)
         mask = (images.labels > 0)[..., None]
         target = images.rgb.astype(np.float32) / 255 * mask
