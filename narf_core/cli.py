@@ -550,7 +550,7 @@ def _run_estimate(args: argparse.Namespace) -> int:
 
 def _add_bench(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser(
-        "bench", help="benchmarks: error and run time side by side (render, estimate, service)",
+        "bench", help="benchmarks: error and run time side by side (render, estimate, distill, service)",
         description="Benchmarks shaped like the paper's tables, with run time beside every error figure.",
     )
     which = parser.add_subparsers(dest="bench", required=True, metavar="WHAT")
@@ -566,6 +566,18 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
         sub.add_argument("--models", type=Path, default=Path("models"), help="bundled models (for --quick)")
         _add_json_flag(sub)
         sub.set_defaults(run=_run_bench_render if name == "render" else _run_bench_estimate)
+    sub = which.add_parser(
+        "distill", help="stage 2 streamed vs the paper's pool of composited views: render error per second",
+        description="Distils a bundle's part fields again into a fresh configuration field, streamed and from "
+                    "a pool of composited views, each for the same wall-clock budgets, and scores both.",
+    )
+    sub.add_argument("model", type=Path, metavar="MODEL.narf", help="a bundle with part fields")
+    sub.add_argument("dataset", type=Path, help="dataset to score on (test and novel splits)")
+    sub.add_argument("--budgets", type=_non_negative_float, nargs="+", default=[60.0, 180.0], metavar="SECONDS")
+    sub.add_argument("--composites", type=_positive_int, default=5000, help="views in the pool (the paper: 5000)")
+    sub.add_argument("--work", type=Path, default=Path("runs/bench"), help="folder for the results")
+    _add_json_flag(sub)
+    sub.set_defaults(run=_run_bench_distill)
     sub = which.add_parser("service", help="requests/s and latency of /v1/render and /v1/estimate under load")
     sub.add_argument("--models", type=Path, default=Path("models"))
     sub.add_argument("--clients", type=_positive_int, default=8)
@@ -606,6 +618,18 @@ def _run_bench_estimate(args: argparse.Namespace) -> int:
     from narf_benchmarks.estimate import main as bench_main
 
     return bench_main(args)
+
+
+def _run_bench_distill(args: argparse.Namespace) -> int:
+    from narf_benchmarks.distill import markdown, run
+    from narf_core.bundle import load_bundle
+    from narf_core.data.dataset import Dataset
+
+    model, dataset = load_bundle(args.model), Dataset.open(args.dataset)
+    result = run(model, dataset, out_dir=args.work / "distill", budgets_s=tuple(args.budgets),
+                 composites=(0, args.composites))
+    print(json.dumps(result, indent=1) if args.json else markdown(result))
+    return 0
 
 
 def _run_bench_service(args: argparse.Namespace) -> int:

@@ -440,3 +440,16 @@ def test_composites_pool_renders_the_teacher_once(tiny_dataset, tmp_path, monkey
     train(tiny_dataset, tmp_path / "m.narf", config, progress=False)
     assert views == [4, 4, 2]  # 10 views in chunks, then the 7 steps only sample the pool
     assert (tmp_path / "m.narf").exists()
+
+
+@pytest.mark.slow
+def test_distill_benchmark_compares_stream_and_pool_for_the_same_budget(tiny_model, tiny_dataset, tmp_path):
+    from benchmarks.distill import run
+
+    result = run(tiny_model, Dataset.open(tiny_dataset), out_dir=tmp_path, budgets_s=(1.5,), composites=(0, 40), images=2,
+                 progress=False)
+    assert [(r["composites"], r["budget_s"]) for r in result["rows"]] == [(0, 1.5), (40, 1.5)]
+    for row in result["rows"]:
+        assert 1.5 <= row["seconds"] < 5  # the pool's rendering counts against the budget
+        assert row["test"]["n"] == row["novel"]["n"] == 2 and math.isfinite(row["novel"]["psnr"])
+    assert "| 40 | 1.5 |" in (tmp_path / "distill.md").read_text()

@@ -144,7 +144,7 @@ def train(
     student = make_field({"arch": config.arch, "aabb": aabb.tolist(), "theta_lower": lower.tolist(), "theta_upper": upper.tolist()})
     spent = time.perf_counter() - t_start
     budget_distill = None if config.budget_s is None else max(config.budget_s - spent, 0.0)
-    seconds = _distill(student, teacher, union, aabb, lower, upper, config, work / "distill.ckpt", budget_distill, progress)
+    seconds = distill(student, teacher, union, aabb, lower, upper, config, work / "distill.ckpt", budget_distill, progress)
     timings["distill_s"] = seconds
 
     model = NarfModel(
@@ -246,7 +246,15 @@ def _train_part(field, box, targets: RayTargets, config: TrainConfig, ckpt: Path
     return OccupancyGrid.from_field(field, box, config.grid_resolution), result.seconds
 
 
-def _distill(student, teacher, grid, aabb, lower, upper, config: TrainConfig, ckpt: Path, budget_s, progress: bool) -> float:
+def distill(
+    student, teacher, grid, aabb, lower, upper, config: TrainConfig, ckpt: Path, budget_s: float | None, progress: bool
+) -> float:
+    """Stage 2: fit ``student`` to renders of ``teacher`` (the composition) within ``budget_s``.
+
+    Streams fresh composited rays every step, or with ``config.composites = N`` samples a pool of N
+    views rendered first (the paper). Returns the seconds spent, the pool's rendering included.
+    """
+    started = time.perf_counter()
     generator = torch.Generator().manual_seed(config.seed + 1)
     optimizer = torch.optim.Adam(student.parameters(), lr=config.lr, eps=1e-15)
     step = _step_size(aabb)
@@ -266,6 +274,9 @@ def _distill(student, teacher, grid, aabb, lower, upper, config: TrainConfig, ck
         chunks = [draw(min(config.views_per_batch, config.composites - v)) for v in range(0, config.composites, config.views_per_batch)]
         pool = _concat_targets([c[0] for c in chunks])
         pool_theta = torch.cat([c[1] for c in chunks])
+    pool_s = time.perf_counter() - started  # the budget covers rendering the pool too
+    if budget_s is not None:
+        budget_s = max(budget_s - pool_s, 0.0)
 
     def step_fn(i: int) -> float:
         if config.composites:
@@ -280,7 +291,7 @@ def _distill(student, teacher, grid, aabb, lower, upper, config: TrainConfig, ck
         optimizer.step()
         return loss.item()
 
-    return run_stage(
+    return pool_s + run_stage(
         "configuration field", student, optimizer, step_fn, steps=config.distill_steps, budget_s=budget_s,
         checkpoint=ckpt, progress=progress, generator=generator,
     ).seconds
