@@ -276,3 +276,14 @@ def test_peak_rss_is_read_from_proc_status(tmp_path) -> None:
     assert peak_rss_bytes(status) == 2048 * 1024
     assert math.isnan(peak_rss_bytes(tmp_path / "absent"))
     assert peak_rss_bytes() > 0
+
+
+def test_the_real_engine_builds_options_from_a_preset_and_overrides() -> None:
+    from narf_core.estimate import EstimateInputError, EstimateOptions
+    from narf_service.engine import Engine
+
+    options = Engine.narf_core().options
+    assert options() == EstimateOptions()
+    assert options(preset="robust", iterations=20) == EstimateOptions.robust(iterations=20)
+    with pytest.raises(EstimateInputError, match="preset"):
+        options(preset="fast")
