@@ -264,10 +264,10 @@ def test_theta_starts_run_as_one_batch_and_keep_the_best(model, monkeypatch):
     n, theta = calls[0]
     assert n == 4 * 256 and theta.shape == (n, 1)  # four starts in one call, half the rays each: 4 x 256
     assert torch.unique(theta).tolist() == pytest.approx([-0.045, -0.015, 0.015, 0.05], abs=1e-6)  # 3 strata + the start
-    assert [c[0] for c in calls[:20]] == [4 * 256] * 20
-    compared = calls[20][0]  # after a quarter, the starts are compared on one larger fixed set of rays ...
+    assert [c[0] for c in calls[:26]] == [4 * 256] * 26
+    compared = calls[26][0]  # after a third, the starts are compared on one larger fixed set of rays ...
     assert compared % 4 == 0 and compared > 4 * 512
-    assert [c[0] for c in calls[21:-1]] == [512] * 60  # ... and the best goes on alone with every ray
+    assert [c[0] for c in calls[27:-1]] == [512] * 54  # ... and the best goes on alone with every ray
     calls.clear()
     parts = refine(model, image, mask, CAMERA, T, joints_init=init, options=EstimateOptions(theta_starts=2, iterations=3, mode="parts"))
     assert [(n, tuple(theta.shape)) for n, theta in calls[:2]] == [(512, (1,)), (512, (1,))]  # parts: a call per start
