@@ -462,7 +462,7 @@ def render_rays(
         return march.render(field, rays, aabb, outputs, background)
     with torch.no_grad():
         samples = march.samples(_density_fn(field), Rays(rays.origins.detach(), rays.directions.detach(), rays.z_per_t), aabb)
-    return _composite(field, rays, theta, per_ray, samples, outputs, background)
+    return march.composite(field, rays, samples, outputs, background)
 
 
 def _needs_grad(field, rays: Rays, theta: Tensor | None) -> bool:
@@ -483,45 +483,6 @@ class _Samples:
     ray: Tensor
     t: Tensor
     delta: Tensor
-
-
-def _composite(
-    field: Field, rays: Rays, theta: Tensor | None, per_ray: bool, samples: _Samples, outputs: tuple[str, ...],
-    background: float | Tensor,
-) -> RenderOutput:
-    """Evaluate ``field`` once at ``samples`` and composite them per ray; differentiable in the rays
-    (through the sample positions ``o + t d``), ``theta`` and the field."""
-    n, dtype = len(rays), rays.origins.dtype
-    ray, t, delta = samples.ray, samples.t.to(dtype), samples.delta.to(dtype)
-    zero = (rays.origins[:, 0] + rays.directions[:, 0]) * 0  # [n] zeros in the graph, so backward() always works
-    tau_total, rgb_out, depth_out = zero, zero[:, None].expand(n, 3), zero
-    if ray.numel() > 0:
-        rays_hit, slot_ray, counts = torch.unique_consecutive(ray, return_inverse=True, return_counts=True)
-        slot = torch.arange(ray.shape[0], device=ray.device) - (counts.cumsum(0) - counts)[slot_ray]
-        d = rays.directions[ray]
-        x = rays.origins[ray] + t[:, None] * d
-        th = None if theta is None else theta[ray] if per_ray else theta.expand(ray.shape[0], -1)
-        if "rgb" in outputs:
-            sigma, rgb = field(x, d, th)
-        else:
-            sigma, rgb = _density_fn(field)(x, th), None
-        tau = sigma.to(dtype) * delta
-        padded = tau.new_zeros(rays_hit.shape[0], int(counts.max())).index_put((slot_ray, slot), tau)
-        w = _weights_from_optical_depth(padded, None)[0][slot_ray, slot]
-        tau_total = zero.index_add(0, ray, tau)
-        if "rgb" in outputs:
-            rgb_out = rgb_out.index_add(0, ray, w[:, None] * rgb.to(dtype))
-        if "depth" in outputs:
-            depth_out = zero.index_add(0, ray, w * t * rays.z_per_t[ray].to(dtype))
-    opacity = -torch.expm1(-tau_total)
-    if "rgb" in outputs:
-        rgb_out = rgb_out + (1 - opacity)[:, None] * torch.as_tensor(background, dtype=dtype, device=opacity.device).expand(3)
-    return RenderOutput(
-        rgb_out if "rgb" in outputs else None,
-        depth_out if "depth" in outputs else None,
-        opacity if "opacity" in outputs else None,
-        int(ray.shape[0]),
-    )
 
 
 @dataclass
@@ -629,19 +590,60 @@ class _Marcher:
             rgb_out = rays.origins.new_zeros(n, 3)
             if sample_rgb:
                 rgb_out = rgb_out.index_add(0, ray_of, torch.cat(sample_rgb))
-            bg = torch.as_tensor(background, dtype=dtype, device=rgb_out.device).expand(3)
-            rgb_out = rgb_out + (1 - opacity)[:, None] * bg
+            rgb_out = _over_background(rgb_out, opacity, background)
         if "depth" in outputs:
             depth_out = rays.origins.new_zeros(n)
             if sample_z:
                 depth_out = depth_out.index_add(0, ray_of, torch.cat(sample_z))
         return RenderOutput(rgb_out, depth_out, opacity if "opacity" in outputs else None, n_samples)
 
+    def composite(
+        self, field: Field, rays: Rays, samples: _Samples, outputs: tuple[str, ...], background: float | Tensor
+    ) -> RenderOutput:
+        """Evaluate ``field`` once at ``samples`` and composite them per ray; differentiable in the rays
+        (through the sample positions ``o + t d``), ``theta`` and the field."""
+        n, dtype = len(rays), rays.origins.dtype
+        ray, t, delta = samples.ray, samples.t.to(dtype), samples.delta.to(dtype)
+        zero = (rays.origins[:, 0] + rays.directions[:, 0]) * 0  # [n] zeros in the graph, so backward() always works
+        tau_total, rgb_out, depth_out = zero, zero[:, None].expand(n, 3), zero
+        if ray.numel() > 0:
+            rays_hit, slot_ray, counts = torch.unique_consecutive(ray, return_inverse=True, return_counts=True)
+            slot = torch.arange(ray.shape[0], device=ray.device) - (counts.cumsum(0) - counts)[slot_ray]
+            d = rays.directions[ray]
+            x = rays.origins[ray] + t[:, None] * d
+            th = self._sample_theta(ray)
+            if "rgb" in outputs:
+                sigma, rgb = field(x, d, th)
+            else:
+                sigma, rgb = _density_fn(field)(x, th), None
+            tau = sigma.to(dtype) * delta
+            padded = tau.new_zeros(rays_hit.shape[0], int(counts.max())).index_put((slot_ray, slot), tau)
+            w = _weights_from_optical_depth(padded, None)[0][slot_ray, slot]
+            tau_total = zero.index_add(0, ray, tau)
+            if "rgb" in outputs:
+                rgb_out = rgb_out.index_add(0, ray, w[:, None] * rgb.to(dtype))
+            if "depth" in outputs:
+                depth_out = zero.index_add(0, ray, w * t * rays.z_per_t[ray].to(dtype))
+        opacity = -torch.expm1(-tau_total)
+        if "rgb" in outputs:
+            rgb_out = _over_background(rgb_out, opacity, background)
+        return RenderOutput(
+            rgb_out if "rgb" in outputs else None,
+            depth_out if "depth" in outputs else None,
+            opacity if "opacity" in outputs else None,
+            int(ray.shape[0]),
+        )
+
     def _sample_theta(self, ids: Tensor) -> Tensor | None:
         """The configuration of each sample of the rays ``ids [s]``: ``[s, k]``, ``None`` for a part field."""
         if self.theta is None:
             return None
         return self.theta[ids] if self.per_ray else self.theta.expand(ids.shape[0], -1)
+
+
+def _over_background(rgb: Tensor, opacity: Tensor, background: float | Tensor) -> Tensor:
+    """Composite ``rgb [n, 3]`` (premultiplied by ``opacity [n]``) over a constant background colour."""
+    return rgb + (1 - opacity)[:, None] * torch.as_tensor(background, dtype=rgb.dtype, device=rgb.device).expand(3)
 
 
 @dataclass
