@@ -48,7 +48,6 @@ def evaluate_render(
 ) -> RenderScore:
     """Render every frame of ``split`` (the first ``limit``) and compare with the masked observation
     (``progress``: a progress bar on stderr)."""
-
     if limit is not None and limit < 1:
         raise ValueError(f"limit must be a positive number of frames, got {limit}")
     frames = dataset.frames(split)[:limit]
