@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shlex
 import sys
 import time
@@ -24,23 +25,25 @@ from pathlib import Path
 from typing import Any
 
 import narf_core
+from narf_core.threads import AUTO, choose_threads, parse_threads, prefer_passive_wait
 
 EXIT_ERROR = 2  # bad input, as argparse uses for bad arguments
 EXIT_INTERRUPTED = 130
 EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError)
+THREADS_ENV = "NARF_THREADS"
 NOISE_PRESETS = ("none", "paper")  # generate.NOISE_PRESETS, named here so that --help imports no pybullet
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``narf`` with ``argv`` (default ``sys.argv[1:]``); returns the exit code."""
+    prefer_passive_wait()  # before anything imports torch (libgomp reads it once)
     parser = build_parser()
     args = parser.parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # as typed, for the provenance of what it writes
     try:
-        if args.threads is not None:
-            import torch
+        import torch
 
-            torch.set_num_threads(args.threads)
+        torch.set_num_threads(choose_threads(args.threads))
         return args.run(args)
     except EXPECTED_ERRORS as e:
         return _fail(args.command, e)
@@ -57,10 +60,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"narf {narf_core.__version__}")
     parser.add_argument(
-        "--threads", type=_positive_int, default=None, metavar="N",
-        help="CPU threads for torch (default: torch's choice, one per core). On a machine shared with other "
-             "busy processes, 1 avoids OpenMP threads spinning against each other (measured 30x faster "
-             "training steps with 4 busy processes on 2 cores)",
+        "--threads", type=_threads, default=os.environ.get(THREADS_ENV, AUTO), metavar="N|auto",
+        help=f"CPU threads for torch (default: ${THREADS_ENV}, else 'auto': the cores other processes leave "
+             "free when the command starts). Idle threads sleep instead of spinning (OMP_WAIT_POLICY=PASSIVE "
+             "unless set), so a busy machine slows the command down instead of stalling it",
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in (_add_synth, _add_train, _add_eval, _add_render, _add_estimate, _add_bench, _add_serve):
@@ -83,6 +86,13 @@ def _emit(args: argparse.Namespace, result: dict[str, Any], human: Callable[[dic
 
 def _add_json_flag(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object on stdout")
+
+
+def _threads(text: str) -> int | str:
+    try:
+        return parse_threads(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def _positive_int(text: str) -> int:
@@ -553,6 +563,11 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
         "bench", help="benchmarks: error and run time side by side (render, estimate, distill, service)",
         description="Benchmarks shaped like the paper's tables, with run time beside every error figure.",
     )
+    parser.add_argument(
+        "--busy", type=_non_negative_int, default=0, metavar="N",
+        help="run N other CPU-bound processes during the benchmark (a shared machine); threads are "
+             "chosen after they start",
+    )
     which = parser.add_subparsers(dest="bench", required=True, metavar="WHAT")
     for name, help_text in (
         ("render", "Table I: render MSE/PSNR and ms per image per tool, split and mode"),
@@ -586,6 +601,27 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--estimate-clients", type=_positive_int, default=16)
     _add_json_flag(sub)
     sub.set_defaults(run=_run_bench_service)
+    for sub in which.choices.values():  # last, so that it covers every benchmark declared above
+        sub.set_defaults(run=_under_load(sub.get_default("run")))
+
+
+def _under_load(run: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """``run`` beside ``args.busy`` CPU-bound processes, with torch's threads chosen once they run."""
+
+    def run_under_load(args: argparse.Namespace) -> int:
+        if not args.busy:
+            return run(args)
+        import torch
+
+        from narf_benchmarks.load import busy_processes
+
+        with busy_processes(args.busy):
+            torch.set_num_threads(choose_threads(args.threads))
+            print(f"narf bench: {args.busy} busy process(es) running, torch threads {torch.get_num_threads()}",
+                  file=sys.stderr)
+            return run(args)
+
+    return run_under_load
 
 
 def _bench_tools(args: argparse.Namespace) -> tuple[str, ...]:

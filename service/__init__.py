@@ -5,7 +5,11 @@ The service imports the core library but never the dataset generator (``narf_cor
 nor pybullet.
 """
 
-from narf_service.app import create_app
-from narf_service.settings import Settings
+from narf_core.threads import prefer_passive_wait
+
+prefer_passive_wait()  # before torch is first imported: idle OpenMP threads sleep, not spin
+
+from narf_service.app import create_app  # noqa: E402
+from narf_service.settings import Settings  # noqa: E402
 
 __all__ = ["Settings", "create_app"]

@@ -23,6 +23,7 @@ from pydantic import Json
 
 from narf_service import jobs
 from narf_service.engine import Engine
+from narf_core.threads import AUTO, choose_threads
 from narf_service.errors import ApiError, install_error_handlers, invalid
 from narf_service.limits import BodySizeLimit
 from narf_service.monitoring import MetricsMiddleware, ServiceMetrics
@@ -256,7 +257,7 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        torch.set_num_threads(settings.torch_threads)
+        torch.set_num_threads(settings.torch_threads or choose_threads(AUTO, share=settings.workers))
         app.state.engine = engine if engine is not None else Engine.narf_core()
         if registry is not None:
             app.state.registry = registry

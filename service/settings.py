@@ -2,29 +2,23 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from narf_core.threads import available_cores
+
 REPO_MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
-
-
-def available_cores() -> int:
-    """CPU cores this process may run on (its affinity mask, not the machine's count)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
 
 
 class Settings(BaseSettings):
     """Everything the service can be told; ``NARF_<FIELD>`` in the environment sets ``<field>``.
 
     ``workers``, ``queue_size`` and ``torch_threads`` default to values sized to the machine:
-    one worker per core, a queue of four requests per worker, and the cores shared out among the
-    workers (so two concurrent renders on two cores use one thread each instead of fighting).
+    one worker per core, a queue of four requests per worker, and the cores that other processes
+    leave free at start shared out among the workers (so two concurrent renders on two cores use one
+    thread each instead of fighting, and a server started beside a busy process takes one thread).
     """
 
     model_config = SettingsConfigDict(env_prefix="NARF_", extra="forbid")
@@ -37,7 +31,7 @@ class Settings(BaseSettings):
     max_iterations: int = Field(1000, gt=0, description="Largest number of refinement iterations per request.")
     workers: int = Field(0, ge=0, description="Compute threads; 0 = one per available core.")
     queue_size: int = Field(-1, ge=-1, description="Requests waiting beyond the running ones; -1 = 4 per worker.")
-    torch_threads: int = Field(0, ge=0, description="torch intra-op threads; 0 = cores / workers.")
+    torch_threads: int = Field(0, ge=0, description="torch intra-op threads; 0 = free cores at start / workers.")
     retry_after_max_s: int = Field(30, gt=0, description="Cap on the Retry-After hint sent with a 503.")
 
     @field_validator("token", mode="before")
@@ -53,6 +47,4 @@ class Settings(BaseSettings):
             self.workers = cores
         if self.queue_size == -1:
             self.queue_size = 4 * self.workers
-        if self.torch_threads == 0:
-            self.torch_threads = max(1, cores // self.workers)
         return self
