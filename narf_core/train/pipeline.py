@@ -217,6 +217,16 @@ def _theta_samples(kin: KinematicTree, boxes: list[torch.Tensor], cell: float, m
         per_axis = min(2 * per_axis - 1, most)
 
 
+def _fit_step(field, optimizer, batch: RayTargets, theta, box, grid, step: float, config: TrainConfig) -> float:
+    """One optimiser step of ``field`` on the rays of ``batch`` (jittered samples); returns the loss."""
+    out = render_rays(field, batch.rays, box, theta=theta, grid=grid, step=step, outputs=("rgb", "opacity", "depth"), jitter=True)
+    loss = ray_loss(out, batch, config) + field.regularization()
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    return loss.item()
+
+
 def _train_part(field, box, targets: RayTargets, config: TrainConfig, ckpt: Path, budget_s, progress: bool, name: str):
     generator = torch.Generator().manual_seed(config.seed)
     optimizer = torch.optim.Adam(field.parameters(), lr=config.lr, eps=1e-15)
@@ -231,13 +241,7 @@ def _train_part(field, box, targets: RayTargets, config: TrainConfig, ckpt: Path
 
     def step_fn(i: int) -> float:
         idx = torch.randint(len(targets), (config.batch_rays,), generator=generator)
-        batch = targets[idx]
-        out = render_rays(field, batch.rays, box, theta=None, grid=grid, step=step, outputs=("rgb", "opacity", "depth"), jitter=True)
-        loss = ray_loss(out, batch, config) + field.regularization()
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        return loss.item()
+        return _fit_step(field, optimizer, targets[idx], None, box, grid, step, config)
 
     result = run_stage(
         f"part {name}", field, optimizer, step_fn, steps=config.part_steps, budget_s=budget_s, checkpoint=ckpt,
@@ -284,12 +288,7 @@ def distill(
             batch, theta = pool[idx], pool_theta[idx]
         else:
             batch, theta = draw(config.views_per_batch)
-        out = render_rays(student, batch.rays, aabb, theta=theta, grid=grid, step=step, outputs=("rgb", "opacity", "depth"), jitter=True)
-        loss = ray_loss(out, batch, config) + student.regularization()
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        return loss.item()
+        return _fit_step(student, optimizer, batch, theta, aabb, grid, step, config)
 
     return pool_s + run_stage(
         "configuration field", student, optimizer, step_fn, steps=config.distill_steps, budget_s=budget_s,

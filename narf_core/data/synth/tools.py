@@ -37,6 +37,7 @@ from __future__ import annotations
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Literal
 
@@ -344,111 +345,62 @@ _LONGNOSE = _PliersShape(
 )
 
 
+def _pliers_design(
+    shape: _PliersShape,
+    steel: tuple[Rgb, float, float],
+    grip: Callable[[Rgb], Surface],
+    grip_colours: tuple[Rgb, Rgb],
+    marks_upper: tuple[Mark, ...],
+    marks_lower: tuple[Mark, ...],
+) -> _Design:
+    """Pliers of ``shape`` with ``steel = (colour, grain, serrations from x)`` and ``grip(colour)``
+    surfaces in the upper and lower ``grip_colours``."""
+    body, jaw = _pliers_steel(steel[0], steel[1], shape, steel[2])
+    return _pliers(shape, _PliersLook(body, jaw, grip(grip_colours[0]), grip(grip_colours[1]), marks_upper, marks_lower))
+
+
 def _lineman_a() -> _Design:
-    shape = _LINEMAN_A
-    steel, jaw = _pliers_steel((0.43, 0.44, 0.46), 0.16, shape, 0.024)
-    yellow = (0.96, 0.78, 0.10)
-
-    def grip(colour: Rgb) -> Surface:
-        return Surface(
-            colour,
-            mottle=0.05,
-            speckle=0.05,
-            details=(
-                Ribs(0.004, (1.0, 0.0, 0.0), 0.40, 0.35, Box((-0.128, -1.0, -1.0), (-0.052, 1.0, 1.0))),
-                Paint(yellow, Box((-0.145, -1.0, -1.0), (-0.135, 1.0, 1.0))),
-                Paint(yellow, Box((-1.0, -1.0, -1.0), (-0.155, 1.0, 1.0))),
-            ),
-        )
-
-    white = (0.95, 0.95, 0.93)
-    look = _PliersLook(
-        steel,
-        jaw,
-        grip((0.11, 0.28, 0.60)),
-        grip((0.20, 0.42, 0.78)),
-        (
-            Mark("NARF", (-0.090, -0.0133), 0.06, 0.0055, white),
-            Mark("9 IN", (-0.090, -0.0133), -0.06, 0.005, white, -1),
-        ),
-        (
-            Mark("LINEMAN", (-0.090, 0.0133), -0.06, 0.0045, white),
-            Mark("A-7", (-0.090, 0.0133), 0.06, 0.005, white, -1),
-        ),
+    yellow, white = (0.96, 0.78, 0.10), (0.95, 0.95, 0.93)
+    grip = partial(Surface, mottle=0.05, speckle=0.05, details=(
+        Ribs(0.004, (1.0, 0.0, 0.0), 0.40, 0.35, Box((-0.128, -1.0, -1.0), (-0.052, 1.0, 1.0))),
+        Paint(yellow, Box((-0.145, -1.0, -1.0), (-0.135, 1.0, 1.0))),
+        Paint(yellow, Box((-1.0, -1.0, -1.0), (-0.155, 1.0, 1.0))),
+    ))
+    return _pliers_design(
+        _LINEMAN_A, ((0.43, 0.44, 0.46), 0.16, 0.024), grip, ((0.11, 0.28, 0.60), (0.20, 0.42, 0.78)),
+        (Mark("NARF", (-0.090, -0.0133), 0.06, 0.0055, white), Mark("9 IN", (-0.090, -0.0133), -0.06, 0.005, white, -1)),
+        (Mark("LINEMAN", (-0.090, 0.0133), -0.06, 0.0045, white), Mark("A-7", (-0.090, 0.0133), 0.06, 0.005, white, -1)),
     )
-    return _pliers(shape, look)
 
 
 def _lineman_b() -> _Design:
-    shape = _LINEMAN_B
-    steel, jaw = _pliers_steel((0.30, 0.32, 0.37), 0.12, shape, 0.026)
-    black = (0.07, 0.07, 0.08)
-
-    def grip(colour: Rgb) -> Surface:
-        return Surface(
-            colour,
-            mottle=0.06,
-            speckle=0.04,
-            details=(
-                Dots(0.0048, 0.0013, black, Box((-0.140, -1.0, -1.0), (-0.048, 1.0, 1.0))),
-                Paint(black, Box((-1.0, -1.0, -1.0), (-0.150, 1.0, 1.0))),
-                Paint(black, Box((-0.040, -1.0, -1.0), (-0.034, 1.0, 1.0))),
-            ),
-        )
-
-    white = (0.96, 0.96, 0.96)
-    look = _PliersLook(
-        steel,
-        jaw,
-        grip((0.70, 0.09, 0.07)),
-        grip((0.84, 0.22, 0.14)),
-        (
-            Mark("PROGRESS", (-0.097, -0.0130), 0.05, 0.0045, white),
-            Mark("B-220", (-0.097, -0.0130), -0.05, 0.005, white, -1),
-        ),
-        (
-            Mark("NARF", (-0.097, 0.0130), -0.05, 0.0055, white),
-            Mark("HD", (-0.097, 0.0130), 0.05, 0.006, white, -1),
-        ),
+    black, white = (0.07, 0.07, 0.08), (0.96, 0.96, 0.96)
+    grip = partial(Surface, mottle=0.06, speckle=0.04, details=(
+        Dots(0.0048, 0.0013, black, Box((-0.140, -1.0, -1.0), (-0.048, 1.0, 1.0))),
+        Paint(black, Box((-1.0, -1.0, -1.0), (-0.150, 1.0, 1.0))),
+        Paint(black, Box((-0.040, -1.0, -1.0), (-0.034, 1.0, 1.0))),
+    ))
+    return _pliers_design(
+        _LINEMAN_B, ((0.30, 0.32, 0.37), 0.12, 0.026), grip, ((0.70, 0.09, 0.07), (0.84, 0.22, 0.14)),
+        (Mark("PROGRESS", (-0.097, -0.0130), 0.05, 0.0045, white), Mark("B-220", (-0.097, -0.0130), -0.05, 0.005, white, -1)),
+        (Mark("NARF", (-0.097, 0.0130), -0.05, 0.0055, white), Mark("HD", (-0.097, 0.0130), 0.05, 0.006, white, -1)),
     )
-    return _pliers(shape, look)
 
 
 def _longnose() -> _Design:
-    shape = _LONGNOSE
-    steel, jaw = _pliers_steel((0.60, 0.61, 0.64), 0.22, shape, 0.030)
-    black = (0.06, 0.06, 0.07)
-
-    def grip(colour: Rgb) -> Surface:
-        knurl = Box((-0.112, -1.0, -1.0), (-0.050, 1.0, 1.0))
-        return Surface(
-            colour,
-            mottle=0.05,
-            speckle=0.04,
-            details=(
-                Ribs(0.0032, (0.7071, 0.7071, 0.0), 0.35, 0.3, knurl),
-                Ribs(0.0032, (0.7071, -0.7071, 0.0), 0.35, 0.3, knurl),
-                Paint(black, Box((-0.046, -1.0, -1.0), (-0.040, 1.0, 1.0))),
-                Paint(black, Box((-1.0, -1.0, -1.0), (-0.118, 1.0, 1.0))),
-            ),
-        )
-
-    black_ink = (0.05, 0.05, 0.05)
-    look = _PliersLook(
-        steel,
-        jaw,
-        grip((0.93, 0.73, 0.07)),
-        grip((0.96, 0.58, 0.10)),
-        (
-            Mark("LONG NOSE", (-0.078, -0.0125), 0.10, 0.0040, black_ink),
-            Mark("NARF", (-0.078, -0.0125), -0.10, 0.005, black_ink, -1),
-        ),
-        (
-            Mark("6 IN", (-0.078, 0.0125), -0.10, 0.0050, black_ink),
-            Mark("L-6", (-0.078, 0.0125), 0.10, 0.005, black_ink, -1),
-        ),
+    black, ink = (0.06, 0.06, 0.07), (0.05, 0.05, 0.05)
+    knurl = Box((-0.112, -1.0, -1.0), (-0.050, 1.0, 1.0))
+    grip = partial(Surface, mottle=0.05, speckle=0.04, details=(
+        Ribs(0.0032, (0.7071, 0.7071, 0.0), 0.35, 0.3, knurl),
+        Ribs(0.0032, (0.7071, -0.7071, 0.0), 0.35, 0.3, knurl),
+        Paint(black, Box((-0.046, -1.0, -1.0), (-0.040, 1.0, 1.0))),
+        Paint(black, Box((-1.0, -1.0, -1.0), (-0.118, 1.0, 1.0))),
+    ))
+    return _pliers_design(
+        _LONGNOSE, ((0.60, 0.61, 0.64), 0.22, 0.030), grip, ((0.93, 0.73, 0.07), (0.96, 0.58, 0.10)),
+        (Mark("LONG NOSE", (-0.078, -0.0125), 0.10, 0.0040, ink), Mark("NARF", (-0.078, -0.0125), -0.10, 0.005, ink, -1)),
+        (Mark("6 IN", (-0.078, 0.0125), -0.10, 0.0050, ink), Mark("L-6", (-0.078, 0.0125), 0.10, 0.005, ink, -1)),
     )
-    return _pliers(shape, look)
 
 
 # --- clamp ------------------------------------------------------------------------------------
