@@ -8,11 +8,15 @@ A bundle holds tensors only (never pickle):
   ``points.<link>``        surface points per link, in the link frame, for ADD
 and one JSON document in the safetensors metadata under ``"narf"``: format and version, object
 name, links, joints with limits, bounds, field architectures and hyper-parameters, the URDF text
-(for FK), training provenance and metrics.
+(for FK), training provenance and metrics, and ``checksum``: the SHA-256 of the tensors (see
+:func:`tensors_digest`), written at save and verified at load. A bundle whose tensors do not match
+it, or that holds a non-finite weight, is refused; one saved before checksums existed loads with the
+finiteness check only (load and save it again to add one).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import tempfile
@@ -34,6 +38,7 @@ from narf_core.render import OccupancyGrid, RenderOutput, compose_parts, render_
 
 FORMAT = "narf-bundle"
 FORMAT_VERSION = 2  # 2: occupancy grids stored as packed bits, their shapes in the metadata
+CHECKSUM_ALGORITHM = "sha256"
 RENDER_MODES = ("narf", "parts")
 
 
@@ -218,6 +223,7 @@ def save_bundle(path: str | Path, model: NarfModel) -> Path:
         "urdf": model.kinematics.urdf_text,
     }
     tensors = {k: v.detach().cpu().contiguous() for k, v in tensors.items()}
+    meta["checksum"] = {"algorithm": CHECKSUM_ALGORITHM, "tensors": tensors_digest(tensors)}
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     os.close(fd)
@@ -271,6 +277,7 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> NarfMod
         tensors = load_file(str(path), device=str(device))
     except (SafetensorError, OSError, ValueError) as e:
         raise BundleError(f"{path}: corrupt model bundle ({_one_line(e)})") from None
+    verify_tensors(path, meta, tensors)
     try:
         kin = KinematicTree.from_urdf_string(meta["urdf"])
         field = _load_module(meta["field"], tensors, "field.", device)
@@ -299,6 +306,33 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> NarfMod
         )
     except (KeyError, RuntimeError, TypeError, ValueError) as e:  # ValueError: UrdfError, bad field config or grid
         raise BundleError(f"{path}: incomplete or inconsistent model bundle ({_one_line(e)})") from None
+
+
+def tensors_digest(tensors: Mapping[str, Tensor]) -> str:
+    """SHA-256 (hex) over the tensors in key order: each key, dtype, shape and raw bytes."""
+    digest = hashlib.sha256()
+    for key in sorted(tensors):
+        t = tensors[key].detach().cpu().contiguous()
+        digest.update(f"{key}\0{t.dtype}\0{list(t.shape)}\0".encode())
+        digest.update(t.reshape(-1).view(torch.uint8).numpy())
+    return digest.hexdigest()
+
+
+def verify_tensors(path: str | Path, meta: Mapping, tensors: Mapping[str, Tensor]) -> None:
+    """:class:`BundleError` unless the tensors match the metadata's checksum (when it has one) and
+    every floating-point tensor is finite."""
+    checksum = meta.get("checksum")
+    if checksum is not None:
+        if not isinstance(checksum, dict) or checksum.get("algorithm") != CHECKSUM_ALGORITHM:
+            raise BundleError(f"{path}: unsupported checksum {checksum!r} (this NARF verifies {CHECKSUM_ALGORITHM})")
+        if tensors_digest(tensors) != checksum.get("tensors"):
+            raise BundleError(f"{path}: checksum mismatch: the weights changed after the bundle was saved")
+    for key in sorted(tensors):
+        t = tensors[key]
+        if t.is_floating_point():
+            bad = int((~torch.isfinite(t)).sum())
+            if bad:
+                raise BundleError(f"{path}: non-finite weights in {key} ({bad} of {t.numel()} values)")
 
 
 def _pack_bits(occupancy: Tensor) -> Tensor:

@@ -15,7 +15,15 @@ from safetensors.torch import load_file, save_file
 
 pytest_plugins = ("conftest_model",)
 
-from narf_core.bundle import FORMAT, FORMAT_VERSION, BundleError, load_bundle, read_metadata, save_bundle  # noqa: E402
+from narf_core.bundle import (  # noqa: E402
+    FORMAT,
+    FORMAT_VERSION,
+    BundleError,
+    load_bundle,
+    read_metadata,
+    save_bundle,
+    tensors_digest,
+)
 from narf_core.data.dataset import Dataset  # noqa: E402
 
 
@@ -36,6 +44,15 @@ def rewrite_metadata(src: Path, dst: Path, change) -> Path:
     text += b" " * (-len(text) % 8)
     dst.write_bytes(struct.pack("<Q", len(text)) + text + raw[8 + length :])
     return dst
+
+
+def unchecked_metadata(path: Path) -> dict:
+    """``path``'s safetensors metadata without the tensors' checksum, as bundles were saved before
+    checksums existed: tests that change tensors then reach the structural checks."""
+    metadata = header(path)["__metadata__"]
+    narf = json.loads(metadata["narf"])
+    narf.pop("checksum", None)
+    return {**metadata, "narf": json.dumps(narf)}
 
 
 def first_test_view(dataset_root: Path):
@@ -242,7 +259,7 @@ def test_a_grid_of_another_shape_than_its_bits_is_refused(tiny_bundle, tmp_path)
 def test_a_bundle_without_some_of_its_tensors_is_refused(tiny_bundle, tmp_path, drop, words):
     tensors = {k: v for k, v in load_file(str(tiny_bundle)).items() if not k.startswith(drop)}
     path = tmp_path / "missing.narf"
-    save_file(tensors, str(path), metadata=header(tiny_bundle)["__metadata__"])
+    save_file(tensors, str(path), metadata=unchecked_metadata(tiny_bundle))
     assert_refused(path, "incomplete or inconsistent", words)
 
 
@@ -252,7 +269,7 @@ def test_weights_of_the_wrong_shape_are_refused(tiny_bundle, tmp_path):
     name = next(k for k in tensors if k.startswith("field."))
     tensors[name] = torch.zeros(1)
     path = tmp_path / "shape.narf"
-    save_file(tensors, str(path), metadata=header(tiny_bundle)["__metadata__"])
+    save_file(tensors, str(path), metadata=unchecked_metadata(tiny_bundle))
     assert_refused(path, "incomplete or inconsistent")
 
 
@@ -355,3 +372,44 @@ def test_one_theta_per_ray_renders_as_a_shared_theta(tiny_model, tiny_dataset, m
     assert torch.allclose(shared.rgb, per_ray.rgb, atol=1e-2)
     assert torch.allclose(shared.opacity, per_ray.opacity, atol=1e-2)
     assert (shared.rgb - per_ray.rgb).abs().mean() < 1e-4
+
+
+# ---------------------------------------------------------------------------------------------
+# Integrity: the tensors' checksum and finite weights
+
+BUNDLED = Path(__file__).resolve().parent.parent / "models" / "clamp.narf"
+
+
+def test_the_bundled_model_carries_a_verified_checksum():
+    meta = read_metadata(BUNDLED)
+    assert meta["checksum"]["algorithm"] == "sha256"
+    assert meta["checksum"]["tensors"] == tensors_digest(load_file(str(BUNDLED)))
+    assert load_bundle(BUNDLED).name == "clamp"
+
+
+def test_a_flipped_weight_byte_is_refused(tmp_path):
+    raw = bytearray(BUNDLED.read_bytes())
+    raw[-1001] ^= 0x10  # a byte of the last tensor's data, far from the header
+    path = tmp_path / "flipped.narf"
+    path.write_bytes(bytes(raw))
+    assert_refused(path, "checksum mismatch")
+
+
+def test_non_finite_weights_are_refused_even_with_a_matching_checksum(tmp_path):
+    model = load_bundle(BUNDLED)
+    name, weight = next((k, v) for k, v in model.field.state_dict().items() if v.is_floating_point())
+    weight.fill_(float("nan"))  # the loaded model's own tensor: saved as is, with a checksum of the NaNs
+    path = save_bundle(tmp_path / "nan.narf", model)
+    assert read_metadata(path)["checksum"]["tensors"] == tensors_digest(load_file(str(path)))
+    assert_refused(path, "non-finite weights in", f"field.{name}", f"({weight.numel()} of {weight.numel()} values)")
+
+
+def test_a_bundle_saved_before_checksums_loads_with_the_finiteness_check_only(tmp_path):
+    path = tmp_path / "old.narf"
+    save_file(load_file(str(BUNDLED)), str(path), metadata=unchecked_metadata(BUNDLED))
+    assert "checksum" not in read_metadata(path) and load_bundle(path).name == "clamp"
+    tensors = load_file(str(BUNDLED))
+    key = next(k for k, v in tensors.items() if v.is_floating_point())
+    tensors[key].view(-1)[0] = float("inf")
+    save_file(tensors, str(path), metadata=unchecked_metadata(BUNDLED))
+    assert_refused(path, "non-finite weights in", key, "(1 of")
