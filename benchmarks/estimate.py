@@ -33,7 +33,7 @@ import torch
 
 from narf_core.bundle import NarfModel, load_bundle
 from narf_core.data.dataset import Dataset, Frame
-from narf_core.estimate import PRESETS, EstimateOptions, EstimateResult, refine
+from narf_core.estimate import PRESETS, EstimateOptions, EstimateResult, chi2_quantile, refine
 from narf_core.geometry import so3_exp, transform_points
 from narf_core.metrics import add
 
@@ -147,6 +147,12 @@ def run_scenes(
     return rows
 
 
+def _preset_options(preset: str, iterations: int, **overrides) -> EstimateOptions:
+    """A preset's options; ``iterations`` applies to the Adam presets (the Gauss-Newton preset keeps its own)."""
+    options = EstimateOptions.preset(preset, **overrides)
+    return options if options.solver == "gauss-newton" else EstimateOptions.preset(preset, iterations=iterations, **overrides)
+
+
 def summarise(model: NarfModel, rows: list[dict]) -> dict:
     """Table II's figures over scenes: ADD (m), per-joint error (m or deg), success rates, seconds."""
     adds = np.array([r["metrics"]["add"] for r in rows])
@@ -162,6 +168,12 @@ def summarise(model: NarfModel, rows: list[dict]) -> dict:
         "no_overlap": sum(r["status"] == "no_overlap" for r in rows),
         "joints": {},
     }
+    # Calibration: the share of scenes whose true error lies inside the estimate's 95 % region.
+    bound = chi2_quantile(0.95, 6 + len(model.joints))
+    nees = [r["metrics"].get("nees") for r in rows]
+    nees = [v for v in nees if v is not None and np.isfinite(v)]
+    out["nees_median"] = float(np.median(nees)) if nees else None
+    out["nees_inside_95"] = float(np.mean([v <= bound for v in nees])) if nees else None
     for joint in model.joints:
         errors = np.array([r["metrics"][f"joint_error/{joint.name}"] for r in rows])
         unit = "m" if joint.type == "prismatic" else "deg"
@@ -244,9 +256,10 @@ def run(
         "splits": list(splits), "scenes": scenes, "perturbation_deg_m": list(perturbation),
         "scale_sweep": list(scale_sweep), "iterations": iterations, "modes": list(modes), "presets": list(presets),
         "seed": seed, "quick": quick,
-        "options": {name: asdict(EstimateOptions.preset(name, iterations=iterations)) for name in presets},
+        "options": {name: asdict(_preset_options(name, iterations)) for name in presets},
     }
     table, curves, sweep, skipped = [], {}, [], []
+    jacobian: dict[str, dict] = {}  # tool -> CPU seconds per Gauss-Newton Jacobian, by method
     for tool, model, dataset in _pairs(models, datasets):
         first: dict[str, list[dict]] = {}  # preset -> rows of the first split and mode (reused by the sweep)
         sweep_frames, sweep_mode = None, None
@@ -261,9 +274,7 @@ def run(
                     continue
                 sweep_frames, sweep_mode = (frames, mode) if sweep_mode is None else (sweep_frames, sweep_mode)
                 for preset in presets:
-                    options = EstimateOptions.preset(
-                        preset, iterations=iterations, mode=mode, record_every=RECORD_EVERY, seed=seed
-                    )
+                    options = _preset_options(preset, iterations, mode=mode, record_every=RECORD_EVERY, seed=seed)
                     rows = run_scenes(model, dataset, frames, options, perturbation=perturbation, seed=seed, progress=progress)
                     table.append({"tool": tool, "split": split, "mode": mode, "preset": preset, **summarise(model, rows),
                                   "scenes_detail": rows})
@@ -272,7 +283,7 @@ def run(
                         if mode == sweep_mode:
                             first[preset] = rows
         for preset in presets if sweep_mode else ():
-            options = EstimateOptions.preset(preset, iterations=iterations, mode=sweep_mode, seed=seed)
+            options = _preset_options(preset, iterations, mode=sweep_mode, seed=seed)
             for scale in scale_sweep:
                 if scale == 1:
                     rows = first[preset]  # the same runs as the table's (same starts and seeds)
@@ -283,13 +294,25 @@ def run(
                 sweep.append({"tool": tool, "mode": sweep_mode, "preset": preset, "scale": scale,
                               "rotation_deg": perturbation[0] * scale, "translation_m": perturbation[1] * scale,
                               **{k: s[k] for k in SWEEP_FIGURES}})
+        if "gauss-newton" in presets and sweep_frames:
+            from narf_benchmarks.jacobian import measure
+
+            jacobian[tool] = measure(model, dataset, sweep_frames[0])
     result = {"config": config, "table": table, "curves": curves, "sweep": sweep, "skipped": skipped,
-              "paper": PAPER_TABLE_II}
+              "paper": PAPER_TABLE_II, "jacobian": jacobian}
     (out_dir / "estimate.json").write_text(json.dumps(result, indent=1))
     (out_dir / "estimate.md").write_text(markdown(result))
     plot_curves(curves, out_dir / "estimate_error_vs_iterations.png")
     plot_sweep(sweep, out_dir / "estimate_sweep.png")
     return result
+
+
+def _pct(x: float | None) -> str:
+    return "-" if x is None else f"{100 * x:.0f}%"
+
+
+def _num(x: float | None) -> str:
+    return "-" if x is None else f"{x:.3g}"
 
 
 def _fmt_joints(joints: dict) -> str:
@@ -303,23 +326,26 @@ def markdown(result: dict) -> str:
         f"Pose + configuration refinement: {c['scenes']} scenes per tool and split, initial pose perturbed by "
         f"±{c['perturbation_deg_m'][0]:g} deg (azimuth, elevation) and ≤ {100 * c['perturbation_deg_m'][1]:g} cm, "
         f"θ at mid-range, {c['iterations']} iterations. Presets: `paper` = the paper's masked photometric loss "
-        "and settings; `robust` = plus silhouette and depth terms, 4 joint starts, coarse-to-fine.",
+        "and settings; `robust` = plus silhouette and depth terms, 4 joint starts, coarse-to-fine; "
+        "`gauss-newton` = the same terms, Levenberg-Marquardt with Huber weights, its own iteration count. "
+        "'inside 95 % region': share of scenes whose true error lies inside the estimate's χ² 95 % region.",
         "",
         "| tool | split | mode | preset | N | ADD (cm) | configuration error | ADD < 1 cm | ADD < 10% d "
-        "| s/scene | iterations |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| s/scene | iterations | inside 95 % region | NEES median |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result["table"]:
         lines.append(
             f"| {r['tool']} | {r['split']} | {r['mode']} | {r['preset']} | {r['scenes']} "
             f"| {100 * r['add_mean_m']:.2f} ± {100 * r['add_std_m']:.2f} | {_fmt_joints(r['joints'])} "
-            f"| {100 * r['add<1cm']:.0f}% | {100 * r['add<0.1d']:.0f}% | {r['seconds_mean']:.2f} | {r['iterations_mean']:.0f} |"
+            f"| {100 * r['add<1cm']:.0f}% | {100 * r['add<0.1d']:.0f}% | {r['seconds_mean']:.2f} | {r['iterations_mean']:.0f} "
+            f"| {_pct(r.get('nees_inside_95'))} | {_num(r.get('nees_median'))} |"
         )
     for tool, p in result["paper"].items():
         lines.append(
             f"| {tool} (paper: real data, GPU, FastNeRF) | test | narf | paper | 17 "
             f"| {100 * p['add_m'][0]:.2f} ± {100 * p['add_m'][1]:.2f} "
-            f"| {p['configuration_error_m'][0]:.4f} ± {p['configuration_error_m'][1]:.4f} m | - | - | - | 150 |"
+            f"| {p['configuration_error_m'][0]:.4f} ± {p['configuration_error_m'][1]:.4f} m | - | - | - | 150 | - | - |"
         )
     lines += [
         "",
@@ -334,6 +360,10 @@ def markdown(result: dict) -> str:
             f"| ≤ {100 * s['translation_m']:g} | {100 * s['add_mean_m']:.2f} | {100 * s['add<1cm']:.0f}% "
             f"| {100 * s['add<0.1d']:.0f}% | {s['seconds_mean']:.2f} |"
         )
+    if result.get("jacobian"):
+        from narf_benchmarks.jacobian import markdown as jacobian_markdown
+
+        lines += jacobian_markdown(result["jacobian"])
     for s in result["skipped"]:
         what = s.get("mode") or f"split {s['split']}"
         lines.append(f"\nSkipped {s['tool']} / {what}: {s['reason']}.")

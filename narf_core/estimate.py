@@ -1,4 +1,4 @@
-"""The refiner: an object's pose and configuration from one masked RGB(-D) view (DESIGN §4.4).
+"""The refiner: an object's pose and configuration from one masked RGB(-D) view (docs/design.md §4.4).
 
 iNeRF-style render-and-compare, as in NARF22 §III-C: from an initial pose ``T_init`` and the
 mid-range configuration, Adam moves ``(T_cam_obj, θ)`` so that rays rendered through the model
@@ -27,7 +27,13 @@ starts, 2 pyramid levels and twice the pose rate. On the bundled clamp (160x120,
 protocol, 17 test views; ``narf bench estimate`` has the figures) the paper preset rarely finds the
 jaw from mid-range: its 18 cm travel is 7 jaw widths, and where the rendered and the observed jaw do
 not overlap the photometric loss is flat in θ. The robust preset does, and the depth term fixes the
-distance that a 160x120 view hardly constrains.
+distance that a 160x120 view hardly constrains. ``gauss-newton`` (``solver = "gauss-newton"``,
+narf_core/gauss_newton.py) uses the robust preset's terms with Levenberg-Marquardt steps and Huber
+weights for 30 iterations: about two thirds of the robust preset's CPU time, but on the clamp it
+ends in a worse local minimum more often (``narf bench estimate`` has both), so it is not the default.
+
+Every estimate carries an :class:`Uncertainty` (``options.uncertainty``): one Gauss-Newton
+linearisation at the optimum, whatever the solver, plus the model-error floor ``sigma_floor_*``.
 
 Loss, averaged over the rays of one iteration: the paper's masked photometric MSE
 ``|render - image * mask|^2`` (rendered on a black background), plus ``silhouette_weight * (opacity
@@ -52,8 +58,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -71,12 +77,16 @@ from narf_core.geometry import (
     transform_points,
 )
 from narf_core.metrics import add, add_s, joint_errors, success_rates
+from narf_core.observation import check_observation, usable_depth
 from narf_core.render import ray_aabb
 
 if TYPE_CHECKING:
     from narf_core.bundle import NarfModel
 
-PRESETS = ("paper", "robust")
+PRESETS = ("paper", "robust", "gauss-newton")
+SOLVERS = ("adam", "gauss-newton")
+ROBUST_LOSSES = ("none", "huber", "cauchy")
+RAY_SAMPLINGS = ("uniform", "edges")
 MIN_MASK_PIXELS = 4
 _U_LIMIT = 0.2  # a start keeps u this far inside ±π/2 (where dθ/du = 0): 2% of the half-range from a limit
 _MAX_RECOVERIES = 8  # consecutive non-finite iterations before giving up
@@ -86,6 +96,7 @@ _EVAL_RAYS = 4096  # starts are compared, and the final loss measured, on at mos
 _ADAM_BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
 _ROTATION_ATOL = 1e-3  # tolerance on R^T R = I and det R = 1 for an input pose
+GN_ITERATIONS = 30  # the gauss-newton preset's Levenberg-Marquardt iterations
 
 
 class EstimateInputError(ValueError):
@@ -117,6 +128,24 @@ class EstimateOptions:
     patience: int = 15
     record_every: int = 0  # keep the pose every this many iterations in `EstimateResult.history`
     seed: int = 0
+    # The second-order solver and the refiner's robustness (narf_core/gauss_newton.py; off in `paper`).
+    solver: str = "adam"  # "adam" or "gauss-newton" (Levenberg-Marquardt)
+    robust_loss: str = "none"  # per-residual "none", "huber" or "cauchy" (gauss-newton)
+    robust_scale: float = 0.1  # where the robust loss bends, in residual units (colour in [0, 1])
+    damping: float = 1e-3  # first Levenberg-Marquardt λ (relative to diag JᵀWJ)
+    photometric_compensation: bool = False  # per-channel gain and bias, closed form each iteration
+    occlusion_margin: float = 0.0  # metres; observed depth this far in front of the render = occluder (0 = off)
+    depth_sigma: float = 0.0  # sensor depth noise at 1 m (σ = depth_sigma z²); 0: depth residuals in object radii
+    ray_sampling: str = "uniform"  # "uniform" over the box, or "edges": half on silhouette edges and texture
+    adam_iterations: int = 0  # gauss-newton: Adam iterations (the rates above) first, to find the basin
+    uncertainty: bool = True  # a covariance of the estimate (one linearisation at the optimum)
+    uncertainty_rays: int = 4096  # rays of the box used for it
+    uncertainty_patch: int = 4  # pixels per side of the squares whose residuals count as correlated
+    # Model error, added to the covariance (σ² on the diagonal): what residual statistics cannot see.
+    # Defaults: the RMS error of `robust` on the bundled clamp's novel split (8 views, 160x120).
+    sigma_floor_position: float = 0.002  # metres
+    sigma_floor_rotation: float = 0.018  # radians
+    sigma_floor_joint: float = 0.02  # fraction of the joint's range
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, what: str) -> None:
@@ -147,6 +176,18 @@ class EstimateOptions:
         need(self.loss_tolerance >= 0, "loss_tolerance", "must be >= 0")
         need(self.patience >= 1, "patience", "must be >= 1")
         need(self.record_every >= 0, "record_every", "must be >= 0")
+        need(self.solver in SOLVERS, "solver", f"must be one of {', '.join(SOLVERS)}")
+        need(self.robust_loss in ROBUST_LOSSES, "robust_loss", f"must be one of {', '.join(ROBUST_LOSSES)}")
+        need(self.robust_scale > 0, "robust_scale", "must be > 0")
+        need(0 <= self.damping <= 1e6, "damping", "must be in [0, 1e6]")
+        need(self.occlusion_margin >= 0, "occlusion_margin", "must be >= 0")
+        need(self.depth_sigma >= 0, "depth_sigma", "must be >= 0")
+        need(self.ray_sampling in RAY_SAMPLINGS, "ray_sampling", f"must be one of {', '.join(RAY_SAMPLINGS)}")
+        need(self.uncertainty_rays >= 16, "uncertainty_rays", "must be >= 16")
+        need(self.adam_iterations >= 0, "adam_iterations", "must be >= 0")
+        need(1 <= self.uncertainty_patch <= 64, "uncertainty_patch", "must be in [1, 64]")
+        for name in ("sigma_floor_position", "sigma_floor_rotation", "sigma_floor_joint"):
+            need(getattr(self, name) >= 0, name, "must be >= 0")
 
     @classmethod
     def robust(cls, **overrides) -> EstimateOptions:
@@ -159,13 +200,26 @@ class EstimateOptions:
         })
 
     @classmethod
+    def gauss_newton(cls, **overrides) -> EstimateOptions:
+        """Levenberg-Marquardt on the robust preset's terms (colour, silhouette, depth) with Huber
+        weights, 4 configuration starts and 2 pyramid levels, ``GN_ITERATIONS`` iterations
+        (narf_core/gauss_newton.py). ``adam_iterations`` runs Adam first instead of the pyramid."""
+        return cls(**{
+            "solver": "gauss-newton", "iterations": GN_ITERATIONS, "silhouette_weight": 1.0, "depth_weight": 1.0,
+            "theta_starts": 4, "coarse_to_fine": 2, "robust_loss": "huber", "tolerance": 1e-3, "patience": 3,
+            **overrides,
+        })
+
+    @classmethod
     def preset(cls, name: str = "paper", **overrides) -> EstimateOptions:
-        """The options of a named preset (``paper``: the defaults; ``robust``: :meth:`robust`) with
-        ``overrides`` applied."""
+        """The options of a named preset (``paper``: the defaults; ``robust``: :meth:`robust`;
+        ``gauss-newton``: :meth:`gauss_newton`) with ``overrides`` applied."""
         if name == "paper":
             return cls(**overrides)
         if name == "robust":
             return cls.robust(**overrides)
+        if name == "gauss-newton":
+            return cls.gauss_newton(**overrides)
         raise EstimateInputError(f"options.preset must be one of {', '.join(PRESETS)}, got {name!r}")
 
 
@@ -178,6 +232,89 @@ class Snapshot:
     loss: float
     T_cam_obj: np.ndarray  # [4, 4]
     joints: dict[str, float]
+
+
+@dataclass
+class Uncertainty:
+    """The covariance of an estimate, in the local parameterisation at the estimate.
+
+    Order of ``covariance [6 + k, 6 + k]``: the displacement of the object's box centre (metres,
+    camera axes), the rotation about that centre (radians, camera axes, left-multiplied:
+    ``R_true = exp(δω) R_est``), then θ (joint units, model order). The statistical part comes from
+    the normal equations at the estimate, scaled by the weighted residual variance
+    ``residual_variance`` with ``dof`` degrees of freedom (see narf_core/gauss_newton.py); the
+    options' ``sigma_floor_*`` add the model's error, which residual statistics cannot see (on the
+    bundled clamp the statistical σ alone is 10-30x smaller than the true error).
+    """
+
+    covariance: np.ndarray  # [6 + k, 6 + k]
+    position_sigma_m: np.ndarray  # [3]
+    rotation_sigma_rad: np.ndarray  # [3]
+    joint_sigma: dict[str, float]
+    residual_variance: float
+    dof: int
+
+    @classmethod
+    def from_covariance(cls, covariance: np.ndarray, joint_names: list[str], variance: float, dof: int) -> Uncertainty:
+        sd = np.sqrt(np.clip(np.diag(covariance), 0, None))
+        return cls(covariance, sd[:3].copy(), sd[3:6].copy(), dict(zip(joint_names, map(float, sd[6:]), strict=True)),
+                   float(variance), int(dof))
+
+    def to_dict(self) -> dict:
+        """A JSON-able copy."""
+        return {
+            "covariance": self.covariance.tolist(),
+            "position_sigma_m": self.position_sigma_m.tolist(),
+            "rotation_sigma_rad": self.rotation_sigma_rad.tolist(),
+            "joint_sigma": dict(self.joint_sigma),
+            "residual_variance": self.residual_variance,
+            "dof": self.dof,
+        }
+
+
+def local_error(
+    T_est: np.ndarray, theta_est: Mapping[str, float], T_true: np.ndarray, theta_true: Mapping[str, float], model: NarfModel
+) -> np.ndarray:
+    """The true error ``[6 + k]`` of an estimate in :class:`Uncertainty`'s parameterisation: the box
+    centre's displacement (m), the left rotation ``log(R_true R_estᵀ)`` (rad), ``θ_true - θ_est``."""
+    aabb = model.aabb.detach().double().cpu().numpy()
+    centre = (aabb[0] + aabb[1]) / 2
+    T_est, T_true = np.asarray(T_est, np.float64), np.asarray(T_true, np.float64)
+    dc = (T_true[:3, :3] @ centre + T_true[:3, 3]) - (T_est[:3, :3] @ centre + T_est[:3, 3])
+    dr = so3_log(torch.from_numpy(T_true[:3, :3] @ T_est[:3, :3].T)).numpy()
+    dt = [float(theta_true[j.name]) - float(theta_est[j.name]) for j in model.joints]
+    return np.concatenate([dc, dr, np.asarray(dt, np.float64)])
+
+
+def nees(
+    result_or_uncertainty: EstimateResult | Uncertainty,
+    T_est: np.ndarray,
+    theta_est: Mapping[str, float],
+    T_true: np.ndarray,
+    theta_true: Mapping[str, float],
+    model: NarfModel,
+) -> float:
+    """Normalised estimation error squared ``eᵀ Σ⁻¹ e`` (``e`` from :func:`local_error`); below
+    ``chi2.ppf(0.95, 6 + k)`` when the truth lies inside the 95 % region. ``nan`` without a covariance."""
+    unc = result_or_uncertainty.uncertainty if isinstance(result_or_uncertainty, EstimateResult) else result_or_uncertainty
+    if unc is None:
+        return math.nan
+    e = local_error(T_est, theta_est, T_true, theta_true, model)
+    return float(e @ np.linalg.pinv(unc.covariance, hermitian=True) @ e)
+
+
+def chi2_quantile(probability: float, dof: int) -> float:
+    """The ``probability`` quantile of χ² with ``dof`` degrees of freedom (bisection on its CDF, the
+    regularised lower incomplete gamma function): the NEES bound of a ``probability`` region."""
+    lo, hi = 0.0, float(dof) + 40.0 * math.sqrt(max(dof, 1)) + 40.0
+    half = torch.tensor(dof / 2, dtype=torch.float64)
+    for _ in range(100):
+        mid = (lo + hi) / 2
+        if float(torch.special.gammainc(half, torch.tensor(mid / 2, dtype=torch.float64))) < probability:
+            lo = mid
+        else:
+            hi = mid
+    return (lo + hi) / 2
 
 
 @dataclass
@@ -208,6 +345,8 @@ class EstimateResult:
     recovered_non_finite: bool
     metrics: dict[str, float] | None = None
     history: list[Snapshot] = field(default_factory=list)
+    uncertainty: Uncertainty | None = None
+    warnings: list[str] = field(default_factory=list)  # narf_core.observation.check_observation's
 
     def to_dict(self) -> dict:
         """A JSON-able copy (arrays as nested lists)."""
@@ -228,6 +367,8 @@ class EstimateResult:
                  "joints": dict(s.joints)}
                 for s in self.history
             ],
+            "uncertainty": None if self.uncertainty is None else self.uncertainty.to_dict(),
+            "warnings": list(self.warnings),
         }
 
 
@@ -331,6 +472,7 @@ class _Observation:
 
     pixels: Tensor  # [P, 2] integer (u, v) of the box
     levels: list[_Target]  # coarse to fine
+    importance: Tensor | None = None  # [P] sums to 1: silhouette edges and image gradient (ray_sampling "edges")
 
 
 def _mask_box(mask: np.ndarray, margin: float) -> tuple[int, int, int, int]:
@@ -370,7 +512,20 @@ def _observation(
         _Target(t.rgb.to(device), t.mask.to(device), None if t.depth is None else t.depth.to(device), t.width)
         for t in targets
     ]
-    return _Observation(pixels.to(device), targets)
+    return _Observation(pixels.to(device), targets, _importance(masked))
+
+
+def _importance(masked: Tensor) -> Tensor:
+    """``[h*w]`` sampling weights of the box ``masked [h, w, 4]`` (rgb * mask, mask): the gradient
+    magnitude of the mask and of the masked colour, spread over 3x3 pixels, plus a floor."""
+    gy = torch.zeros_like(masked)
+    gx = torch.zeros_like(masked)
+    gy[1:-1] = (masked[2:] - masked[:-2]) / 2
+    gx[:, 1:-1] = (masked[:, 2:] - masked[:, :-2]) / 2
+    strength = (gx**2 + gy**2).sum(-1, keepdim=True).sqrt()
+    strength = _box_filter(strength, 3).reshape(-1)
+    weights = strength + 0.05 * float(strength.mean().clamp_min(1e-6))
+    return (weights / weights.sum()).double()
 
 
 # --------------------------------------------------------------------------------------------
@@ -559,6 +714,7 @@ def refine(
     depth: np.ndarray | None = None,
     options: EstimateOptions | None = None,
     ground_truth: tuple[np.ndarray, Mapping[str, float]] | None = None,
+    should_stop: Callable[[], str | None] | None = None,
 ) -> EstimateResult:
     """Refine ``T_init`` and ``joints_init`` so that ``model``'s render matches the masked view.
 
@@ -572,6 +728,8 @@ def refine(
         depth: optional ``[H, W]`` metric z-depth, 0 or NaN = no return (used if ``depth_weight > 0``).
         options: :class:`EstimateOptions`; defaults follow the paper.
         ground_truth: optional ``(T_cam_obj [4, 4], {joint: value})`` to score the result against.
+        should_stop: polled once per iteration; a status it returns (a service's ``"cancelled"`` or
+            ``"budget_exceeded"``) ends the loop, and the best estimate so far comes back with it.
 
     Raises:
         EstimateInputError: empty or tiny mask, size mismatches, a K for another resolution, a
@@ -585,6 +743,8 @@ def refine(
         raise EstimateInputError(f"camera must be a narf_core.geometry.Pinhole, got {type(camera).__name__}")
     image, mask, depth = _check_observation(image, mask, depth, camera)
     T0 = torch.from_numpy(_check_pose(T_init, "T_init"))
+    warnings = check_observation(image, mask, depth, camera, expected_depth_m=float(T0[2, 3]))
+    depth = usable_depth(depth, warnings)  # a depth in the wrong unit or off the mask is dropped, and said so
     theta0 = _check_joints(model, joints_init, "joints_init", complete=False)
     truth = None
     if ground_truth is not None:
@@ -602,9 +762,18 @@ def refine(
     obs = _observation(image, mask, depth, _mask_box(mask, opts.box_margin), opts.coarse_to_fine, device)
     param = _Parameterisation.around(T0, model)
 
-    def result(status: str, row: Tensor | None, loss: float | None, run: _Run | None = None) -> EstimateResult:
+    uses_depth = depth is not None and opts.depth_weight > 0
+
+    def result(status: str, row: Tensor | None, loss: float | None, run=None) -> EstimateResult:
         T, theta = (T0, theta0) if row is None else (param.poses(row)[0], param.thetas(row)[0])
         position, quaternion = pose_to_position_quaternion(T)
+        uncertainty = None
+        if opts.uncertainty and row is not None and status != "cancelled":  # nobody waits for a cancelled one
+            uncertainty = _uncertainty(model, opts, obs, camera, param, T, theta, uses_depth)
+        metrics = None if truth is None else _metrics(model, truth, T, theta)
+        if metrics is not None and uncertainty is not None:
+            metrics["nees"] = nees(uncertainty, T.numpy(), param.joints(model, theta), truth[0].numpy(),
+                                   model.kinematics.joint_dict(truth[1]), model)
         return EstimateResult(
             T_cam_obj=T.numpy().copy(),
             position=position.numpy().copy(),
@@ -616,16 +785,53 @@ def refine(
             trace=[] if run is None else run.trace,
             status=status,
             recovered_non_finite=run is not None and run.recovered,
-            metrics=None if truth is None else _metrics(model, truth, T, theta),
+            metrics=metrics,
             history=[] if run is None else run.history,
+            uncertainty=uncertainty,
+            warnings=warnings,
         )
 
     if not _overlaps(camera, obs.pixels, T0, model.aabb):
         return result("no_overlap", None, None)
-    loss_fn = _Loss(model, opts, param.radius, depth is not None and opts.depth_weight > 0)
-    run = _Run(model, opts, obs, camera, param, loss_fn, _theta_starts(theta0, param, opts.theta_starts), start_time)
-    run.optimise()
-    final = _final_choice(loss_fn, obs, camera, param, run.adam.params, run.best_params, run.rng)
+    loss_fn = _Loss(model, opts, param.radius, uses_depth)
+    starts = _theta_starts(theta0, param, opts.theta_starts)
+    if opts.solver == "gauss-newton":
+        from narf_core.gauss_newton import GaussNewtonRun, Problem
+
+        params0 = torch.cat([torch.zeros(starts.shape[0], 6, dtype=torch.float64), param.u_of(starts)], dim=1)
+        warm = None
+        if opts.adam_iterations > 0:  # Adam finds the basin (and the best θ start), Gauss-Newton the bottom
+            warm_opts = replace(opts, solver="adam", iterations=opts.adam_iterations, early_stop=False)
+            warm = _Run(model, warm_opts, obs, camera, param, loss_fn, starts, start_time)
+            warm.should_stop = should_stop
+            warm.optimise()
+            choice = _final_choice(loss_fn, obs, camera, param, warm.adam.params, warm.best_params, warm.rng)
+            if choice is not None:
+                params0 = choice[0]
+        run = GaussNewtonRun(Problem(model, opts, param.radius, uses_depth), obs, camera, param, params0, start_time,
+                             opts.seed)
+
+        def snapshot(params: Tensor, losses: Tensor, iteration: int, elapsed: float) -> Snapshot:
+            return _snapshot(model, param, params, losses, iteration, elapsed)
+
+        run.should_stop = should_stop
+        run.fine_only = warm is not None
+        if warm is None or warm.status in ("max_iterations", "converged"):
+            run.optimise(snapshot)
+        else:  # the warm start stopped: non-finite, or cancelled through should_stop
+            run.status = warm.status
+        if warm is not None:
+            run.iteration += warm.iteration
+            run.trace = warm.trace + run.trace
+            run.history = warm.history + run.history
+            run.recovered |= warm.recovered
+        last = run.params
+    else:
+        run = _Run(model, opts, obs, camera, param, loss_fn, starts, start_time)
+        run.should_stop = should_stop
+        run.optimise()
+        last = run.adam.params
+    final = _final_choice(loss_fn, obs, camera, param, last, run.best_params, run.rng)
     if final is None:
         run.recovered = True
         return result("non_finite", None, None, run)
@@ -634,8 +840,56 @@ def refine(
     return result(run.status, row, loss, run)
 
 
+def _uncertainty(
+    model: NarfModel,
+    opts: EstimateOptions,
+    obs: _Observation,
+    camera: Pinhole,
+    param: _Parameterisation,
+    T: Tensor,
+    theta: Tensor,
+    uses_depth: bool,
+) -> Uncertainty | None:
+    """The covariance at ``(T [4,4], θ [k])`` from one Gauss-Newton linearisation on the box's rays
+    (narf_core/gauss_newton.py); ``None`` if it cannot be computed (a non-finite render)."""
+    from narf_core.gauss_newton import Problem, covariance
+
+    aabb = model.aabb.detach().double().cpu()
+    problem = Problem(model, opts, param.radius, uses_depth)
+    rng = torch.Generator().manual_seed(opts.seed + 1)
+    Sigma, variance, dof = covariance(
+        problem, obs, camera, param, T, theta, (aabb[0] + aabb[1]) / 2, opts.uncertainty_rays, opts.uncertainty_patch, rng
+    )
+    if not bool(torch.isfinite(Sigma).all()):
+        return None
+    span = (2 * param.half).cpu()
+    floor = torch.cat([
+        torch.full((3,), opts.sigma_floor_position), torch.full((3,), opts.sigma_floor_rotation), opts.sigma_floor_joint * span
+    ]).double()
+    Sigma = Sigma + torch.diag(floor**2)
+    return Uncertainty.from_covariance(Sigma.numpy().copy(), [j.name for j in model.joints], variance, dof)
+
+
+def _ray_index(obs: _Observation, opts: EstimateOptions, n_rays: int, rng: torch.Generator, allow_all: bool) -> Tensor:
+    """``n_rays`` box pixels ``[n]`` for one iteration: all of them when they fit (and ``allow_all``),
+    else uniform draws, or with ``ray_sampling = "edges"`` half of them drawn in proportion to the
+    mask's edges and the image's gradient (where a pose or θ error changes the residual most)."""
+    n_pixels = obs.pixels.shape[0]
+    device = obs.pixels.device
+    if n_rays == n_pixels and allow_all:
+        return torch.arange(n_pixels, device=device)
+    if opts.ray_sampling == "uniform":
+        return torch.randint(n_pixels, (n_rays,), generator=rng).to(device)
+    n_edge = n_rays // 2
+    edges = torch.multinomial(obs.importance.cpu(), n_edge, replacement=True, generator=rng)
+    rest = torch.randint(n_pixels, (n_rays - n_edge,), generator=rng)
+    return torch.cat([edges, rest]).to(device)
+
+
 class _Run:
     """The optimisation loop of one :func:`refine` call and its record."""
+
+    should_stop: Callable[[], str | None] | None = None  # refine's hook: a status ends the loop
 
     def __init__(
         self,
@@ -667,6 +921,9 @@ class _Run:
         prune_at = int(opts.iterations * _PRUNE_SHARE)
         failures = 0
         while self.iteration < opts.iterations:
+            if self.should_stop is not None and (reason := self.should_stop()):
+                self.status = reason
+                return
             level = _level(self.iteration, opts.iterations, n_levels)
             self.iteration += 1
             per_start, grad = self._loss_and_gradient(self.obs.levels[level])
@@ -694,10 +951,7 @@ class _Run:
         several = self.adam.params.shape[0] > 1  # while several starts run, each traces half the rays
         n_rays = min(max(self.opts.rays_per_iteration // (2 if several else 1), 1), n_pixels)
         device = self.obs.pixels.device
-        if n_rays == n_pixels and target.width == 1:
-            index = torch.arange(n_pixels, device=device)
-        else:
-            index = torch.randint(n_pixels, (n_rays,), generator=self.rng).to(device)
+        index = _ray_index(self.obs, self.opts, n_rays, self.rng, target.width == 1)
         pixels = self.obs.pixels[index].to(torch.float32)
         if target.width > 1:
             pixels = pixels + (torch.rand(n_rays, 2, generator=self.rng).to(device) - 0.5) * target.width

@@ -256,7 +256,7 @@ def test_theta_starts_run_as_one_batch_and_keep_the_best(model, monkeypatch):
     calls = []
     render_rays = model.render_rays
     monkeypatch.setattr(model, "render_rays", lambda rays, theta, **kw: calls.append((len(rays), theta)) or render_rays(rays, theta, **kw))
-    options = EstimateOptions(theta_starts=4, **FAST)
+    options = EstimateOptions(theta_starts=4, uncertainty=False, **FAST)  # no covariance pass: count the loop's calls
     four = refine(model, image, mask, CAMERA, T, joints_init=init, options=options, ground_truth=(T, truth))
     assert one.metrics["joint_error/slide"] > 0.05
     assert four.metrics["joint_error/slide"] < 0.003
@@ -409,14 +409,15 @@ def test_benchmark_writes_table_curves_and_sweep(model, tmp_path):
             writer.add("test", FrameImages(image, None, mask.astype(np.uint8)), T, TRUTH)
     result = run({"toy": model}, {"toy": root}, out_dir=tmp_path / "out", scenes=2, iterations=12, scale_sweep=(1.0,))
     assert [(r["tool"], r["split"], r["mode"], r["preset"], r["scenes"]) for r in result["table"]] == [
-        ("toy", "test", mode, preset, 2) for mode in ("narf", "parts") for preset in ("paper", "robust")
+        ("toy", "test", mode, preset, 2) for mode in ("narf", "parts") for preset in ("paper", "robust", "gauss-newton")
     ]
     assert result["skipped"] == [{"tool": "toy", "split": "novel", "reason": "the dataset has no frames in this split"}]
     row = result["table"][0]
     assert row["add_mean_m"] > 0 and 0 <= row["add<0.1d"] <= 1 and row["joints"]["slide"]["unit"] == "m"
     curve = result["curves"]["toy narf paper"]
     assert curve["iteration"] == [0, 10] and curve["seconds_mean"][0] == 0 and curve["add_mean_m"][0] > 0.005
-    assert [(s["preset"], s["scale"]) for s in result["sweep"]] == [("paper", 1.0), ("robust", 1.0)]
+    assert [(s["preset"], s["scale"]) for s in result["sweep"]] == [("paper", 1.0), ("robust", 1.0), ("gauss-newton", 1.0)]
+    assert all(0 <= r["nees_inside_95"] <= 1 for r in result["table"])
     assert result["sweep"][1]["add_mean_m"] == result["table"][1]["add_mean_m"]  # the table's runs, reused
     for name in ("estimate.json", "estimate.md", "estimate_error_vs_iterations.png", "estimate_sweep.png"):
         assert (tmp_path / "out" / name).stat().st_size > 0

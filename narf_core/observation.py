@@ -1,0 +1,91 @@
+"""Sanity checks of an observation before the refiner trusts it.
+
+A real view can be valid as arrays and still wrong in ways that bias an estimate without any
+error: a blown-out exposure (the photometric loss then fits white), a mask cut by the image border
+(the object continues outside it), depth in the wrong unit (millimetres read as metres, or metres
+written into a millimetre PNG), or a depth image that does not line up with the mask. Each check
+gives one warning, a string ``"<code>: <what and why>"``; :func:`usable_depth` drops the depth that
+a warning says is unusable, so the refiner falls back to RGB instead of fitting a wrong distance.
+
+Conventions as everywhere (docs/design.md §2): ``image`` sRGB uint8 ``[H, W, 3]``, ``mask`` ``[H, W]``
+(nonzero = object), ``depth`` float metres ``[H, W]`` with 0 or NaN = no return.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from narf_core.geometry import Pinhole
+
+CLIPPED_SHARE = 0.10  # of the object's pixels at 255 (or at 0) in some channel
+BORDER_PIXELS = 3  # object pixels on the image's outermost rows and columns
+DEPTH_OVERLAP_SHARE = 0.10  # least share of the object's pixels with a depth return
+DEPTH_UNIT_FACTOR = 20.0  # observed vs expected distance: a wrong unit is a factor of 1000
+DEPTH_RANGE_M = (0.02, 20.0)  # object distances a camera sees it at, without an expected distance
+
+# warnings after which the depth is not used
+DEPTH_UNUSABLE = ("depth_unit", "depth_overlap")
+
+
+def check_observation(
+    image: np.ndarray,
+    mask: np.ndarray,
+    depth: np.ndarray | None,
+    camera: Pinhole,
+    *,
+    expected_depth_m: float | None = None,
+) -> list[str]:
+    """Warnings about an observation (empty when it looks sound).
+
+    ``expected_depth_m`` (e.g. the initial pose's z) sharpens the depth-unit check: the median
+    depth over the mask must be within a factor of :data:`DEPTH_UNIT_FACTOR` of it; without it the
+    median must lie in :data:`DEPTH_RANGE_M`. Arrays must already have matching shapes.
+    """
+    mask = np.asarray(mask) != 0
+    warnings: list[str] = []
+    n = int(mask.sum())
+    if n == 0:
+        return warnings
+    pixels = np.asarray(image)[mask]
+    high = float((pixels >= 255).any(-1).mean())
+    low = float((pixels <= 0).all(-1).mean())
+    if high > CLIPPED_SHARE:
+        warnings.append(f"clipped: {100 * high:.0f}% of the object's pixels are saturated at 255 (overexposed): "
+                        "their colour is lost, so the photometric fit is biased")
+    if low > CLIPPED_SHARE:
+        warnings.append(f"clipped: {100 * low:.0f}% of the object's pixels are black (underexposed)")
+    border = int(mask[0].sum() + mask[-1].sum() + mask[1:-1, 0].sum() + mask[1:-1, -1].sum())
+    if border >= BORDER_PIXELS:
+        warnings.append(f"mask_border: the mask touches the image border on {border} pixels: the object may "
+                        f"continue outside the {camera.width}x{camera.height} view, which biases the estimate")
+    if depth is None:
+        return warnings
+    depth = np.asarray(depth, dtype=np.float64)
+    valid = np.isfinite(depth) & (depth > 0)
+    on_object = valid & mask
+    share = on_object.sum() / n
+    if share < DEPTH_OVERLAP_SHARE:
+        elsewhere = " (there is depth elsewhere: misaligned or from another frame?)" if valid.any() else ""
+        warnings.append(f"depth_overlap: only {100 * share:.0f}% of the mask's pixels have a depth return"
+                        f"{elsewhere}; the depth is not used")
+        return warnings
+    median = float(np.median(depth[on_object]))
+    if expected_depth_m is not None and expected_depth_m > 0:
+        ratio = median / expected_depth_m
+        wrong = ratio > DEPTH_UNIT_FACTOR or ratio < 1 / DEPTH_UNIT_FACTOR
+    else:
+        ratio = None
+        wrong = not DEPTH_RANGE_M[0] <= median <= DEPTH_RANGE_M[1]
+    if wrong:
+        guess = "millimetres read as metres" if median > (expected_depth_m or 1.0) else "metres written as millimetres"
+        against = f" vs {expected_depth_m:.3g} m expected from the initial pose" if ratio is not None else ""
+        warnings.append(f"depth_unit: the object's median depth is {median:.4g} m{against}; it looks like "
+                        f"{guess} (depth must be metres, or a 16-bit PNG in millimetres); the depth is not used")
+    return warnings
+
+
+def usable_depth(depth: np.ndarray | None, warnings: list[str]) -> np.ndarray | None:
+    """``depth``, or ``None`` when one of ``warnings`` says it cannot be trusted (:data:`DEPTH_UNUSABLE`)."""
+    if depth is None or any(w.split(":", 1)[0] in DEPTH_UNUSABLE for w in warnings):
+        return None
+    return depth
