@@ -1,0 +1,83 @@
+"""``narf bench shift``: the table's target check, the RGB-only view of a dataset, a tiny real run and
+the command's errors."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mitsuba")
+pytest.importorskip("pybullet")
+pytest.importorskip("matplotlib")
+
+from narf_benchmarks import shift  # noqa: E402
+from narf_core.cli import main  # noqa: E402
+from narf_core.data.dataset import Dataset  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+MODEL = ROOT / "models" / "clamp.narf"
+
+
+def _row(condition: str, kind: str, add: float, share: float, scale: float = 1.0) -> dict:
+    return {"tool": "clamp", "condition": condition, "split": "test", "input": kind, "preset": "robust",
+            "scale": scale, "scenes": 3, "add_mean_m": add, "add_std_m": 0.001, "add<1cm": share,
+            "seconds_mean": 2.0, "joints": {"jaw_opening": {"unit": "m", "mean": 0.002, "std": 0.001}}}
+
+
+def test_targets_of_the_issue_are_checked() -> None:
+    assert shift._target(_row("lighting", "rgb", 0.005, 1.0)) == "≤ 0.6 cm, ≥ 95%: met"
+    assert shift._target(_row("lighting", "rgb", 0.005, 0.9)) == "≤ 0.6 cm, ≥ 95%: NOT met"
+    assert shift._target(_row("depth", "rgbd", 0.0041, 1.0)) == "≤ 0.4 cm: NOT met"
+    assert shift._target(_row("all", "rgbd", 0.009, 0.95)) == "≤ 1.0 cm, ≥ 90%: met"
+    assert shift._target(_row("all", "rgbd", 0.009, 0.95, scale=3.0)) == "-"
+    assert shift._target(_row("occlusion-40", "rgb", 0.05, 0.1)) == "-"  # reported, no target
+    text = shift.markdown({"config": {"size": [640, 480], "spp": 16, "scenes": 3, "iterations": 150},
+                           "table": [_row("lighting", "rgb", 0.005, 1.0)],
+                           "warnings": [{"tool": "clamp", "condition": "lighting", "frames": 3, "warnings": {"clipped": 1}}]})
+    assert "| clamp | lighting | test | rgb | robust | 1x | 3 | 0.50 ± 0.10 | 100% | jaw_opening 2.0 ± 1.0 mm |" in text
+    assert "| clamp | lighting | 3 | clipped 1 |" in text
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not MODEL.exists(), reason="no bundled demo model")
+def test_a_tiny_shifted_run(tmp_path: Path) -> None:
+    from narf_core.bundle import load_bundle
+    from narf_core.data.synth.generate import synthesize
+
+    source = Dataset.open(synthesize("clamp", tmp_path / "src", size=(96, 72), views=4, seed=0))
+    result = shift.run({"clamp": load_bundle(MODEL)}, {"clamp": source}, out_dir=tmp_path / "out",
+                       conditions=("lighting", "depth"), splits=("test",), scenes=2, scales=(1.0,),
+                       presets=("robust",), size=(96, 72), spp=2, iterations=3, progress=False)
+    rows = result["table"]
+    assert [(r["condition"], r["input"]) for r in rows] == [("lighting", "rgb"), ("lighting", "rgbd"),
+                                                           ("depth", "rgb"), ("depth", "rgbd")]
+    for r in rows:
+        assert r["scenes"] == 2 and np.isfinite(r["add_mean_m"]) and r["joints"]["jaw_opening"]["unit"] == "m"
+    shifted = Dataset.open(tmp_path / "out" / "data" / "clamp-96x72-spp2-seed0" / "depth")
+    assert shifted.generator["condition"] == "depth" and len(shifted) == 2
+    assert shift._WithoutDepth(shifted).load(shifted.frames()[0]).depth is None
+    for name in ("shift.json", "shift.md", "shift.png"):
+        assert (tmp_path / "out" / name).stat().st_size > 0
+    assert json.loads((tmp_path / "out" / "shift.json").read_text())["config"]["size"] == [96, 72]
+    stamp = (shifted.root / "scene.json").stat().st_mtime_ns
+    ids = shifted.generator["restyle"]["source_frames"]
+    again = shift.shifted_sets(source, shifted.root.parent, ids, conditions=("depth",), size=(96, 72), spp=2, seed=0,
+                               progress=False)
+    assert again["depth"].root == shifted.root and (shifted.root / "scene.json").stat().st_mtime_ns == stamp  # reused
+
+
+def test_bench_shift_errors(tmp_path: Path, monkeypatch, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["bench", "shift", "--presets", "fastest", "--work", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--presets: unknown ['fastest']" in err
+    monkeypatch.setitem(sys.modules, "mitsuba", None)
+    assert main(["bench", "shift", "--work", str(tmp_path)]) == 2
+    assert "install the extra: pip install 'narf[realism]'" in capsys.readouterr().err
+    assert main(["bench", "estimate", "--shift", "--work", str(tmp_path)]) == 2  # the same benchmark
+    assert "install the extra: pip install 'narf[realism]'" in capsys.readouterr().err
+    assert main(["bench", "estimate", "--shift", "--noise", "--work", str(tmp_path)]) == 2
+    assert "--noise (label noise) does not combine" in capsys.readouterr().err

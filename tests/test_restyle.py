@@ -1,0 +1,140 @@
+"""The Mitsuba restyler: camera and depth conventions, agreement with pybullet's ground truth, the
+written datasets, and ``narf restyle``'s errors. Renders a few frames at a tiny size (seconds)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+pytest.importorskip("mitsuba")
+pytest.importorskip("pybullet")
+
+from narf_core.cli import main  # noqa: E402
+from narf_core.data.dataset import Dataset  # noqa: E402
+from narf_core.data.synth import restyle as rs  # noqa: E402
+from narf_core.geometry import Pinhole  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def clamp(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from narf_core.data.synth.generate import synthesize
+
+    return synthesize("clamp", tmp_path_factory.mktemp("src") / "clamp", size=(96, 72), views=4, seed=0)
+
+
+def _look_from(eye: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """``T_cam_obj`` of an OpenCV camera at ``eye`` looking at ``target`` (object z up)."""
+    z = (target - eye) / np.linalg.norm(target - eye)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z])
+    T[:3, 3] = -T[:3, :3] @ eye
+    return T
+
+
+def _aov(camera: Pinhole, T_cam_obj: np.ndarray, shapes: dict) -> tuple[np.ndarray, list[str]]:
+    mi = rs.mitsuba()
+    scene = mi.load_dict({"type": "scene", **shapes, "sensor": rs.sensor(camera, T_cam_obj, spp=1, centres=True),
+                          "integrator": {"type": "aov", "aovs": "pp:position,si:shape_index"}})
+    return np.array(mi.render(scene), dtype=np.float64), [s.id() for s in scene.shapes()]
+
+
+def test_opencv_camera_samples_every_pixel_centre() -> None:
+    """The hit point seen at pixel (u, v) projects through K to (u + 0.5, v + 0.5), also with an
+    off-centre principal point: Mitsuba's camera is the OpenCV camera of docs/design.md §2."""
+    mi = rs.mitsuba()
+    camera = Pinhole(torch.tensor([[70.0, 0, 41.3], [0, 70.0, 22.8], [0, 0, 1]]), 80, 50)
+    T = _look_from(np.array([0.3, -0.8, 0.5]), np.array([0.0, 0.0, 0.0]))
+    T_obj_cam = np.linalg.inv(T)
+    # a plane facing the camera at z = 1.3 in the camera frame (tilted in the object frame)
+    plane = T_obj_cam @ np.array([[4, 0, 0, 0], [0, 4, 0, 0], [0, 0, 1, 1.3], [0, 0, 0, 1.0]])
+    aov, ids = _aov(camera, T, {"plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f(plane.tolist())}})
+    depth, labels = rs.depth_and_labels(aov, T, ids, {"plane": 1})
+    assert (labels == 1).all()
+    assert np.abs(depth - 1.3).max() < 1e-4  # z along the optical axis, not the ray's length (up to 1.9% more here)
+    p = aov[..., :3] @ T[:3, :3].T + T[:3, 3]
+    uv = p @ camera.K.double().numpy().T
+    uv = uv[..., :2] / uv[..., 2:]
+    v, u = np.mgrid[0:50, 0:80]
+    assert np.abs(uv[..., 0] - (u + 0.5)).max() < 1e-3 and np.abs(uv[..., 1] - (v + 0.5)).max() < 1e-3
+    with pytest.raises(rs.RestyleError, match="square pixels"):
+        rs.sensor(Pinhole(torch.tensor([[70.0, 0, 40], [0, 60.0, 25], [0, 0, 1]]), 80, 50), T, spp=1, centres=True)
+
+
+def test_restyled_mask_and_depth_agree_with_pybullet(clamp: Path) -> None:
+    dataset = Dataset.open(clamp)
+    with rs.Restyler(dataset.urdf_path, dataset.links, spp=2) as restyler:
+        for frame in dataset.frames("test")[:2]:
+            truth = dataset.load(frame)
+            render = restyler.render(dataset.camera, frame.T_cam_obj, frame.joints, (0, frame.id))
+            tool = (truth.labels > 0) | (render.labels > 0)
+            assert tool.sum() > 50
+            assert (render.labels == truth.labels)[tool].mean() > 0.97
+            both = (truth.labels > 0) & (render.labels == truth.labels)
+            assert np.median(np.abs(render.depth[both] - truth.depth[both])) < 1e-3
+            assert np.abs(render.depth[both] - truth.depth[both]).max() < 4e-3
+            # the table and clutter have depth too, behind the tool where they meet it
+            assert (render.depth[truth.labels == 0] > 0).mean() > 0.5
+            assert render.linear.shape == (72, 96, 3) and np.isfinite(render.linear).all() and render.linear.max() > 0
+
+
+def test_restyle_writes_each_condition_deterministically(clamp: Path, tmp_path: Path) -> None:
+    source = Dataset.open(clamp)
+    ids = [source.frames("test")[0].id, source.frames("novel")[0].id]
+    out = rs.restyle(clamp, tmp_path / "a", conditions=("lighting", "all"), size=(64, 48), spp=2, seed=3, frame_ids=ids)
+    assert set(out) == {"lighting", "all"}
+    for name, root in out.items():
+        d = Dataset.open(root)
+        assert (d.camera.width, d.camera.height) == (64, 48)
+        assert d.generator["condition"] == name and d.generator["restyle"]["source_frames"] == ids
+        assert [f["source_id"] for f in d.generator["frames"]] == ids and d.generator["frames"][0]["scene"]["lights"]
+        assert [f.split for f in d.frames()] == ["test", "novel"]
+        for f, src in zip(d.frames(), [source.frames()[i] for i in ids]):
+            assert np.allclose(f.T_cam_obj, src.T_cam_obj) and f.joints == src.joints
+    lighting, faulty = Dataset.open(out["lighting"]), Dataset.open(out["all"])
+    a, b = lighting.load(lighting.frames()[0]), faulty.load(faulty.frames()[0])
+    assert 0 < (b.labels > 0).sum() < (a.labels > 0).sum()  # 20% occluded (and mask errors)
+    assert faulty.generator["frames"][0]["faults"]["occluded"] == pytest.approx(0.2, abs=0.02)
+    clean_set = Dataset.open(out["all"], clean=True)
+    clean = clean_set.load(clean_set.frames()[0])
+    assert (clean.labels == a.labels).all()  # the fault-free ground truth is kept
+    again = rs.restyle(clamp, tmp_path / "b", conditions=("all",), size=(64, 48), spp=2, seed=3, frame_ids=ids)
+    c = Dataset.open(again["all"]).load(Dataset.open(again["all"]).frames()[0])
+    assert np.abs(c.rgb.astype(int) - b.rgb).max() <= 1 and (c.labels == b.labels).all()
+    assert np.allclose(c.depth, b.depth)
+    with pytest.raises(FileExistsError, match="already holds a dataset"):
+        rs.restyle(clamp, tmp_path / "a", conditions=("all",), size=(64, 48), spp=2, seed=3, frame_ids=ids)
+
+
+def test_cli_restyle_and_its_errors(clamp: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["restyle", str(clamp), "--out", str(tmp_path / "o"), "--size", "32", "24", "--spp", "1",
+                 "--splits", "test", "--limit", "1", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["frames"] == 1 and result["size"] == [32, 24] and set(result["datasets"]) == {"lighting"}
+
+    def error(argv: list[str]) -> str:
+        assert main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and err.startswith("narf restyle: error: ")
+        return err
+
+    assert "not a dataset folder" in error(["restyle", str(tmp_path / "missing"), "--out", str(tmp_path / "x")])
+    assert "already holds a dataset" in error(["restyle", str(clamp), "--out", str(tmp_path / "o"), "--size", "32",
+                                                "24", "--splits", "test", "--limit", "1"])
+    with pytest.raises(SystemExit):
+        main(["restyle", str(clamp), "--out", str(tmp_path / "y"), "--conditions", "fog"])
+    assert "invalid choice: 'fog'" in capsys.readouterr().err
+
+
+def test_missing_extra_is_one_clear_error(clamp: Path, tmp_path: Path, monkeypatch, capsys) -> None:
+    monkeypatch.setitem(sys.modules, "mitsuba", None)  # import mitsuba now raises ImportError
+    assert main(["restyle", str(clamp), "--out", str(tmp_path / "z")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "narf restyle: error: the mitsuba renderer is not installed; install the extra: pip install 'narf[realism]'"
