@@ -1,9 +1,10 @@
-"""The dataset format of DESIGN §3: reading and validating it, writing it, and its URDF.
+"""The dataset format of docs/design.md §3: reading and validating it, writing it, and its URDF.
 
 A dataset is a folder::
 
     object.urdf, meshes/...     the object (every mesh, material and texture it references)
     scene.json                  camera, links (label order), joints, frames, generator provenance
+                                (a sequence's frames carry "time" in seconds, in time order)
     rgb/000000.png              sRGB uint8
     depth/000000.png            uint16 millimetres, 0 = no return (or .npy float32 metres)
     labels/000000.png           uint8, 0 = background, 1 + i = link i of "links"
@@ -63,9 +64,10 @@ class Frame:
     T_cam_obj: np.ndarray  # [4, 4] float64
     joints: dict[str, float]
     split: str
+    time: float | None = None  # seconds, in sequences (frames in time order); None elsewhere
 
     def to_json(self) -> dict[str, Any]:
-        return {
+        out = {
             "id": self.id,
             "rgb": self.rgb,
             "depth": self.depth,
@@ -74,6 +76,9 @@ class Frame:
             "joints": {name: float(value) for name, value in self.joints.items()},
             "split": self.split,
         }
+        if self.time is not None:
+            out["time"] = float(self.time)
+        return out
 
 
 @dataclass
@@ -551,7 +556,8 @@ class _Validator:
             T = self.pose(f.get("T_cam_obj"), f"{here}.T_cam_obj")
             config = self.configuration(f.get("joints"), f"{here}.joints", joints)
             split = self.choice(f.get("split"), f"{here}.split", SPLITS)
-            frames.append(Frame(fid, rgb, depth, labels, T, config, split))
+            stamp = None if f.get("time") is None else self.number(f["time"], f"{here}.time")
+            frames.append(Frame(fid, rgb, depth, labels, T, config, split, stamp))
         return sorted(frames, key=lambda fr: fr.id)
 
     def image_path(self, root: Path, value: Any, field: str) -> str:
@@ -669,8 +675,11 @@ class DatasetWriter:
         joints: dict[str, float],
         *,
         clean: tuple[FrameImages, np.ndarray, dict[str, float]] | None = None,
+        time: float | None = None,
     ) -> Frame:
         """Write one frame's images and record it; returns the :class:`Frame`.
+
+        ``time`` (seconds) stamps the frames of a sequence.
 
         ``clean`` is the noise-free ``(images, T_cam_obj, joints)`` when the written labels carry
         generator noise; its ``depth`` and ``labels`` go under ``clean/`` (``rgb`` is shared).
@@ -680,6 +689,7 @@ class DatasetWriter:
         self._check_images(images)
         fid = len(self.frames)
         frame = self._write(fid, split, images, T_cam_obj, joints, prefix="")
+        frame.time = time
         self.frames.append(frame)
         if clean is None:
             self.clean_frames.append(frame)

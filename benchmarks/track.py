@@ -1,0 +1,255 @@
+"""``narf bench track``: tracking error and speed on synthetic sequences, side by side.
+
+Per tool with a model, per image size (160x120; 640x480, where the refiner only traces rays in the
+mask's box) and per modality (RGB-D, RGB only): a smooth sequence (``narf synth --sequence N
+--smooth``, written once into the work folder) is tracked from its first frame's label, and the
+report gives frames per second (frames over the summed tracking time of every frame, the first
+frame's multi-start initialisation included), ADD and joint error per frame (mean, 95th
+percentile, max, over frames whose status is not ``lost``), the number of ``lost`` frames and of
+re-initialisations, and the NEES coverage (the share of frames with a covariance whose normalised
+error lies inside the 95% region: 0.95 when Σ is calibrated). With ``--events`` the sequence
+with a glance away and an occluding bar is tracked as well. The error against time is plotted per
+run (``<work>/track/<tool>-<size>-<modality>.png``) and every per-frame row is kept in
+``<work>/track/result.json``. With ``--service-clients N``, N clients track the 160x120 sequence at
+once through ``POST /v1/track`` on a loopback server, and each one's frames per second is reported.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from narf_core.bundle import NarfModel, load_bundle
+from narf_core.data.dataset import Dataset
+from narf_core.estimate import chi2_quantile, local_error
+from narf_core.track import TrackOptions, track
+from narf_core.track_io import load_frames, score, sequence_frames
+
+SIZES = ((160, 120), (640, 480))
+MODALITIES = ("rgbd", "rgb")
+
+
+def sequence(work: Path, tool: str, size: tuple[int, int], frames: int, events: bool, seed: int = 0) -> Path:
+    """The sequence dataset for one setting, synthesised on first use."""
+    from narf_core.data.synth.sequence import synthesize_sequence
+
+    out = work / "sequences" / f"{tool}-{size[0]}x{size[1]}-{frames}{'-events' if events else ''}"
+    if not (out / "scene.json").is_file():
+        synthesize_sequence(tool, out, frames, size=size, seed=seed, events=events, overwrite=True)
+    return out
+
+
+def run_one(model: NarfModel, dataset: Dataset, rgb_only: bool, options: TrackOptions) -> dict:
+    """Track a whole sequence from its first label; per-frame rows and the summary figures."""
+    frames = sequence_frames(dataset)
+    rows = []
+    bound = chi2_quantile(0.95, 6 + len(model.joints))
+    results = track(model, load_frames(dataset, frames, rgb_only=rgb_only), dataset.camera, frames[0].T_cam_obj,
+                    frames[0].joints, options)
+    for frame, result in zip(frames, results):
+        row = {"frame": frame.id, "time": result.time, "status": result.status, "seconds": result.seconds,
+               **score(model, frame, result), "nees": None}
+        if result.covariance is not None:
+            e = local_error(result.T_cam_obj, result.joints, frame.T_cam_obj, frame.joints, model)
+            row["nees"] = float(e @ np.linalg.pinv(result.covariance, hermitian=True) @ e)
+        rows.append(row)
+    held = [r for r in rows if r["status"] != "lost"]
+
+    def stats(key: str) -> dict[str, float] | None:
+        values = np.array([r[key] for r in held])
+        if not len(values):
+            return None
+        return {"mean": float(values.mean()), "p95": float(np.percentile(values, 95)), "max": float(values.max())}
+
+    nees = [r["nees"] for r in held if r["nees"] is not None]
+    tracked = rows[1:]  # the first frame is the multi-start initialisation
+    return {
+        "frames": len(rows),
+        "frames_per_second": len(rows) / sum(r["seconds"] for r in rows),
+        "frames_per_second_tracking": len(tracked) / sum(r["seconds"] for r in tracked) if tracked else None,
+        "first_frame_seconds": rows[0]["seconds"],
+        "add_m": stats("add_m"),
+        **{key: stats(key) for key in rows[0] if key.startswith("joint_error/")},
+        "lost": sum(r["status"] == "lost" for r in rows),
+        "reinitialised": sum(r["status"] == "reinitialised" for r in rows[1:]),
+        "uncertain": sum(r["status"] == "uncertain" for r in rows),
+        "nees_coverage_95": float(np.mean(np.array(nees) <= bound)) if nees else None,
+        "rows": rows,
+    }
+
+
+def plot(rows: list[dict], title: str, path: Path) -> Path:
+    """ADD (cm) and the per-frame time (ms) against the sequence's time, lost frames marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = [r["time"] for r in rows]
+    fig, (a, b) = plt.subplots(2, 1, figsize=(7, 4.5), sharex=True)
+    a.plot(t, [r["add_m"] * 100 for r in rows], lw=1)
+    lost = [r for r in rows if r["status"] == "lost"]
+    if lost:
+        a.scatter([r["time"] for r in lost], [r["add_m"] * 100 for r in lost], c="r", s=8, label="lost")
+        a.legend()
+    a.set_ylabel("ADD (cm)")
+    a.set_title(title)
+    b.plot(t, [r["seconds"] * 1000 for r in rows], lw=1)
+    b.set_ylabel("ms per frame")
+    b.set_yscale("log")
+    b.set_xlabel("time (s)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, modalities=MODALITIES,
+        events: bool = False, options: TrackOptions | None = None) -> dict:
+    """Every tool x size x modality (x smooth/events); returns the summary (rows saved beside it)."""
+    options = options or TrackOptions()
+    out_dir = work / "track"
+    runs = []
+    for tool, model in models.items():
+        for size in sizes:
+            for with_events in (False, True) if events else (False,):
+                dataset = Dataset.open(sequence(work, tool, size, frames, with_events))
+                for modality in modalities:
+                    start = time.perf_counter()
+                    one = run_one(model, dataset, modality == "rgb", options)
+                    name = f"{tool}-{size[0]}x{size[1]}-{modality}{'-events' if with_events else ''}"
+                    one.update({"tool": tool, "size": list(size), "modality": modality, "events": with_events,
+                                "wall_seconds": time.perf_counter() - start,
+                                "plot": str(plot(one["rows"], name, out_dir / f"{name}.png"))})
+                    runs.append(one)
+                    print(f"narf bench track: {name}: {one['frames_per_second']:.1f} frames/s, ADD mean "
+                          f"{one['add_m']['mean'] * 100:.2f} cm, lost {one['lost']}", file=sys.stderr)
+    result = {"frames": frames, "options": options.__dict__, "runs": runs}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "result.json").write_text(json.dumps(result, indent=1))
+    return result
+
+
+def markdown(result: dict) -> str:
+    """The summary as a table: error and speed side by side."""
+    lines = [
+        f"Tracking, {result['frames']}-frame sequences (30 fps), from the first frame's label",
+        "",
+        "| tool | size | input | events | frames/s (all / after the 1st) | ADD mean / p95 / max (cm) | joint error "
+        "mean / p95 / max | lost | re-init. | NEES 95% coverage |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in result["runs"]:
+        add = r["add_m"]
+        joint = next((v for k, v in r.items() if k.startswith("joint_error/") and v), None)
+        after = r["frames_per_second_tracking"]
+        lines.append(
+            f"| {r['tool']} | {r['size'][0]}x{r['size'][1]} | {r['modality']} | {'yes' if r['events'] else 'no'} | "
+            f"{r['frames_per_second']:.1f} / {after:.1f} | "
+            + (f"{add['mean'] * 100:.2f} / {add['p95'] * 100:.2f} / {add['max'] * 100:.2f}" if add else "-") + " | "
+            + (f"{joint['mean']:.4f} / {joint['p95']:.4f} / {joint['max']:.4f}" if joint else "-")
+            + f" | {r['lost']} | {r['reinitialised']} | "
+            + (f"{r['nees_coverage_95']:.2f}" if r["nees_coverage_95"] is not None else "-") + " |"
+        )
+    service = result.get("service")
+    if service:
+        lines += ["", f"Service, {service['clients']} clients tracking at once over POST /v1/track (160x120 RGB-D, "
+                      f"{service['frames']} frames each): frames/s per client min {service['frames_per_second_min']:.2f}, "
+                      f"mean {service['frames_per_second_mean']:.2f}; ADD mean per client "
+                      + ", ".join(f"{c['add_mean_m'] * 100:.2f} cm" if "error" not in c else c["error"]
+                                  for c in service["per_client"])]
+    return "\n".join(lines)
+
+
+def main(args: argparse.Namespace) -> int:
+    """``narf bench track``: ``args`` has ``work``, ``models``, ``tools``, ``frames``, ``sizes``,
+    ``modalities``, ``events``, ``iterations``, ``service_clients``, ``json``."""
+    tools = args.tools or sorted(p.stem for p in args.models.glob("*.narf"))
+    models, missing = {}, []
+    for tool in tools:
+        path = args.models / f"{tool}.narf"
+        if path.is_file():
+            models[tool] = load_bundle(path)
+        else:
+            missing.append(tool)
+    if not models:
+        raise ValueError(f"no model to benchmark: {args.models} has no bundle for {', '.join(tools) or 'any tool'}")
+    if missing:
+        print(f"narf bench track: skipping {', '.join(missing)}: no model in {args.models}", file=sys.stderr)
+    sizes = tuple(tuple(s) for s in args.sizes) if args.sizes else SIZES
+    options = TrackOptions(**({"iterations": args.iterations} if args.iterations else {}))
+    result = run(models, args.work, frames=args.frames, sizes=sizes, modalities=tuple(args.modalities),
+                 events=args.events, options=options)
+    if args.service_clients:
+        tool = next(iter(models))
+        dataset = Dataset.open(sequence(args.work, tool, (160, 120), args.frames, False))
+        result["service"] = service_run(args.models / f"{tool}.narf", dataset, args.service_clients,
+                                        min(args.frames, 40))
+    if args.json:
+        print(json.dumps({**result, "runs": [{k: v for k, v in r.items() if k != "rows"} for r in result["runs"]]},
+                         indent=1))
+    else:
+        print(markdown(result))
+    return 0
+
+
+def service_run(model_path: Path, dataset: Dataset, clients: int, frames: int) -> dict:
+    """``clients`` threads each tracking the first ``frames`` frames of ``dataset`` through
+    ``POST /v1/track`` on a server on loopback (one worker per core, the state in the token);
+    frames per second per client, counted after each client's first (initialising) frame."""
+    import threading
+
+    from narf_client import NarfClient, TrackFrame
+    from narf_service.app import create_app
+    from narf_service.main import serve_in_thread
+    from narf_service.registry import ModelRegistry
+    from narf_service.settings import Settings
+
+    labels = sequence_frames(dataset)[:frames]
+    sent = [TrackFrame(f.time, im.image, im.mask, im.depth) for f, im in zip(labels, load_frames(dataset, labels))]
+    K = dataset.camera.K.double().numpy()
+    model = load_bundle(model_path)
+    settings = Settings(models_dir=model_path.parent, state_key="bench-track-key-0123456789")
+    app = create_app(settings, registry=ModelRegistry(models={model.name: model}))
+    per_client: list[dict] = [{} for _ in range(clients)]
+
+    def client(i: int) -> None:
+        try:
+            track_all(i)
+        except Exception as e:  # noqa: BLE001 - reported in the result, beside the others' figures
+            per_client[i] = {"error": f"{type(e).__name__}: {e}"}
+
+    def track_all(i: int) -> None:
+        with NarfClient(url, timeout=120) as narf:
+            stamps, statuses, errors = [], [], []
+            for update in narf.track(sent, K, labels[0].T_cam_obj, model=model.name, initial_joints=labels[0].joints):
+                stamps.append(time.perf_counter())
+                statuses.append(update.status)
+                i_frame = len(stamps) - 1
+                errors.append(score(model, labels[i_frame], _as_result(update))["add_m"])
+        per_client[i] = {"frames_per_second": (len(stamps) - 1) / (stamps[-1] - stamps[0]),
+                         "lost": statuses.count("lost"), "add_mean_m": float(np.mean(errors))}
+
+    with serve_in_thread(app) as url:
+        threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    fps = [c["frames_per_second"] for c in per_client if "frames_per_second" in c]
+    return {"clients": clients, "frames": frames, "per_client": per_client,
+            "failed_clients": sum("error" in c for c in per_client),
+            "frames_per_second_min": min(fps, default=0.0), "frames_per_second_mean": float(np.mean(fps)) if fps else 0.0}
+
+
+def _as_result(update):
+    """A client update as what :func:`narf_core.track_io.score` reads (pose and joints)."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(T_cam_obj=np.asarray(update.pose.matrix), joints=update.joints)

@@ -1,0 +1,261 @@
+"""Video-like synthetic sequences for tracking (``narf synth --sequence FRAMES``).
+
+A sequence is a dataset in the usual format (docs/design.md §3) whose frames are in time order, every
+frame in the ``test`` split with a ``"time"`` in seconds (``1 / fps`` apart). The camera moves
+like a hand-held camera or a robot's head around the object (which stays at the world origin):
+
+  - it orbits at a drifting, oscillating azimuth, with elevation, distance and roll swaying
+    slowly and the look-at point wandering over the object;
+  - the joints open and close (a sine between the tool's smallest and largest trained values);
+  - with ``events`` (the default), the camera once glances away so that the object leaves the
+    view for a few frames, and a grey bar (a stand-in for an arm or a cable) sweeps across the
+    object once, occluding part of it; its pixels are background in the labels and carry the
+    bar's depth.
+
+The path is smooth (sums of sines and raised-cosine ramps) and slowed down uniformly, if needed,
+so that the camera never moves faster than ``max_speed_m_s`` nor turns faster than
+``max_turn_deg_s``. Per-frame ground truth is the frame's ``T_cam_obj`` and ``joints``; the
+generator block ``sequence`` records the fps, the limits, the measured peak speeds and, per
+frame, whether the object is in view and how much of it the bar hides.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from narf_core.data.dataset import DatasetWriter, FrameImages
+from narf_core.data.synth.generate import _versions, resolve_tool
+from narf_core.data.synth.render import BulletScene
+from narf_core.geometry import Pinhole, invert_pose, look_at, so3_log
+
+DEFAULT_FPS = 30.0
+_BAR_GREY = 90  # the occluder's colour (uint8)
+
+
+@dataclass(frozen=True)
+class SequencePath:
+    """The camera's path around the object and the joints' motion, as functions of time.
+
+    Distances in metres, angles in degrees, rates per second. ``glance_*``: the look-at point
+    moves ``glance_offset`` object radii sideways (a glance away) around ``glance_at`` (fraction
+    of the sequence) for ``glance_s`` seconds of path time (only in sequences at least twice as
+    long); ``occlusion_*``: the bar crosses the image around
+    ``occlusion_at`` in ``occlusion_s`` seconds.
+    """
+
+    distance: float = 0.55
+    distance_sway: float = 0.08
+    elevation_deg: float = 45.0
+    elevation_sway_deg: float = 15.0
+    azimuth_rate_deg: float = 20.0
+    azimuth_sway_deg: float = 12.0
+    roll_sway_deg: float = 4.0
+    target_wander: float = 0.2  # object radii
+    joint_period_s: float = 4.0
+    max_speed_m_s: float = 0.30
+    max_turn_deg_s: float = 60.0
+    glance_at: float = 0.45
+    glance_s: float = 2.4
+    glance_offset: float = 4.0
+    occlusion_at: float = 0.75
+    occlusion_s: float = 1.5
+
+    def camera(self, t: float, centre: np.ndarray, radius: float, phase: np.ndarray, glance: float) -> np.ndarray:
+        """``T_cam_obj [4, 4]`` at time ``t`` (s); ``glance`` in [0, 1] is how far the camera looks away."""
+        p = phase
+        azimuth = math.radians(p[0] * 360 + self.azimuth_rate_deg * t
+                               + self.azimuth_sway_deg * math.sin(2 * math.pi * 0.15 * t + p[1]))
+        elevation = math.radians(self.elevation_deg + self.elevation_sway_deg * math.sin(2 * math.pi * 0.11 * t + p[2]))
+        distance = self.distance + self.distance_sway * math.sin(2 * math.pi * 0.13 * t + p[3])
+        wander = self.target_wander * radius * np.array(
+            [math.sin(2 * math.pi * 0.17 * t + p[4]), math.sin(2 * math.pi * 0.19 * t + p[5]),
+             math.sin(2 * math.pi * 0.23 * t + p[6])]
+        )
+        ce, se = math.cos(elevation), math.sin(elevation)
+        direction = np.array([ce * math.cos(azimuth), ce * math.sin(azimuth), se])
+        side = np.array([-math.sin(azimuth), math.cos(azimuth), 0.0])
+        target = centre + wander + glance * self.glance_offset * radius * side
+        eye = centre + wander + distance * direction
+        T_obj_cam = look_at(torch.from_numpy(eye), torch.from_numpy(target), torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+        roll = math.radians(self.roll_sway_deg * math.sin(2 * math.pi * 0.21 * t + p[7]))
+        c, s = math.cos(roll), math.sin(roll)
+        T_obj_cam[:3, :3] = T_obj_cam[:3, :3] @ torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        return invert_pose(T_obj_cam).numpy()
+
+
+def raised_cosine(x: float) -> float:
+    """A smooth bump on ``x`` in [-1, 1]: 0 outside, 1 at 0, with zero slope at both ends and the top."""
+    if abs(x) >= 1:
+        return 0.0
+    return 0.5 * (1 + math.cos(math.pi * x))
+
+
+def camera_speeds(poses: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Speed (m/s) of the camera's centre and turn rate (deg/s) between consecutive ``T_cam_obj [N,4,4]``."""
+    T_obj_cam = np.linalg.inv(poses)
+    dt = np.diff(times)
+    speed = np.linalg.norm(np.diff(T_obj_cam[:, :3, 3], axis=0), axis=1) / dt
+    R = T_obj_cam[:, :3, :3]
+    relative = torch.from_numpy(np.einsum("nji,njk->nik", R[:-1], R[1:]))
+    turn = np.degrees(so3_log(relative).norm(dim=-1).numpy()) / dt
+    return speed, turn
+
+
+@dataclass
+class _Plan:
+    times: np.ndarray  # [N] s
+    poses: np.ndarray  # [N, 4, 4]
+    joints: list[dict[str, float]]
+    occluder: list[float | None]  # the bar's centre as a fraction of the image width, or None
+    time_scale: float  # path time per real second (< 1 when slowed down to the limits)
+
+
+def plan_sequence(
+    frames: int,
+    fps: float,
+    centre: np.ndarray,
+    radius: float,
+    joint_ranges: dict[str, tuple[float, float]],
+    rng: np.random.Generator,
+    path: SequencePath = SequencePath(),
+    events: bool = True,
+) -> _Plan:
+    """Poses, joints and occluder positions of ``frames`` frames at ``fps``, within the speed limits."""
+    phase = rng.uniform(0, 2 * math.pi, size=8)
+    phase[0] = rng.uniform()
+    joint_phase = {name: rng.uniform(0, 2 * math.pi) for name in joint_ranges}
+    duration = frames / fps
+    real_times = np.arange(frames) / fps
+    glances = events and duration >= 2 * path.glance_s
+
+    def glance(tau: float, scale: float) -> float:  # in path time, so that slowing down slows the glance too
+        if not glances:
+            return 0.0
+        return raised_cosine((tau - scale * path.glance_at * duration) / (0.5 * path.glance_s))
+
+    def poses_at(scale: float) -> np.ndarray:
+        return np.stack([path.camera(scale * t, centre, radius, phase, glance(scale * t, scale)) for t in real_times])
+
+    scale = 1.0
+    poses = poses_at(scale)
+    if frames > 1:  # slow the path down (uniformly) until it keeps to the limits
+        for _ in range(8):
+            speed, turn = camera_speeds(poses, real_times)
+            excess = max(float(speed.max()) / path.max_speed_m_s, float(turn.max()) / path.max_turn_deg_s)
+            if excess <= 1.0:
+                break
+            scale /= excess * 1.02
+            poses = poses_at(scale)
+    joints = []
+    for t in real_times:
+        joints.append({
+            name: lo + (hi - lo) * 0.5 * (1 - math.cos(2 * math.pi * t / path.joint_period_s + joint_phase[name]))
+            for name, (lo, hi) in joint_ranges.items()
+        })
+    occluder: list[float | None] = []
+    for t in real_times:
+        x = (t - path.occlusion_at * duration) / (0.5 * path.occlusion_s)
+        occluder.append(0.5 + 0.8 * x if events and abs(x) < 1 else None)
+    return _Plan(real_times, poses, joints, occluder, scale)
+
+
+def occlude(images: FrameImages, centre_x: float, T_cam_obj: np.ndarray, radius: float) -> tuple[FrameImages, float]:
+    """``images`` with a vertical grey bar (a fifth of the width) centred at ``centre_x`` (fraction of
+    the width) in front of the object, and the fraction of the object's pixels it hides."""
+    h, w = images.labels.shape
+    half = max(1, w // 10)
+    cx = int(round(centre_x * w))
+    cols = slice(max(0, cx - half), min(w, cx + half))
+    visible_before = int(np.count_nonzero(images.labels))
+    rgb, labels = images.rgb.copy(), images.labels.copy()
+    depth = None if images.depth is None else images.depth.copy()
+    rgb[:, cols] = _BAR_GREY
+    labels[:, cols] = 0
+    if depth is not None:
+        bar_z = max(0.05, float(np.linalg.norm(T_cam_obj[:3, 3])) - 2 * radius)
+        depth[:, cols] = bar_z
+    hidden = visible_before - int(np.count_nonzero(labels))
+    return FrameImages(rgb, depth, labels), hidden / visible_before if visible_before else 0.0
+
+
+def _joint_ranges(urdf, train, novel) -> dict[str, tuple[float, float]]:
+    """Per joint, the range the motion covers: the tool's trained and novel values, else 10-90% of the limits."""
+    if train is not None and novel is not None:
+        values = {}
+        for config in [*train, *novel]:
+            for name, v in config.items():
+                values.setdefault(name, []).append(v)
+        return {name: (min(v), max(v)) for name, v in values.items()}
+    return {j["name"]: (j["lower"] + 0.1 * (j["upper"] - j["lower"]), j["upper"] - 0.1 * (j["upper"] - j["lower"]))
+            for j in urdf.joints}
+
+
+def synthesize_sequence(
+    tool: str | Path,
+    out: str | Path,
+    frames: int,
+    size: tuple[int, int] = (160, 120),
+    seed: int = 0,
+    *,
+    fps: float = DEFAULT_FPS,
+    events: bool = True,
+    background: bool = False,
+    supersample: int = 3,
+    path: SequencePath = SequencePath(),
+    overwrite: bool = False,
+    progress: bool = False,
+) -> Path:
+    """Render a ``frames``-long sequence of ``tool`` into ``out`` and return ``out`` (see the module docstring).
+
+    ``events`` adds the glance away (the object leaves the view) and the occluding bar;
+    ``size`` is ``(width, height)`` with a Primesense-like camera scaled to it.
+    """
+    width, height = (int(v) for v in size)
+    if width <= 0 or height <= 0:
+        raise ValueError(f"image size must be positive, got {width}x{height}")
+    if frames < 2:
+        raise ValueError(f"a sequence needs at least 2 frames, got {frames}")
+    if not (math.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be a positive number, got {fps}")
+    camera = Pinhole.primesense(width, height)
+    rng = np.random.default_rng(seed)
+    out = Path(out)
+    with tempfile.TemporaryDirectory(prefix="narf-seq-") as workdir:
+        urdf, train, novel = resolve_tool(tool, Path(workdir))
+        ranges = _joint_ranges(urdf, train, novel)
+        texture_seed = int(rng.integers(2**31))
+        with BulletScene(urdf, background=background, texture_seed=texture_seed) as scene:
+            scene.set_configuration({name: 0.5 * (lo + hi) for name, (lo, hi) in ranges.items()})
+            bounds = scene.bounds()
+            centre, radius = bounds.mean(0), 0.5 * float(np.linalg.norm(bounds[1] - bounds[0]))
+            plan = plan_sequence(frames, fps, centre, radius, ranges, rng, path, events)
+            speed, turn = camera_speeds(plan.poses, plan.times)
+            per_frame: list[dict] = []
+            generator = {
+                "tool": str(tool), "seed": seed, "size": [width, height], "views": {"test": frames},
+                "background": background, "supersample": supersample, "noise": None, "versions": _versions(),
+                "sequence": {
+                    "fps": fps, "frames": frames, "events": events, "path": asdict(path),
+                    "time_scale": plan.time_scale, "peak_speed_m_s": float(speed.max()),
+                    "peak_turn_deg_s": float(turn.max()), "joint_ranges": {k: list(v) for k, v in ranges.items()},
+                    "per_frame": per_frame,
+                },
+            }
+            with DatasetWriter(out, urdf, camera, generator, overwrite=overwrite) as writer:
+                for i in tqdm(range(frames), desc=f"sequence {Path(str(tool)).stem}", unit="frame", disable=not progress):
+                    scene.set_configuration(plan.joints[i])
+                    images = scene.render(camera, plan.poses[i], supersample)
+                    pixels = int(np.count_nonzero(images.labels))
+                    hidden = 0.0
+                    if plan.occluder[i] is not None:
+                        images, hidden = occlude(images, plan.occluder[i], plan.poses[i], radius)
+                    per_frame.append({"in_view": pixels > 0, "object_pixels": pixels, "occluded": round(hidden, 4)})
+                    writer.add("test", images, plan.poses[i], plan.joints[i], time=float(plan.times[i]))
+    return out
