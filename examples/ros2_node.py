@@ -4,13 +4,18 @@
 
 Subscribes (remap as needed):
   image         sensor_msgs/Image, rgb8 or bgr8
+  depth         sensor_msgs/Image, 16UC1 millimetres or 32FC1 metres, registered to ``image``
+                (parameter ``use_depth``, default true; false: RGB only)
   mask          sensor_msgs/Image, mono8 (non-zero = object), stamped like ``image``
   camera_info   sensor_msgs/CameraInfo (``k``, images undistorted upstream)
   initial_pose  geometry_msgs/PoseStamped: where to start (re)tracking, in the camera frame
 Publishes:
-  ~/pose          geometry_msgs/PoseStamped, ``T_cam_obj`` in the image's frame, the image's stamp
+  ~/pose          geometry_msgs/PoseWithCovarianceStamped, ``T_cam_obj`` in the image's frame with the
+                  tracker's covariance, the image's stamp (nothing while the track is lost)
   ~/joint_states  sensor_msgs/JointState
-Each estimate starts from the previous one (tracking); frames arriving while one runs are dropped.
+Frames go to ``POST /v1/track`` with the image's stamp as their time; the node keeps only the
+server's state token, so any replica behind ``server_url`` can answer. Frames arriving while one
+is in flight are dropped.
 
 ROS is imported only in :func:`main`. Everything else here is a pure conversion between ROS message
 fields and numpy / narf_client types, tested without ROS (tests/test_ros_conversions.py).
@@ -131,76 +136,106 @@ def joints_to_msg(joints: Mapping[str, float], msg: Any) -> Any:
     return msg
 
 
+def covariance_to_ros(covariance: np.ndarray, pose: Pose, centre_obj: np.ndarray) -> list[float]:
+    """The tracker's ``covariance [6 + k, 6 + k]`` (the object's box centre's displacement and the
+    rotation about that centre, camera axes) as ``PoseWithCovariance.covariance``: 36 values, row-major,
+    (x, y, z, rotation about x, y, z) of the pose's origin in the camera frame.
+
+    The origin is ``c - R c_obj``; turning by ``δω`` about the centre moves it by ``δω x (-R c_obj)``,
+    so ``δorigin = δc + [R c_obj]x δω``.
+    """
+    S = np.asarray(covariance, dtype=np.float64)[:6, :6]
+    a = pose.matrix[:3, :3] @ np.asarray(centre_obj, dtype=np.float64)
+    J = np.eye(6)
+    J[:3, 3:] = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return (J @ S @ J.T).ravel().tolist()
+
+
+def stamp_seconds(stamp: Any) -> float:
+    """``builtin_interfaces/Time`` -> seconds."""
+    return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+
+
 def main(args: list[str] | None = None) -> int:
     import threading
 
     import rclpy
-    from geometry_msgs.msg import PoseStamped
+    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
     from message_filters import ApproximateTimeSynchronizer, Subscriber
     from rclpy.node import Node
     from sensor_msgs.msg import CameraInfo, Image, JointState
 
-    from narf_client import NarfClient, NarfError
+    from narf_client import NarfClient, NarfError, TrackFrame
 
-    class NarfEstimator(Node):
+    class NarfTracker(Node):
         def __init__(self) -> None:
-            super().__init__("narf_estimator")
+            super().__init__("narf_tracker")
             url = self.declare_parameter("server_url", "http://127.0.0.1:8000").value
             token = self.declare_parameter("token", "").value or None
             self.model = self.declare_parameter("model", "clamp").value
-            self.iterations = self.declare_parameter("iterations", 100).value
+            self.options = {"iterations": self.declare_parameter("iterations", 10).value}
+            use_depth = self.declare_parameter("use_depth", True).value
             self.client = NarfClient(url, token)
+            bounds = self.client.model(self.model).bounds
+            self.centre = bounds.mean(0) if bounds is not None else np.zeros(3)
             self.camera: tuple[np.ndarray, int, int] | None = None
-            self.pose: Pose | None = None
-            self.joints: dict[str, float] | None = None
+            self.initial: Pose | None = None
+            self.state: str | None = None  # the server's token: all the tracking state there is
             self.busy = threading.Lock()
-            self.pose_pub = self.create_publisher(PoseStamped, "~/pose", 10)
+            self.pose_pub = self.create_publisher(PoseWithCovarianceStamped, "~/pose", 10)
             self.joints_pub = self.create_publisher(JointState, "~/joint_states", 10)
             self.create_subscription(CameraInfo, "camera_info", self.on_camera_info, 10)
             self.create_subscription(PoseStamped, "initial_pose", self.on_initial_pose, 10)
-            sync = ApproximateTimeSynchronizer([Subscriber(self, Image, "image"), Subscriber(self, Image, "mask")], 5, 0.05)
+            topics = [Subscriber(self, Image, "image"), Subscriber(self, Image, "mask")]
+            if use_depth:
+                topics.append(Subscriber(self, Image, "depth"))
+            sync = ApproximateTimeSynchronizer(topics, 5, 0.02)
             sync.registerCallback(self.on_frame)
 
         def on_camera_info(self, msg: CameraInfo) -> None:
             self.camera = camera_info_to_k(msg)
 
         def on_initial_pose(self, msg: PoseStamped) -> None:
-            self.pose, self.joints = pose_from_msg(msg.pose), None
+            self.initial, self.state = pose_from_msg(msg.pose), None  # (re)start the track there
 
-        def on_frame(self, image: Image, mask: Image) -> None:
-            if self.camera is None or self.pose is None or not self.busy.acquire(blocking=False):
-                return  # no calibration or starting pose yet, or still working on the previous frame
-            threading.Thread(target=self.estimate, args=(image, mask), daemon=True).start()
+        def on_frame(self, image: Image, mask: Image, depth: Image | None = None) -> None:
+            if self.camera is None or (self.state is None and self.initial is None):
+                return  # no calibration or starting pose yet
+            if not self.busy.acquire(blocking=False):
+                return  # still working on the previous frame
+            threading.Thread(target=self.track, args=(image, mask, depth), daemon=True).start()
 
-        def estimate(self, image: Image, mask: Image) -> None:
+        def track(self, image: Image, mask: Image, depth: Image | None) -> None:
             try:
                 K, _, _ = self.camera
-                est = self.client.estimate(
-                    image_to_array(image),
-                    mask_to_array(mask),
-                    K,
-                    self.pose,
-                    model=self.model,
-                    initial_joints=self.joints,
-                    iterations=self.iterations,
-                )
+                frame = TrackFrame(stamp_seconds(image.header.stamp), image_to_array(image), mask_to_array(mask),
+                                   None if depth is None else depth_to_metres(depth))
+                update = self.client.track_step(frame, K, model=self.model, state=self.state,
+                                                initial_pose=self.initial, options=self.options)
             except (NarfError, ValueError) as e:
-                self.get_logger().warning(f"estimate failed: {e}")
+                self.get_logger().warning(f"track failed: {e}")
+                if getattr(e, "field", None) in ("request.state", "request.time"):
+                    self.state = None  # e.g. a stamp that went backwards (a bag looped): start again
                 return
             finally:
                 self.busy.release()
-            self.pose, self.joints = est.pose, est.joints
-            out = PoseStamped()
+            self.state = update.state
+            if update.status == "lost":
+                self.get_logger().info(f"lost: {update.reason}")
+                return
+            out = PoseWithCovarianceStamped()
             out.header = image.header
-            pose_to_msg(est.pose, out.pose)
+            pose_to_msg(update.pose, out.pose.pose)
+            if update.uncertainty is not None:
+                out.pose.covariance = covariance_to_ros(update.uncertainty.covariance, update.pose, self.centre)
             self.pose_pub.publish(out)
-            state = joints_to_msg(est.joints, JointState())
-            state.header = image.header
-            self.joints_pub.publish(state)
-            self.get_logger().info(f"loss {est.loss}, {est.iterations} iterations, {est.seconds:.2f} s ({est.status})")
+            joints = joints_to_msg(update.joints, JointState())
+            joints.header = image.header
+            self.joints_pub.publish(joints)
+            self.get_logger().debug(f"{update.status}, {update.seconds * 1000:.0f} ms")
 
     rclpy.init(args=args)
-    node = NarfEstimator()
+    node = NarfTracker()
     try:
         rclpy.spin(node)
     except KeyboardInterrupt:

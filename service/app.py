@@ -1,15 +1,17 @@
-"""The HTTP API v1 (DESIGN §8): render and estimate with the served models.
+"""The HTTP API v1 (docs/design.md §8): render and estimate with the served models.
 
 ``create_app()`` builds the FastAPI app; models are loaded once, in the lifespan, from
 ``settings.models_dir``. Compute runs on a bounded :class:`~narf_service.workers.WorkQueue`; a full
-queue answers 503 with ``Retry-After``. Every error has the body ``{"error": {"code", "message",
-"field"?}}`` (see :mod:`narf_service.errors`).
+queue answers 503 with ``Retry-After``; a client that disconnects cancels its job. Every error has
+the body ``{"error": {"code", "message", "field"?}}`` (see :mod:`narf_service.errors`). The token,
+timeouts and body limits are enforced before a route runs (:mod:`narf_service.guards`,
+:mod:`narf_service.limits`, :mod:`narf_service.bodies`).
 """
 
 from __future__ import annotations
 
 import asyncio
-import hmac
+import pathlib
 import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
@@ -19,12 +21,15 @@ import torch
 from fastapi import APIRouter, Depends, FastAPI, File, Form, Header, Path, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi.staticfiles import StaticFiles
 from pydantic import Json
 
-from narf_service import jobs
-from narf_service.engine import Engine
 from narf_core.threads import AUTO, choose_threads
+from narf_service import jobs
+from narf_service.bodies import CLIENT_CLOSED_REQUEST, GuardedBodyRoute
+from narf_service.engine import Engine
 from narf_service.errors import ApiError, install_error_handlers, invalid
+from narf_service.guards import AuthGate, BodyDeadline, authorized
 from narf_service.limits import BodySizeLimit
 from narf_service.monitoring import MetricsMiddleware, ServiceMetrics
 from narf_service.registry import MODEL_NAME_MAX, MODEL_NAME_PATTERN, ModelRegistry
@@ -41,11 +46,13 @@ from narf_service.schemas import (
     RenderResponse,
 )
 from narf_service.settings import Settings
-from narf_service.workers import QueueFull, WorkQueue
+from narf_service.workers import QueueFull, Stop, WorkQueue
 
 T = TypeVar("T")
 
 API_VERSION = "1"
+VIEWER_DIR = pathlib.Path(__file__).resolve().parent / "viewer"
+"""The web viewer's static files (plain HTML, CSS and JavaScript modules), served at ``/viewer``."""
 PNG = "image/png"
 
 
@@ -88,11 +95,10 @@ _bearer = HTTPBearer(auto_error=False, description="Required when the server run
 async def require_token(
     request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 ) -> None:
-    token = request.app.state.settings.token
-    if token is None:
-        return
-    given = credentials.credentials.encode() if credentials is not None else b""
-    if not hmac.compare_digest(given, token.get_secret_value().encode()):
+    """The token check as a dependency, for the OpenAPI document; :class:`AuthGate` has already
+    refused a request without it, before its body was read."""
+    given = None if credentials is None else f"Bearer {credentials.credentials}"
+    if not authorized(request.app.state.settings, given):
         raise ApiError(401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"})
 
 
@@ -100,13 +106,38 @@ def _registry(request: Request) -> ModelRegistry:
     return request.app.state.registry
 
 
-async def _run(request: Request, fn: Callable[[], T]) -> T:
-    """Run ``fn`` on the work queue; 503 with ``Retry-After`` when the queue is full."""
+async def _run(request: Request, fn: Callable[[Stop], T]) -> T | Response:
+    """Run ``fn(stop)`` on the work queue; 503 with ``Retry-After`` when the queue is full.
+
+    If the client disconnects first, the job is cancelled (a waiting one never starts, a running one
+    sees ``stop()`` say ``"cancelled"``) and the answer, which nobody reads, is a bare 499.
+    """
+    stop = Stop(request.app.state.settings.max_seconds)
     try:
-        return await request.app.state.queue.run(fn)
+        future = request.app.state.queue.submit(lambda: fn(stop), stop)
     except QueueFull as e:
         request.app.state.metrics.rejected.inc()
         raise ApiError(503, str(e), headers={"Retry-After": str(e.retry_after_s)}) from None
+    work = asyncio.wrap_future(future)
+    gone = asyncio.ensure_future(_disconnected(request))
+    try:
+        await asyncio.wait({work, gone}, return_when=asyncio.FIRST_COMPLETED)
+    finally:  # on a disconnect, and also when this coroutine is cancelled (server shutdown)
+        gone.cancel()
+        if not work.done():
+            future.cancel()
+            stop.cancel()
+            work.cancel()
+    if work.done() and not work.cancelled():
+        return work.result()
+    request.app.state.metrics.cancelled.inc()
+    return Response(status_code=CLIENT_CLOSED_REQUEST)
+
+
+async def _disconnected(request: Request) -> None:
+    """Returns when the client has gone (called once the body is read: nothing else can arrive)."""
+    while (await request.receive())["type"] != "http.disconnect":
+        pass
 
 
 def _check_pixels(camera: Camera, settings: Settings, field: str) -> None:
@@ -117,7 +148,9 @@ def _check_pixels(camera: Camera, settings: Settings, field: str) -> None:
         raise ApiError(413, message, field=field)
 
 
-v1 = APIRouter(prefix="/v1", dependencies=[Depends(require_token)], responses=_errors(401))
+v1 = APIRouter(
+    prefix="/v1", dependencies=[Depends(require_token)], responses=_errors(401), route_class=GuardedBodyRoute
+)
 
 
 @v1.get("/models", response_model=ModelList, summary="The served models")
@@ -163,9 +196,12 @@ async def render(
     if prefers_png(accept):
         if len(body.outputs) != 1:
             raise invalid("outputs", f"'Accept: {PNG}' returns one image; ask for exactly one output")
-        png, seconds = await _run(request, lambda: jobs.render_png(model, body))
+        answer = await _run(request, lambda stop: jobs.render_png(model, body, stop))
+        if isinstance(answer, Response):
+            return answer
+        png, seconds = answer
         return Response(png, media_type=PNG, headers={"X-Render-Seconds": f"{seconds:.6f}"})
-    return await _run(request, lambda: jobs.render_json(body.model, model, body))
+    return await _run(request, lambda stop: jobs.render_json(body.model, model, body, stop))
 
 
 @v1.post(
@@ -198,16 +234,26 @@ async def estimate(
     jobs.check_mode(model, params.options.mode, "request.options.mode")
     if params.ground_truth is not None:
         jobs.check_joints(model, params.ground_truth.joints, "request.ground_truth.joints", complete=True)
+    engine: Engine = request.app.state.engine
+    options = jobs.refine_options(engine, params, "request.options")
+    jobs.check_work(options, settings.max_work_rays, "request.options")
     uploads = {
         "image": await image.read(),
         "mask": await mask.read(),
         "depth": await depth.read() if depth is not None else None,
     }
-    engine: Engine = request.app.state.engine
     return await _run(
         request,
-        lambda: jobs.estimate(
-            engine, params.model, model, params, uploads, max_pixels=settings.max_image_pixels, started=started
+        lambda stop: jobs.estimate(
+            engine,
+            params.model,
+            model,
+            params,
+            uploads,
+            options=options,
+            max_pixels=settings.max_image_pixels,
+            started=started,
+            should_stop=stop,
         ),
     )
 
@@ -220,15 +266,25 @@ async def healthz() -> Health:
     return Health()
 
 
+@ops.head("/healthz", include_in_schema=False)  # load balancers probe with HEAD
+async def healthz_head() -> Response:
+    return Response(media_type="application/json")
+
+
 @ops.get(
     "/readyz",
     response_model=Readiness,
     responses={503: {"model": Readiness}},
     summary="Readiness: at least one model is loaded",
+    description="`failed` names the bundles that were refused, with a one-line reason; when the server "
+    "has a token, the reasons are shown only to requests that carry it.",
 )
-async def readyz(registry: Annotated[ModelRegistry, Depends(_registry)]) -> Any:
+async def readyz(request: Request, registry: Annotated[ModelRegistry, Depends(_registry)]) -> Any:
     ready = len(registry) > 0
-    body = Readiness(status="ready" if ready else "not_ready", models=list(registry), failed=registry.failed)
+    failed = registry.failed
+    if not authorized(request.app.state.settings, request.headers.get("authorization")):
+        failed = {name: "not loaded" for name in failed}
+    body = Readiness(status="ready" if ready else "not_ready", models=list(registry), failed=failed)
     return body if ready else JSONResponse(body.model_dump(), status_code=503)
 
 
@@ -284,7 +340,14 @@ def create_app(
     install_error_handlers(app)
     app.include_router(v1)
     app.include_router(ops)
+    from narf_service import tracking  # POST /v1/track; imports this module, so not at its top
+
+    tracking.install(app, settings)
+    # The viewer needs the token like any route unless NARF_PUBLIC_ROUTES lists /viewer; its API calls carry it.
+    app.mount("/viewer", StaticFiles(directory=VIEWER_DIR, html=True), name="viewer")
+    app.add_middleware(BodyDeadline, seconds=settings.body_timeout_s)
     app.add_middleware(BodySizeLimit, max_bytes=settings.max_body_bytes)
+    app.add_middleware(AuthGate, settings=settings)  # outside the body limit: no byte is read before the token
     app.add_middleware(MetricsMiddleware, metrics=metrics)
     return app
 

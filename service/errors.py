@@ -24,6 +24,7 @@ _CODES = {
     404: "not_found",
     405: "method_not_allowed",
     406: "not_acceptable",
+    408: "request_timeout",
     413: "too_large",
     415: "unsupported_media_type",
     422: "invalid_input",
@@ -102,7 +103,8 @@ async def _validation_error(_: Request, exc: Exception) -> JSONResponse:
         detail = (first.get("ctx") or {}).get("error", "")
         return JSONResponse(error_body("malformed_json", f"{where}: malformed JSON ({detail})".strip(), where), 400)
     where = field_path(first.get("loc", ()))
-    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+    total = getattr(exc, "total", len(errors))  # bodies validated off the loop report their first error and a count
+    more = f" (and {total - 1} more)" if total > 1 else ""
     return JSONResponse(error_body("invalid_input", f"{where}: {_validation_message(first)}{more}", where), 422)
 
 

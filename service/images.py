@@ -1,16 +1,19 @@
-"""Image codecs at the HTTP edge: PNG/JPEG in, PNG out, depth as 16-bit millimetres (DESIGN §2).
+"""Image codecs at the HTTP edge: PNG/JPEG in, PNG out, depth as 16-bit millimetres (docs/design.md §2).
 
 Every decoder checks the pixel count from the file header *before* decoding, so a small file
-that claims to be a huge image (a decompression bomb) is refused without allocating it.
+that claims to be a huge image (a decompression bomb, a ``.npy`` header declaring any shape) is
+refused without allocating it, and whatever a decoder raises on hostile bytes is a 422 naming the
+part. A JPEG's EXIF orientation is applied, so the array is the image as it is meant to be seen.
 """
 
 from __future__ import annotations
 
 import io
+import math
 import warnings
 
 import numpy as np
-from PIL import Image
+from PIL import Image, ImageOps
 
 from narf_service.errors import ApiError, invalid
 
@@ -28,7 +31,7 @@ def _open(data: bytes, field: str, max_pixels: int, formats: tuple[str, ...]) ->
             image = Image.open(io.BytesIO(data), formats=list(formats))
     except (Image.DecompressionBombWarning, Image.DecompressionBombError):
         raise ApiError(413, f"{field}: image exceeds the limit of {max_pixels} pixels", field=field) from None
-    except (OSError, ValueError, SyntaxError):
+    except Exception:  # whatever a decoder raises on hostile bytes (OSError, SyntaxError, struct.error, ...)
         raise invalid(field, f"not a readable {' or '.join(formats)} image") from None
     w, h = image.size
     if w * h > max_pixels:
@@ -37,7 +40,7 @@ def _open(data: bytes, field: str, max_pixels: int, formats: tuple[str, ...]) ->
         raise invalid(field, f"image has no pixels ({w}x{h})")
     try:
         image.load()
-    except (OSError, ValueError, SyntaxError):
+    except Exception:
         raise invalid(field, f"truncated or corrupt {image.format} data") from None
     return image
 
@@ -47,6 +50,10 @@ def decode_rgb(data: bytes, field: str, max_pixels: int) -> np.ndarray:
     image = _open(data, field, max_pixels, ("PNG", "JPEG"))
     if image.mode not in ("RGB", "RGBA", "P"):
         raise invalid(field, f"expected an RGB image, got mode {image.mode!r}")
+    try:
+        image = ImageOps.exif_transpose(image)  # a phone's JPEG is stored sideways, with an orientation tag
+    except Exception:
+        raise invalid(field, "corrupt EXIF data") from None
     return np.array(image.convert("RGB"), dtype=np.uint8)  # a writable copy: torch.from_numpy needs one
 
 
@@ -64,14 +71,7 @@ def decode_depth(data: bytes, field: str, max_pixels: int) -> np.ndarray:
     NaN and +-inf (ROS 32FC1's "no return" markers) become 0; negative depths are an error.
     """
     if data.startswith(NPY_MAGIC):
-        try:
-            array = np.load(io.BytesIO(data), allow_pickle=False)
-        except (ValueError, OSError, EOFError):
-            raise invalid(field, "not a readable .npy array") from None
-        if array.ndim != 2 or array.dtype.kind != "f":
-            raise invalid(field, f"expected a 2-D float array in metres, got {array.dtype} {list(array.shape)}")
-        if array.size > max_pixels:
-            raise ApiError(413, f"{field}: {array.size} pixels exceeds the limit of {max_pixels}", field=field)
+        array = _read_npy(data, field, max_pixels)
         depth = np.where(np.isfinite(array), array, 0).astype(np.float32)
     elif data.startswith(PNG_MAGIC):
         image = _open(data, field, max_pixels, ("PNG",))
@@ -83,6 +83,32 @@ def decode_depth(data: bytes, field: str, max_pixels: int) -> np.ndarray:
     if (depth < 0).any():
         raise invalid(field, f"negative depth ({float(depth.min()):.3g} m)")
     return depth
+
+
+def _read_npy(data: bytes, field: str, max_pixels: int) -> np.ndarray:
+    """A ``.npy`` float array ``[H, W]``, its header checked (shape, dtype, pixel count, byte count)
+    before any allocation: the header alone can ask for any size."""
+    stream = io.BytesIO(data)
+    try:
+        version = np.lib.format.read_magic(stream)
+        read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+        if version not in read_header:
+            raise ValueError(f"unsupported .npy version {version}")
+        shape, fortran_order, dtype = read_header[version](stream)
+    except (ValueError, OSError, EOFError, SyntaxError, TypeError, MemoryError):
+        raise invalid(field, "not a readable .npy array") from None
+    if len(shape) != 2 or dtype.kind != "f" or dtype.hasobject:
+        raise invalid(field, f"expected a 2-D float array in metres, got {dtype} {list(shape)}")
+    pixels = math.prod(shape)
+    if pixels > max_pixels:
+        raise ApiError(413, f"{field}: {pixels} pixels exceeds the limit of {max_pixels}", field=field)
+    if pixels == 0:
+        raise invalid(field, f"array has no pixels ({list(shape)})")
+    if len(data) - stream.tell() != pixels * dtype.itemsize:
+        needed = pixels * dtype.itemsize
+        raise invalid(field, f"truncated or padded .npy data: {list(shape)} {dtype} needs {needed} bytes")
+    array = np.frombuffer(data, dtype=dtype, count=pixels, offset=stream.tell())
+    return array.reshape(shape, order="F" if fortran_order else "C")
 
 
 def encode_png(array: np.ndarray) -> bytes:

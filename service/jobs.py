@@ -9,7 +9,7 @@ from __future__ import annotations
 import base64
 import math
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -38,6 +38,7 @@ from narf_service.schemas import (
     PoseOut,
     RenderRequest,
     RenderResponse,
+    UncertaintyOut,
 )
 
 if TYPE_CHECKING:
@@ -103,24 +104,59 @@ def _theta(model: NarfModel, joints: Mapping[str, float] | None, field: str) -> 
         raise invalid(field, str(e)) from None
 
 
-def render_images(model: NarfModel, request: RenderRequest) -> tuple[dict[str, np.ndarray], Tensor, float]:
-    """The asked images, encoded-ready (``rgb``/``opacity`` uint8, ``depth`` uint16 mm), θ and seconds."""
+BAND_PIXELS = 1 << 18
+"""A render is made in bands of rows of about this many pixels, ``should_stop`` polled between them
+(a 160x120 image is one band; 2048x2048, 16 bands of a second or so each on one CPU core)."""
+
+
+def _bands(camera: Pinhole) -> list[Pinhole]:
+    """``camera`` cut into bands of whole rows, top to bottom. A band's camera is the image's with
+    the principal point moved up to the band's first row, so its rays are the image's rays."""
+    rows = max(1, BAND_PIXELS // camera.width)
+    bands = []
+    for top in range(0, camera.height, rows):
+        K = camera.K.clone()
+        K[1, 2] -= top
+        bands.append(Pinhole(K, camera.width, min(rows, camera.height - top)))
+    return bands
+
+
+def render_images(
+    model: NarfModel, request: RenderRequest, should_stop: Callable[[], str | None] | None = None
+) -> tuple[dict[str, np.ndarray], Tensor, float]:
+    """The asked images, encoded-ready (``rgb``/``opacity`` uint8, ``depth`` uint16 mm), θ and seconds.
+
+    ``should_stop`` is polled between bands of rows; a status it returns ends the render with a 422
+    of that code (``budget_exceeded``: the image is too large for the server's time budget).
+    """
     start = time.perf_counter()
     device = model.aabb.device
     theta = _theta(model, request.joints, "joints").to(device)
     T = torch.as_tensor(request.pose.as_matrix(), dtype=torch.float32, device=device)
+    parts = []
     try:
         with torch.inference_mode():
-            out = model.render(T, theta, pinhole(request.camera, device), outputs=tuple(request.outputs), mode=request.mode)
+            for band in _bands(pinhole(request.camera, device)):
+                if should_stop is not None and (reason := should_stop()):
+                    seconds = time.perf_counter() - start
+                    message = (
+                        f"camera: the render stopped ({reason}) after {seconds:.1f} s, beyond this server's time "
+                        "budget per request; ask for fewer pixels"
+                    )
+                    raise ApiError(422, message, field="camera", code=reason)
+                parts.append(model.render(T, theta, band, outputs=tuple(request.outputs), mode=request.mode))
     except ValueError as e:
         raise ApiError(422, str(e)) from None
+    out = {name: torch.cat([part[name] for part in parts]) for name in request.outputs}
     convert = {"rgb": rgb_to_uint8, "depth": depth_to_mm, "opacity": opacity_to_uint8}
     images = {name: convert[name](out[name].detach().float().cpu().numpy()) for name in request.outputs}
     return images, theta.cpu(), time.perf_counter() - start
 
 
-def render_json(name: str, model: NarfModel, request: RenderRequest) -> RenderResponse:
-    images, theta, seconds = render_images(model, request)
+def render_json(
+    name: str, model: NarfModel, request: RenderRequest, should_stop: Callable[[], str | None] | None = None
+) -> RenderResponse:
+    images, theta, seconds = render_images(model, request, should_stop)
     encoded = {k: base64.b64encode(encode_png(v)).decode("ascii") for k, v in images.items()}
     return RenderResponse(
         model=name,
@@ -134,14 +170,76 @@ def render_json(name: str, model: NarfModel, request: RenderRequest) -> RenderRe
     )
 
 
-def render_png(model: NarfModel, request: RenderRequest) -> tuple[bytes, float]:
-    images, _, seconds = render_images(model, request)
+def render_png(
+    model: NarfModel, request: RenderRequest, should_stop: Callable[[], str | None] | None = None
+) -> tuple[bytes, float]:
+    images, _, seconds = render_images(model, request, should_stop)
     (image,) = images.values()
     return encode_png(image), seconds
 
 
 def _finite_or_none(x: float | None) -> float | None:
     return float(x) if x is not None and math.isfinite(x) else None
+
+
+def _uncertainty_out(uncertainty: Any) -> UncertaintyOut | None:
+    """The refiner's :class:`~narf_core.estimate.Uncertainty` for the response; ``None`` if absent or not finite."""
+    if uncertainty is None:
+        return None
+    out = uncertainty.to_dict()
+    if not np.isfinite(np.asarray(out["covariance"], dtype=np.float64)).all():
+        return None
+    return UncertaintyOut(**out)
+
+
+def refine_options(engine: Engine, request: EstimateRequest, field: str) -> Any:
+    """The refiner's options for ``request`` (its ``options`` and ``iterations``); 422 naming ``field``."""
+    fields = request.options.model_dump(exclude_none=True)
+    if request.iterations is not None:
+        fields["iterations"] = request.iterations
+    try:
+        return engine.options(**fields)
+    except engine.input_error as e:
+        raise invalid(field, str(e)) from None
+
+
+def check_work(options: Any, max_rays: int, field: str) -> None:
+    """422 naming ``field`` if the refinement would trace more than ``max_rays`` rays in all.
+
+    The cost is ``iterations x rays_per_iteration x theta_starts``: an upper bound (several starts
+    share the rays after the first third), known before any work.
+    """
+    starts = getattr(options, "theta_starts", 1)
+    rays = options.iterations * options.rays_per_iteration * starts
+    if rays > max_rays:
+        raise invalid(
+            field,
+            f"iterations ({options.iterations}) x rays_per_iteration ({options.rays_per_iteration}) x theta_starts "
+            f"({starts}) = {rays} rays exceeds this server's work limit of {max_rays}",
+        )
+
+
+_REFINE_ARGUMENTS = {
+    "image": "image",
+    "mask": "mask",
+    "depth": "depth",
+    "camera": "request.camera",
+    "T_init": "request.initial_pose",
+    "joints_init": "request.initial_joints",
+    "ground_truth": "request.ground_truth",
+    "options": "request.options",
+}
+
+
+def _refine_input_error(message: str) -> ApiError:
+    """The refiner's input error as a 422 naming the request field its first word is about."""
+    first = message.replace(":", " ").split(maxsplit=1)[0] if message.strip() else ""
+    root, _, rest = first.partition(".")
+    field = _REFINE_ARGUMENTS.get(root)
+    if field is None:
+        return ApiError(422, message)
+    field = f"{field}.{rest}" if rest else field
+    return ApiError(422, message if message.startswith(field) else f"{field}: {message}", field=field)
 
 
 def estimate(
@@ -151,10 +249,16 @@ def estimate(
     request: EstimateRequest,
     uploads: Mapping[str, bytes | None],
     *,
+    options: Any,
     max_pixels: int,
     started: float,
+    should_stop: Callable[[], str | None] | None = None,
 ) -> EstimateResponse:
-    """Decode the uploads (``image``, ``mask``, optional ``depth``), check them against the camera and refine."""
+    """Decode the uploads (``image``, ``mask``, optional ``depth``), check them against the camera and refine.
+
+    ``should_stop`` is polled once per iteration: a status (``"cancelled"``, ``"budget_exceeded"``)
+    ends the refinement early with the best estimate so far.
+    """
     size = (request.camera.height, request.camera.width)
     image = decode_rgb(uploads["image"] or b"", "image", max_pixels)
     mask = decode_mask(uploads["mask"] or b"", "mask", max_pixels)
@@ -166,9 +270,6 @@ def estimate(
     if not mask.any():
         raise invalid("mask", "the mask is empty: no object pixel to compare against")
 
-    fields = request.options.model_dump(exclude_none=True)
-    if request.iterations is not None:
-        fields["iterations"] = request.iterations
     ground_truth = None
     if request.ground_truth is not None:
         ground_truth = (request.ground_truth.pose.as_matrix(), dict(request.ground_truth.joints))
@@ -181,11 +282,12 @@ def estimate(
             request.initial_pose.as_matrix(),
             joints_init=request.initial_joints,
             depth=depth,
-            options=engine.options(**fields),
+            options=options,
             ground_truth=ground_truth,
+            should_stop=should_stop,
         )
     except engine.input_error as e:
-        raise ApiError(422, str(e)) from None
+        raise _refine_input_error(str(e)) from None
 
     T = np.asarray(result.T_cam_obj, dtype=np.float64)
     if not np.isfinite(T).all() or not all(math.isfinite(v) for v in result.joints.values()):
@@ -203,4 +305,6 @@ def estimate(
         wall_seconds=time.perf_counter() - started,
         trace=[(_finite_or_none(loss), float(t)) for loss, t in result.trace],
         metrics=metrics,
+        uncertainty=_uncertainty_out(getattr(result, "uncertainty", None)),
+        warnings=list(getattr(result, "warnings", [])),
     )

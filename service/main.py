@@ -17,6 +17,7 @@ from fastapi import FastAPI
 from pydantic import ValidationError
 
 from narf_service.app import create_app
+from narf_service.guards import timed_h11_protocol
 from narf_service.settings import Settings
 
 
@@ -26,6 +27,7 @@ def serve(
     port: int = 8000,
     token: str | None = None,
     *,
+    token_file: str | Path | None = None,
     log_level: str = "info",
     **settings: Any,
 ) -> None:
@@ -33,24 +35,44 @@ def serve(
 
     Unset arguments fall back to the ``NARF_*`` environment (``NARF_MODELS_DIR``, ``NARF_TOKEN``, ...),
     then to the defaults of :class:`~narf_service.settings.Settings`; ``settings`` takes any of its
-    other fields (``workers=2``, ``max_body_bytes=...``). Raises ``ValueError`` for a models folder
-    that does not exist or invalid settings.
+    other fields (``workers=2``, ``max_body_bytes=...``). ``token_file`` names a file holding the
+    token (``NARF_TOKEN_FILE``). Raises ``ValueError`` for a models folder that does not exist or
+    invalid settings.
     """
     overrides = dict(settings)
     if models_dir is not None:
         overrides["models_dir"] = Path(models_dir)
     if token is not None:
         overrides["token"] = token
+    if token_file is not None:
+        overrides["token_file"] = Path(token_file)
     try:
         config = Settings(**overrides)
     except ValidationError as e:
         first = e.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
-        raise ValueError(f"invalid setting {where}: {first['msg']}") from None
+        message = str(first["msg"]).removeprefix("Value error, ")
+        raise ValueError(f"invalid setting {where}: {message}" if where else message) from None
     if not config.models_dir.is_dir():
         raise ValueError(f"models folder {config.models_dir} does not exist")
     logging.basicConfig(level=log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    uvicorn.run(create_app(config), host=host, port=port, log_level=log_level, timeout_graceful_shutdown=10)
+    uvicorn.Server(uvicorn_config(create_app(config), host, port, log_level=log_level)).run()
+
+
+def uvicorn_config(app: FastAPI, host: str, port: int, *, log_level: str = "info") -> uvicorn.Config:
+    """uvicorn's configuration for ``app``, with its settings' connection timeouts: request headers
+    (``header_timeout_s``, on uvicorn's h11 protocol) and idle keep-alive (``keep_alive_timeout_s``)."""
+    settings: Settings = app.state.settings
+    return uvicorn.Config(
+        app,
+        host=host,
+        port=port,
+        log_level=log_level,
+        lifespan="on",
+        http=timed_h11_protocol(settings.header_timeout_s),
+        timeout_keep_alive=settings.keep_alive_timeout_s,  # type: ignore[arg-type]  (a float works)
+        timeout_graceful_shutdown=10,
+    )
 
 
 @contextmanager
@@ -59,7 +81,7 @@ def serve_in_thread(app: FastAPI, host: str = "127.0.0.1", port: int = 0, *, sta
 
     For tests, benchmarks and examples; the server is stopped (lifespan shutdown included) on exit.
     """
-    server = uvicorn.Server(uvicorn.Config(app, host=host, port=port, log_level="warning", lifespan="on"))
+    server = uvicorn.Server(uvicorn_config(app, host, port, log_level="warning"))
     thread = threading.Thread(target=server.run, name="narf-uvicorn", daemon=True)
     thread.start()
     deadline = time.monotonic() + startup_timeout_s
@@ -82,17 +104,22 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m narf_service",
         description="Serve NARF models over HTTP (API v1). Settings also come from NARF_* environment "
-        "variables; the bearer token only from NARF_TOKEN, so it never shows in a process list.",
+        "variables; the bearer token only from NARF_TOKEN or a file, so it never shows in a process list.",
     )
     parser.add_argument("--models", type=Path, default=None, help="folder of *.narf bundles (NARF_MODELS_DIR)")
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default: loopback only)")
     parser.add_argument("--port", type=int, default=8000)
     parser.add_argument("--workers", type=int, default=None, help="compute threads (default: one per core)")
+    parser.add_argument("--token-file", type=Path, default=None, help="file holding the bearer token (NARF_TOKEN_FILE)")
+    parser.add_argument("--state-key-file", type=Path, default=None,
+                        help="key signing /v1/track state tokens (NARF_STATE_KEY_FILE; default: random per process)")
     parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
     args = parser.parse_args(argv)
     extra = {} if args.workers is None else {"workers": args.workers}
+    if args.state_key_file is not None:
+        extra["state_key_file"] = args.state_key_file
     try:
-        serve(args.models, args.host, args.port, log_level=args.log_level, **extra)
+        serve(args.models, args.host, args.port, token_file=args.token_file, log_level=args.log_level, **extra)
     except ValueError as e:
         print(f"narf serve: error: {e}", file=sys.stderr)
         return 2

@@ -50,6 +50,9 @@ class ServiceMetrics:
         self.rejected = Counter(
             "narf_queue_rejected", "Jobs refused with 503 because the work queue was full", registry=self.registry
         )
+        self.cancelled = Counter(
+            "narf_jobs_cancelled", "Jobs cancelled because their client disconnected", registry=self.registry
+        )
         self.queue_depth = Gauge("narf_queue_depth", "Jobs waiting for a worker", registry=self.registry)
         self.queue_running = Gauge("narf_queue_running", "Jobs running on workers", registry=self.registry)
         self.queue_capacity = Gauge("narf_queue_capacity", "Jobs running plus waiting, at most", registry=self.registry)

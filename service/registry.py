@@ -31,6 +31,13 @@ _NAME_RE = re.compile(MODEL_NAME_PATTERN)
 BundleLoader = Callable[[Path, str], "NarfModel"]
 
 
+def one_line_reason(error: BaseException, path: Path, limit: int = 300) -> str:
+    """Why ``path`` was refused, on one line, with the file's name instead of its full path."""
+    message = " ".join(str(error).replace(str(path), path.name).split()) or type(error).__name__
+    message = message.removeprefix(f"{path.name}: ")
+    return message if len(message) <= limit else message[: limit - 3] + "..."
+
+
 def valid_model_name(name: str) -> bool:
     return len(name) <= MODEL_NAME_MAX and _NAME_RE.fullmatch(name) is not None
 
@@ -64,11 +71,16 @@ class ModelRegistry:
                 try:
                     registry.models[name] = loader(path, device)
                 except (ValueError, OSError) as e:
-                    registry.failed[name] = str(e)
+                    registry.failed[name] = one_line_reason(e, path)
             if name in registry.failed:
                 logger.error("model %s not loaded: %s", name, registry.failed[name])
             else:
                 logger.info("model %s loaded from %s", name, path)
+                if "checksum" not in (getattr(registry.models[name], "metadata", None) or {}):
+                    logger.warning(
+                        "model %s: %s has no checksum (saved before NARF wrote one); only its weights' finiteness "
+                        "was checked. Load and save it again (narf_core.bundle) to add one.", name, path.name
+                    )
         return registry
 
     def get(self, name: str, field: str = "model") -> NarfModel:

@@ -1,6 +1,6 @@
 """The wire format of API v1: pydantic models, the single source of the OpenAPI contract.
 
-Conventions (DESIGN §2): metres, radians, seconds; ``K`` in the OpenCV frame; poses ``T_cam_obj``
+Conventions (docs/design.md §2): metres, radians, seconds; ``K`` in the OpenCV frame; poses ``T_cam_obj``
 either as ``{"matrix": 4x4}`` or ``{"position": [x, y, z], "orientation": [qx, qy, qz, qw]}``
 (ROS order); responses give both. Every number must be finite: NaN and infinities are refused with
 a 422 naming the field, as are non-rigid matrices, non-unit quaternions and impossible cameras.
@@ -210,7 +210,7 @@ class RefineOptions(StrictModel):
     the preset (``paper``, the default, follows the paper; ``robust`` adds silhouette and depth
     terms, several joint starts and coarse-to-fine). Bounds here keep one request's cost within reason."""
 
-    preset: Literal["paper", "robust"] | None = Field(None, description="The starting set of options")
+    preset: Literal["paper", "robust", "gauss-newton"] | None = Field(None, description="The starting set of options")
     lr_pose: float | None = Field(None, gt=0, le=10, description="Adam step, radians and object radii")
     lr_theta: float | None = Field(None, gt=0, le=10, description="Adam step on the joints' sine parameter")
     lr_decay: float | None = Field(None, gt=0, le=1, description="Final over first learning rate")
@@ -226,6 +226,31 @@ class RefineOptions(StrictModel):
     loss_tolerance: float | None = Field(None, ge=0, le=1, description="Early stop: relative loss change")
     patience: int | None = Field(None, ge=1, le=10_000, description="Early stop: iterations looked back over")
     seed: int | None = Field(None, ge=0, le=2**31 - 1)
+    solver: Literal["adam", "gauss-newton"] | None = Field(None, description="Adam (the paper) or Levenberg-Marquardt")
+    robust_loss: Literal["none", "huber", "cauchy"] | None = Field(None, description="Per-residual loss (gauss-newton)")
+    robust_scale: float | None = Field(None, gt=0, le=1e3, description="Where the robust loss bends, residual units")
+    damping: float | None = Field(None, ge=0, le=1e6, description="First Levenberg-Marquardt damping")
+    photometric_compensation: bool | None = Field(None, description="Fit a gain and bias per colour channel")
+    occlusion_margin: float | None = Field(None, ge=0, le=10, description="Metres; depth this far in front = occluder")
+    depth_sigma: float | None = Field(None, ge=0, le=1, description="Depth noise at 1 m (σ = depth_sigma z²)")
+    ray_sampling: Literal["uniform", "edges"] | None = Field(None, description="Where each iteration's rays go")
+    adam_iterations: int | None = Field(None, ge=0, le=100_000, description="gauss-newton: Adam iterations first")
+    uncertainty: bool | None = Field(None, description="Return the covariance of the estimate")
+    sigma_floor_position: float | None = Field(None, ge=0, le=10, description="Model error added to Σ, metres")
+    sigma_floor_rotation: float | None = Field(None, ge=0, le=10, description="Model error added to Σ, radians")
+    sigma_floor_joint: float | None = Field(None, ge=0, le=10, description="Model error added to Σ, joint range fraction")
+
+
+class UncertaintyOut(BaseModel):
+    """The estimate's covariance: order δposition of the box centre (m, camera axes), δrotation
+    about it (rad, camera axes), then the joints (joint units)."""
+
+    covariance: list[list[float]] = Field(description="[6 + k, 6 + k]")
+    position_sigma_m: list[float] = Field(description="[3], metres")
+    rotation_sigma_rad: list[float] = Field(description="[3], radians about the camera axes")
+    joint_sigma: dict[str, float] = Field(description="Per joint, radians or metres")
+    residual_variance: float
+    dof: int
 
 
 class GroundTruth(StrictModel):
@@ -261,13 +286,22 @@ class EstimateResponse(BaseModel):
     joints: dict[str, float]
     loss: float | None = Field(description="Final loss; null if it was not finite")
     iterations: int
-    status: str = Field(description="'converged', 'max_iterations', 'no_overlap' or 'non_finite'")
+    status: str = Field(
+        description="'converged', 'max_iterations', 'no_overlap', 'non_finite' or 'budget_exceeded' (stopped "
+        "after the server's time budget per job, NARF_MAX_SECONDS, with the best estimate so far)"
+    )
     recovered_non_finite: bool = Field(description="True if a non-finite step was detected and undone")
     seconds: float = Field(description="Refinement time")
     wall_seconds: float = Field(description="Time in the server, queue and decoding included")
     trace: list[tuple[float | None, float]] = Field(description="(loss, elapsed seconds) per iteration")
     metrics: dict[str, float | None] | None = Field(
         None, description="With ground truth: add, add_s (metres), joint_error/<name>"
+    )
+    uncertainty: UncertaintyOut | None = Field(None, description="Covariance of the estimate; null when not computed")
+    warnings: list[str] = Field(
+        default_factory=list,
+        description="Doubts about the input, as '<code>: <message>' (codes: clipped, mask_border, depth_unit, "
+                    "depth_overlap); after depth_unit or depth_overlap the depth was not used",
     )
 
 
@@ -306,3 +340,49 @@ class ErrorDetail(BaseModel):
 
 class ErrorResponse(BaseModel):
     error: ErrorDetail
+
+
+class TrackOptionsIn(StrictModel):
+    """Tracker settings a request may change (the rest are the server's, see narf_core.track.TrackOptions)."""
+
+    iterations: int | None = Field(None, ge=1, le=200, description="Refiner iterations per frame (default 10)")
+    rays_per_iteration: int | None = Field(None, ge=16, le=8192)
+    solver: Literal["adam", "gauss-newton"] | None = None
+    uncertainty: bool | None = Field(None, description="Compute Σ per frame (default true)")
+
+
+class TrackRequest(StrictModel):
+    """One frame of a track. The first frame sends ``initial_pose`` (and optionally ``initial_joints``);
+    every later one sends the ``state`` token of the previous answer, so that any replica can answer it."""
+
+    model: ModelName
+    camera: Camera = Field(description="Must match the size of the uploaded images")
+    time: Number = Field(ge=0, le=1e9, description="Frame time, seconds; must increase along a track")
+    state: str | None = Field(None, max_length=16384, description="The previous answer's state token")
+    initial_pose: Pose | None = Field(None, description="T_cam_obj at this frame (first frame only; rough is fine)")
+    initial_joints: Joints | None = None
+    options: TrackOptionsIn = Field(default_factory=TrackOptionsIn)
+
+    @model_validator(mode="after")
+    def _state_or_initial(self) -> TrackRequest:
+        if (self.state is None) == (self.initial_pose is None):
+            raise ValueError("give either 'state' (from the previous answer) or 'initial_pose' (first frame)")
+        return self
+
+
+class TrackResponse(BaseModel):
+    model: str
+    time: float
+    status: Literal["tracking", "uncertain", "lost", "reinitialised"] = Field(
+        description="'tracking'; 'uncertain' (partly occluded or a large Σ); 'lost' (no object in the mask or "
+        "no pose explains it: the pose is the last one that stood); 'reinitialised' (found again by the "
+        "multi-start refiner)"
+    )
+    reason: str | None = Field(None, description="Why the status is not 'tracking'")
+    pose: PoseOut
+    joints: dict[str, float]
+    uncertainty: UncertaintyOut | None = None
+    overlap: float | None = Field(None, description="How well the estimate explains the mask, 0..1")
+    iterations: int
+    seconds: float = Field(description="Tracking time of this frame")
+    state: str = Field(description="Opaque, signed token: send it with the next frame")

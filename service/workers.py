@@ -4,7 +4,9 @@ At most ``workers`` jobs run at once and at most ``queue_size`` more wait; a job
 that raises :class:`QueueFull` at once (the service answers 503 with ``Retry-After``) instead of
 piling up latency. A slot is released when its job *finishes* (or is cancelled before it starts),
 not when the awaiting request goes away, so a client that disconnects cannot let more work in than
-the threads can run.
+the threads can run. A job is handed a :class:`Stop`, which it polls between steps: cancelling the
+awaiting coroutine cancels a waiting job (it never starts, its slot is free at once) and tells a
+running one to stop (``"cancelled"``); past ``max_seconds`` of running it says ``"budget_exceeded"``.
 """
 
 from __future__ import annotations
@@ -26,6 +28,37 @@ class QueueFull(Exception):
     def __init__(self, retry_after_s: int) -> None:
         super().__init__(f"the work queue is full; retry in {retry_after_s} s")
         self.retry_after_s = retry_after_s
+
+
+class Stop:
+    """Whether a job should stop early, and why: call it between steps; ``None`` means go on.
+
+    ``"cancelled"`` once :meth:`cancel` was called (its client went away), ``"budget_exceeded"``
+    once it has run ``max_seconds`` (``None``: no limit) since :meth:`start`. Thread-safe.
+    """
+
+    def __init__(self, max_seconds: float | None = None) -> None:
+        self.max_seconds = max_seconds
+        self._cancelled = threading.Event()
+        self._deadline = math.inf
+
+    def start(self) -> None:
+        if self.max_seconds is not None:
+            self._deadline = time.monotonic() + self.max_seconds
+
+    def cancel(self) -> None:
+        self._cancelled.set()
+
+    @property
+    def cancelled(self) -> bool:
+        return self._cancelled.is_set()
+
+    def __call__(self) -> str | None:
+        if self._cancelled.is_set():
+            return "cancelled"
+        if time.monotonic() > self._deadline:
+            return "budget_exceeded"
+        return None
 
 
 class WorkQueue:
@@ -59,19 +92,37 @@ class WorkQueue:
         estimate = math.ceil(max(ahead, 1) * self._mean_job_s / self.workers)
         return min(max(estimate, 1), self.retry_after_max_s)
 
-    async def run(self, fn: Callable[[], T]) -> T:
-        """Run ``fn()`` on a worker thread; raises :class:`QueueFull` if there is no room."""
+    def submit(self, fn: Callable[[], T], stop: Stop | None = None) -> Future[T]:
+        """Queue ``fn()`` for a worker thread (``stop`` is started when it starts); raises
+        :class:`QueueFull` if there is no room."""
         with self._lock:
             if self._admitted >= self.capacity:
                 raise QueueFull(self.retry_after_s())
             self._admitted += 1
-        future: Future[T] = self._executor.submit(self._timed, fn)
+        future: Future[T] = self._executor.submit(self._timed, fn, stop)
         future.add_done_callback(self._release)
-        return await asyncio.wrap_future(future)
+        return future
 
-    def _timed(self, fn: Callable[[], T]) -> T:
+    async def run(self, fn: Callable[[], T], stop: Stop | None = None) -> T:
+        """Run ``fn()`` on a worker thread; raises :class:`QueueFull` if there is no room.
+
+        Cancelling the caller cancels the job: a waiting one never starts, a running one is told
+        through ``stop``.
+        """
+        future = self.submit(fn, stop)
+        try:
+            return await asyncio.wrap_future(future)
+        except asyncio.CancelledError:
+            future.cancel()
+            if stop is not None:
+                stop.cancel()
+            raise
+
+    def _timed(self, fn: Callable[[], T], stop: Stop | None) -> T:
         with self._lock:
             self._running += 1
+        if stop is not None:
+            stop.start()
         start = time.perf_counter()
         try:
             return fn()

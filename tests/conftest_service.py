@@ -171,8 +171,10 @@ def toy_refine(
     depth: np.ndarray | None = None,
     options: ToyOptions | None = None,
     ground_truth: tuple[np.ndarray, dict[str, float]] | None = None,
+    should_stop=None,
 ) -> ToyResult:
-    """Stands for ``refine``: checks its inputs like it, then "converges" to the ground truth if given."""
+    """Stands for ``refine``: checks its inputs like it, then "converges" to the ground truth if given;
+    ``should_stop()`` is polled once per iteration and ends the loop with the status it returns."""
     started = time.perf_counter()
     options = options or ToyOptions()
     assert image.dtype == np.uint8 and image.shape == (camera.height, camera.width, 3)
@@ -187,10 +189,15 @@ def toy_refine(
         T_true, joints_true = ground_truth
         metrics = {"add": float(np.linalg.norm(T[:3, 3] - T_true[:3, 3]))}
         metrics |= {f"joint_error/{k}": abs(joints[k] - v) for k, v in joints_true.items()}
-    trace = [(1.0 / (i + 1), 0.001 * i) for i in range(options.iterations)]
+    trace, status = [], "max_iterations"
+    for i in range(options.iterations):
+        if should_stop is not None and (reason := should_stop()):
+            status = reason
+            break
+        trace.append((1.0 / (i + 1), 0.001 * i))
     loss = trace[-1][0] if trace else None
     seconds = time.perf_counter() - started  # measured, so that it never exceeds the server's wall time
-    return ToyResult(T, joints, loss, options.iterations, seconds, trace, "max_iterations", False, metrics)
+    return ToyResult(T, joints, loss, len(trace), seconds, trace, status, False, metrics)
 
 
 def toy_load_bundle(path: Path, device: str = "cpu") -> ToyModel:

@@ -18,7 +18,7 @@ from narf_client.errors import (
     ServiceUnavailable,
     Unauthorized,
 )
-from narf_client.types import Estimate, JointInfo, ModelInfo, Pose, RenderResult
+from narf_client.types import Estimate, JointInfo, ModelInfo, Pose, RenderResult, TrackFrame, TrackUpdate, Uncertainty
 
 __version__ = "0.1.0"
 
@@ -36,6 +36,9 @@ __all__ = [
     "PayloadTooLarge",
     "Pose",
     "RenderResult",
+    "TrackFrame",
+    "TrackUpdate",
+    "Uncertainty",
     "ServerError",
     "ServiceUnavailable",
     "Unauthorized",

@@ -13,7 +13,7 @@ import base64
 import io
 import json
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import AsyncIterable, AsyncIterator, Iterable, Iterator, Mapping, Sequence
 from typing import Any
 from urllib.parse import quote
 
@@ -22,7 +22,16 @@ import numpy as np
 from PIL import Image
 
 from narf_client.errors import NarfConnectionError, NarfError, error_for_status
-from narf_client.types import Estimate, JointInfo, ModelInfo, Pose, RenderResult
+from narf_client.types import (
+    Estimate,
+    JointInfo,
+    ModelInfo,
+    Pose,
+    RenderResult,
+    TrackFrame,
+    TrackUpdate,
+    Uncertainty,
+)
 
 DEFAULT_URL = "http://127.0.0.1:8000"
 PoseLike = Pose | np.ndarray | Sequence[Sequence[float]]
@@ -131,6 +140,58 @@ def estimate_files(
     return files
 
 
+def track_files(
+    frame: TrackFrame | tuple,
+    K: np.ndarray,
+    *,
+    model: str,
+    state: str | None,
+    initial_pose: PoseLike | None,
+    initial_joints: Mapping[str, float] | None,
+    options: Mapping[str, Any] | None,
+) -> dict[str, tuple[str | None, bytes | str, str]]:
+    """The multipart parts of ``POST /v1/track`` for one frame (a :class:`TrackFrame` or a tuple
+    ``(time, image, mask[, depth])``)."""
+    if not isinstance(frame, TrackFrame):
+        frame = TrackFrame(*frame)
+    image_part, (width, height) = _image_part(frame.image)
+    request: dict[str, Any] = {"model": model, "camera": camera_json(K, width, height), "time": float(frame.time),
+                               "options": dict(options or {})}
+    if state is not None:
+        request["state"] = state
+    else:
+        if initial_pose is None:
+            raise ValueError("the first frame needs initial_pose (later ones send the previous answer's state)")
+        request["initial_pose"] = Pose.coerce(initial_pose).to_json()
+        if initial_joints is not None:
+            request["initial_joints"] = _joints_json(initial_joints)
+    files: dict[str, tuple[str | None, bytes | str, str]] = {
+        "image": image_part, "request": (None, json.dumps(request), "application/json"),
+    }
+    if frame.mask is not None:
+        mask = np.asarray(frame.mask)
+        if mask.shape != (height, width):
+            raise ValueError(f"mask must be [H, W] = [{height}, {width}] like the image, got {list(mask.shape)}")
+        files["mask"] = ("mask.png", encode_png((mask != 0).astype(np.uint8) * 255), "image/png")
+    if frame.depth is not None:
+        depth = np.asarray(frame.depth, dtype=np.float32)
+        if depth.shape != (height, width):
+            raise ValueError(f"depth must be [H, W] = [{height}, {width}] like the image, got {list(depth.shape)}")
+        buffer = io.BytesIO()
+        np.save(buffer, depth, allow_pickle=False)
+        files["depth"] = ("depth.npy", buffer.getvalue(), "application/octet-stream")
+    return files
+
+
+def parse_track(body: dict[str, Any]) -> TrackUpdate:
+    return TrackUpdate(
+        time=float(body["time"]), status=body["status"], reason=body.get("reason"),
+        pose=Pose(np.asarray(body["pose"]["matrix"], dtype=np.float64)), joints=dict(body["joints"]),
+        uncertainty=Uncertainty.from_json(body.get("uncertainty")), overlap=body.get("overlap"),
+        iterations=int(body["iterations"]), seconds=float(body["seconds"]), state=body["state"],
+    )
+
+
 # --- responses ------------------------------------------------------------------------------------
 
 
@@ -164,6 +225,8 @@ def parse_estimate(body: dict[str, Any]) -> Estimate:
         trace=[(loss, t) for loss, t in body["trace"]],
         metrics=body.get("metrics"),
         recovered_non_finite=bool(body.get("recovered_non_finite", False)),
+        warnings=tuple(body.get("warnings", ())),
+        uncertainty=Uncertainty.from_json(body.get("uncertainty")),
     )
 
 
@@ -320,6 +383,41 @@ class NarfClient(_Base):
         )
         return parse_estimate(self._request("POST", "/v1/estimate", files=files, timeout=self._estimate_timeout).json())
 
+    def track_step(
+        self,
+        frame: TrackFrame | tuple,
+        K: np.ndarray,
+        *,
+        model: str,
+        state: str | None = None,
+        initial_pose: PoseLike | None = None,
+        initial_joints: Mapping[str, float] | None = None,
+        options: Mapping[str, Any] | None = None,
+    ) -> TrackUpdate:
+        """Track one frame: from ``state`` (the previous update's token) or, first, from ``initial_pose``."""
+        files = track_files(frame, K, model=model, state=state, initial_pose=initial_pose,
+                            initial_joints=initial_joints, options=options)
+        return parse_track(self._request("POST", "/v1/track", files=files, timeout=self._estimate_timeout).json())
+
+    def track(
+        self,
+        frames: Iterable[TrackFrame | tuple],
+        K: np.ndarray,
+        initial_pose: PoseLike,
+        *,
+        model: str,
+        initial_joints: Mapping[str, float] | None = None,
+        options: Mapping[str, Any] | None = None,
+    ) -> Iterator[TrackUpdate]:
+        """Track ``frames`` (in time order) from ``initial_pose`` at the first; yields one update per frame,
+        carrying the state token from each answer to the next request."""
+        state = None
+        for frame in frames:
+            update = self.track_step(frame, K, model=model, state=state, initial_pose=initial_pose,
+                                     initial_joints=initial_joints, options=options)
+            state = update.state
+            yield update
+
     def models(self) -> list[ModelInfo]:
         return [parse_model(m) for m in self._request("GET", "/v1/models").json()["models"]]
 
@@ -428,6 +526,49 @@ class AsyncNarfClient(_Base):
         )
         response = await self._request("POST", "/v1/estimate", files=files, timeout=self._estimate_timeout)
         return parse_estimate(response.json())
+
+    async def track_step(
+        self,
+        frame: TrackFrame | tuple,
+        K: np.ndarray,
+        *,
+        model: str,
+        state: str | None = None,
+        initial_pose: PoseLike | None = None,
+        initial_joints: Mapping[str, float] | None = None,
+        options: Mapping[str, Any] | None = None,
+    ) -> TrackUpdate:
+        files = track_files(frame, K, model=model, state=state, initial_pose=initial_pose,
+                            initial_joints=initial_joints, options=options)
+        response = await self._request("POST", "/v1/track", files=files, timeout=self._estimate_timeout)
+        return parse_track(response.json())
+
+    async def track(
+        self,
+        frames: Iterable[TrackFrame | tuple] | AsyncIterable[TrackFrame | tuple],
+        K: np.ndarray,
+        initial_pose: PoseLike,
+        *,
+        model: str,
+        initial_joints: Mapping[str, float] | None = None,
+        options: Mapping[str, Any] | None = None,
+    ) -> AsyncIterator[TrackUpdate]:
+        """Like :meth:`NarfClient.track`, an async generator; ``frames`` may be a sync or an async iterable."""
+        state = None
+
+        async def each() -> AsyncIterator[TrackFrame | tuple]:
+            if isinstance(frames, AsyncIterable):
+                async for frame in frames:
+                    yield frame
+            else:
+                for frame in frames:
+                    yield frame
+
+        async for frame in each():
+            update = await self.track_step(frame, K, model=model, state=state, initial_pose=initial_pose,
+                                           initial_joints=initial_joints, options=options)
+            state = update.state
+            yield update
 
     async def models(self) -> list[ModelInfo]:
         return [parse_model(m) for m in (await self._request("GET", "/v1/models")).json()["models"]]

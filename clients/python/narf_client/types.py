@@ -1,6 +1,6 @@
 """What the client hands back: poses, rendered images, estimates and model descriptions (numpy inside).
 
-Conventions are the server's (DESIGN §2): metres, radians; ``K`` in the OpenCV frame; a pose is
+Conventions are the server's (docs/design.md §2): metres, radians; ``K`` in the OpenCV frame; a pose is
 ``T_cam_obj``; quaternions are ``[qx, qy, qz, qw]`` (ROS order).
 """
 
@@ -125,6 +125,35 @@ class Estimate:
     trace: list[tuple[float | None, float]]
     metrics: dict[str, float | None] | None
     recovered_non_finite: bool = False
+    warnings: tuple[str, ...] = ()  # the server's doubts about the input ("<code>: <message>")
+    uncertainty: Uncertainty | None = None  # the estimate's covariance, when the server computed one
+
+
+@dataclass(frozen=True)
+class Uncertainty:
+    """The covariance of an estimate. Order of ``covariance [6 + k, 6 + k]``: the displacement of the
+    object's box centre (metres, camera axes), the rotation about it (radians, camera axes), then
+    the joints (radians or metres, the model's order)."""
+
+    covariance: np.ndarray
+    position_sigma_m: np.ndarray  # [3]
+    rotation_sigma_rad: np.ndarray  # [3]
+    joint_sigma: dict[str, float]
+    residual_variance: float
+    dof: int
+
+    @classmethod
+    def from_json(cls, body: dict[str, Any] | None) -> Uncertainty | None:
+        if body is None:
+            return None
+        return cls(
+            covariance=np.asarray(body["covariance"], dtype=np.float64),
+            position_sigma_m=np.asarray(body["position_sigma_m"], dtype=np.float64),
+            rotation_sigma_rad=np.asarray(body["rotation_sigma_rad"], dtype=np.float64),
+            joint_sigma={k: float(v) for k, v in body["joint_sigma"].items()},
+            residual_variance=float(body["residual_variance"]),
+            dof=int(body["dof"]),
+        )
 
 
 @dataclass(frozen=True)
@@ -151,3 +180,36 @@ class ModelInfo:
     def mid_joints(self) -> dict[str, float]:
         """Every joint at the middle of its range."""
         return {j.name: (j.lower + j.upper) / 2 for j in self.joints}
+
+
+@dataclass(frozen=True)
+class TrackFrame:
+    """One frame to track: ``image`` uint8 ``[H, W, 3]`` (or PNG/JPEG bytes) at ``time`` seconds,
+    ``mask`` ``[H, W]`` (non-zero = object; ``None`` = none this frame, answered ``lost``) and
+    ``depth`` float32 metres ``[H, W]`` (``None`` = RGB only)."""
+
+    time: float
+    image: np.ndarray | bytes
+    mask: np.ndarray | None = None
+    depth: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class TrackUpdate:
+    """The server's answer for one frame of a track.
+
+    ``status``: ``tracking``, ``uncertain`` (partly occluded or a large covariance), ``lost`` (``pose``
+    is then the last one that stood) or ``reinitialised``; ``reason`` says why when not ``tracking``.
+    ``state`` is the opaque token the next frame sends (any replica with the same key accepts it).
+    """
+
+    time: float
+    status: str
+    reason: str | None
+    pose: Pose
+    joints: dict[str, float]
+    uncertainty: Uncertainty | None
+    overlap: float | None
+    iterations: int
+    seconds: float
+    state: str
