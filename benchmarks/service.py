@@ -1,4 +1,4 @@
-"""Service benchmark (DESIGN §10): N concurrent clients on loopback against /v1/render and /v1/estimate.
+"""Service benchmark (docs/design.md §10): N concurrent clients on loopback against /v1/render and /v1/estimate.
 
 Reports requests per second, p50/p99 latency of answered requests, errors by status (503s, the
 queue's deliberate refusals, counted apart), requests left without an answer ("lost"), and the

@@ -1,4 +1,4 @@
-"""The model bundle: one safetensors file per object (DESIGN §6), and the model it loads into.
+"""The model bundle: one safetensors file per object (docs/design.md §6), and the model it loads into.
 
 A bundle holds tensors only (never pickle):
   ``field.*``              the configuration field F(x, d, θ)

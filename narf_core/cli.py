@@ -1,4 +1,4 @@
-"""The ``narf`` command (DESIGN §7).
+"""The ``narf`` command (docs/design.md §7).
 
 Each subcommand is a pair of small functions: ``_add_<name>(subparsers)`` declares its arguments
 and ``_run_<name>(args) -> int`` does the work. :func:`main` turns expected errors (``ValueError``
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shlex
 import sys
@@ -66,7 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
              "unless set), so a busy machine slows the command down instead of stalling it",
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_synth, _add_train, _add_eval, _add_render, _add_estimate, _add_bench, _add_serve):
+    for add in (_add_synth, _add_restyle, _add_train, _add_eval, _add_render, _add_estimate, _add_track, _add_bench, _add_serve):
         add(commands)
     return parser
 
@@ -128,7 +129,7 @@ def _add_synth(commands: argparse._SubParsersAction) -> None:
         "synth",
         help="render a synthetic dataset of a tool or any URDF with pybullet",
         description=(
-            "Render a dataset (DESIGN §3) of a procedural tool or a URDF with pybullet's CPU renderer: "
+            "Render a dataset (docs/design.md §3) of a procedural tool or a URDF with pybullet's CPU renderer: "
             "RGB, metric depth and per-link labels from robot-head-like viewpoints, in the paper's "
             "splits: train (few configurations), test (same configurations, other views) and novel "
             "(configurations absent from train). Deterministic from --seed."
@@ -151,6 +152,13 @@ def _add_synth(commands: argparse._SubParsersAction) -> None:
     arg("--supersample", type=_positive_int, default=3, metavar="S", help="S x S colour samples per pixel, odd "
         "(default: %(default)s; 1 = TinyRenderer's aliased point samples)")
     arg("--overwrite", action="store_true", help="replace the dataset already in --out")
+    seq = parser.add_argument_group("sequences (for tracking)").add_argument
+    seq("--sequence", type=_positive_int, metavar="FRAMES", help="write a video-like sequence of FRAMES frames "
+        "instead of the splits: a smooth camera path around the object (at most 30 cm/s and 60 deg/s) while the "
+        "joints open and close, frames in time order in the test split with a 'time' in seconds")
+    seq("--fps", type=float, default=30.0, help="frame rate of --sequence (default: %(default)s)")
+    seq("--smooth", action="store_true", help="no events in --sequence: by default the camera glances away (the "
+        "object leaves the view) once and a bar sweeps across the object (partial occlusion)")
     noise = parser.add_argument_group("label noise").add_argument
     noise("--noise", choices=NOISE_PRESETS, default="none", help="preset (default: %(default)s)")
     noise("--noise-rot-deg", type=_non_negative_float, metavar="DEG", help="pose rotation, std per axis")
@@ -176,6 +184,8 @@ def _run_synth(args: argparse.Namespace) -> int:
     }
     noise = replace(base, **{k: v for k, v in overrides.items() if v is not None})
     start = time.perf_counter()
+    if args.sequence is not None:
+        return _run_synth_sequence(args, noise.active, start)
     out = synthesize(
         args.tool,
         args.out,
@@ -205,6 +215,32 @@ def _run_synth(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_synth_sequence(args: argparse.Namespace, noisy: bool, start: float) -> int:
+    from narf_core.data.synth.sequence import synthesize_sequence
+
+    if noisy:
+        raise ValueError("--sequence writes clean labels; label noise (--noise*) is not supported there")
+    if args.sequence < 2:
+        raise ValueError(f"--sequence needs at least 2 frames, got {args.sequence}")
+    out = synthesize_sequence(args.tool, args.out, args.sequence, size=tuple(args.size), seed=args.seed, fps=args.fps,
+                              events=not args.smooth, background=args.background, supersample=args.supersample,
+                              overwrite=args.overwrite, progress=True)
+    info = json.loads((out / "scene.json").read_text())["generator"]["sequence"]
+    result = {
+        "dataset": str(out), "tool": args.tool, "size": list(args.size), "frames": args.sequence, "fps": args.fps,
+        "events": not args.smooth, "peak_speed_m_s": round(info["peak_speed_m_s"], 4),
+        "peak_turn_deg_s": round(info["peak_turn_deg_s"], 2),
+        "frames_out_of_view": sum(not f["in_view"] for f in info["per_frame"]),
+        "frames_occluded": sum(f["occluded"] > 0 for f in info["per_frame"]),
+        "seconds": round(time.perf_counter() - start, 3), "bytes": _folder_size(out),
+    }
+    _emit(args, result, lambda r: (
+        f"wrote a {r['frames']}-frame sequence of {r['tool']} at {r['size'][0]}x{r['size'][1]}, {r['fps']:g} fps "
+        f"(peak {r['peak_speed_m_s']:.2f} m/s, {r['peak_turn_deg_s']:.0f} deg/s; {r['frames_out_of_view']} frames "
+        f"out of view, {r['frames_occluded']} occluded) to {r['dataset']} in {r['seconds']:.1f} s"))
+    return 0
+
+
 def _synth_summary(r: dict[str, Any]) -> str:
     frames = r["frames"]
     return (
@@ -213,6 +249,71 @@ def _synth_summary(r: dict[str, Any]) -> str:
         f"in {r['seconds']:.1f} s ({r['bytes'] / 1e6:.1f} MB)"
     )
 
+
+
+# ---------------------------------------------------------------------------------------------
+# narf restyle
+
+CONDITIONS = ("lighting", "noise", "depth", "mask", "occlusion-20", "occlusion-40", "all")  # faults.CONDITIONS
+
+
+def _add_restyle(commands: argparse._SubParsersAction) -> None:
+    parser = commands.add_parser(
+        "restyle",
+        help="re-render a dataset's frames with Mitsuba (lights, gloss, clutter) plus sensor and segmenter faults",
+        description=(
+            "Path-trace the frames of DATASET (same object, poses and joints) with Mitsuba 3: random lights "
+            "(environment, area, point, sun; colour temperature), glossy materials, a textured ground plane, "
+            "clutter and shadows. Depth holds the table and clutter too; labels mark the tool's visible pixels. "
+            "Then each condition adds its faults (noise: exposure, white balance, blur, shot/read noise, JPEG; "
+            "depth: stereo noise growing with z^2, holes at edges and thin parts, 1 mm steps; mask: erosion/"
+            "dilation, a missing or extra blob, a soft edge; occlusion-20/-40: an occluder hiding that share of "
+            "the tool; all: noise, depth, mask and occlusion-20). Writes OUT/<condition>/ datasets and caches the "
+            "renders in OUT/renders/. Deterministic from --seed. Needs the realism extra (mitsuba)."
+        ),
+    )
+    arg = parser.add_argument
+    arg("dataset", type=Path, help="source dataset (narf synth)")
+    arg("--out", required=True, type=Path, metavar="DIR")
+    arg("--size", nargs=2, type=_positive_int, default=None, metavar=("W", "H"),
+        help="image size (K scaled; default: the dataset's)")
+    arg("--conditions", nargs="+", choices=CONDITIONS, default=["lighting"], metavar="NAME",
+        help=f"one or more of {', '.join(CONDITIONS)} (default: lighting)")
+    arg("--splits", nargs="+", choices=("train", "test", "novel"), default=None, help="default: every split")
+    arg("--limit", type=_positive_int, default=None, metavar="N", help="only the first N frames of each split")
+    arg("--seed", type=_non_negative_int, default=0)
+    arg("--spp", type=_positive_int, default=32, help="path-tracing samples per pixel (default: %(default)s)")
+    arg("--overwrite", action="store_true", help="replace datasets already in OUT/<condition>/")
+    _add_json_flag(parser)
+    parser.set_defaults(run=_run_restyle)
+
+
+def _run_restyle(args: argparse.Namespace) -> int:
+    import torch
+
+    from narf_core.data.dataset import Dataset
+    from narf_core.data.synth.restyle import mitsuba, restyle
+
+    mitsuba()  # one error line, before any work, when the extra is missing
+    import drjit
+
+    drjit.set_thread_count(torch.get_num_threads())  # Mitsuba's render threads follow --threads
+    frame_ids = None
+    if args.limit is not None:
+        source = Dataset.open(args.dataset)
+        splits = args.splits or ("train", "test", "novel")
+        frame_ids = [f.id for split in splits for f in source.frames(split)[: args.limit]]
+    start = time.perf_counter()
+    out = restyle(args.dataset, args.out, conditions=tuple(args.conditions), size=args.size, seed=args.seed,
+                  spp=args.spp, splits=tuple(args.splits) if args.splits else None, frame_ids=frame_ids,
+                  overwrite=args.overwrite, progress=True)
+    first = Dataset.open(next(iter(out.values())))
+    result = {"datasets": {name: str(path) for name, path in out.items()}, "frames": len(first),
+              "size": [first.camera.width, first.camera.height], "spp": args.spp,
+              "seconds": round(time.perf_counter() - start, 3)}
+    _emit(args, result, lambda r: f"wrote {len(r['datasets'])} dataset(s) of {r['frames']} frames at "
+          f"{r['size'][0]}x{r['size'][1]} ({', '.join(r['datasets'])}) to {args.out} in {r['seconds']:.1f} s")
+    return 0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -490,9 +591,10 @@ def _add_estimate(commands: argparse._SubParsersAction) -> None:
     arg("--gt", metavar="JSON|FILE", help="ground truth {\"pose\": ..., \"joints\": {...}}: report ADD and joint error")
     arg("--iterations", type=_non_negative_int, metavar="N")
     arg("--mode", choices=("narf", "parts"), default="narf")
-    arg("--preset", choices=("paper", "robust"), default="paper",
+    arg("--preset", choices=("paper", "robust", "gauss-newton"), default="paper",
         help="paper: the paper's loss and settings (default); robust: adds silhouette and depth (with --depth) "
-             "terms, several joint starts and coarse-to-fine")
+             "terms, several joint starts and coarse-to-fine; gauss-newton: the same terms with a "
+             "Levenberg-Marquardt solver and Huber weights")
     _add_json_flag(parser)
     parser.set_defaults(run=_run_estimate)
 
@@ -529,6 +631,8 @@ def _run_estimate(args: argparse.Namespace) -> int:
         "joints": result.joints, "loss": result.loss, "iterations": result.iterations,
         "seconds": round(result.seconds, 3), "status": result.status,
         "recovered_non_finite": result.recovered_non_finite, "metrics": result.metrics,
+        "warnings": list(result.warnings),
+        "uncertainty": None if result.uncertainty is None else result.uncertainty.to_dict(),
     }
 
     def human(r: dict[str, Any]) -> str:
@@ -538,9 +642,102 @@ def _run_estimate(args: argparse.Namespace) -> int:
                  ", ".join(f"{k}={v:.4f}" for k, v in r["joints"].items())]
         if r["metrics"]:
             lines.append("metrics: " + ", ".join(f"{k}={v:.4g}" for k, v in r["metrics"].items() if isinstance(v, (int, float))))
+        u = r["uncertainty"]
+        if u:
+            lines.append(
+                "σ position [" + ", ".join(f"{1000 * s:.2f}" for s in u["position_sigma_m"]) + "] mm, rotation ["
+                + ", ".join(f"{math.degrees(s):.2f}" for s in u["rotation_sigma_rad"]) + "] deg, joints "
+                + ", ".join(f"{k}={v:.4g}" for k, v in u["joint_sigma"].items())
+            )
+        lines += [f"warning: {w}" for w in r["warnings"]]
         return "\n".join(lines)
 
     _emit(args, out, human)
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# narf track
+
+
+def _add_track(commands: argparse._SubParsersAction) -> None:
+    parser = commands.add_parser(
+        "track", help="track pose and joints over a sequence (narf synth --sequence), one row per frame",
+        description=(
+            "Warm-started render-and-compare over a sequence in time order: a constant-velocity prediction, a few "
+            "refiner iterations per frame, a lost-track test (mask overlap, covariance) and re-initialisation with "
+            "the multi-start refiner. Prints one row per frame (status: tracking, uncertain, lost, reinitialised) "
+            "with its error against the sequence's labels."
+        ),
+    )
+    arg = parser.add_argument
+    arg("model", type=Path, metavar="MODEL.narf")
+    arg("sequence", type=Path, metavar="SEQUENCE", help="a dataset whose frames carry times (narf synth --sequence)")
+    arg("--init-pose", required=True, metavar="JSON|FILE|label",
+        help="T_cam_obj at the first frame (rough is fine), or 'label' for the first frame's label")
+    arg("--init-joints", metavar="NAME=V,...|JSON", help="joints at the first frame (default: the label with "
+        "--init-pose label, else mid-range)")
+    arg("--rgb-only", action="store_true", help="ignore the sequence's depth")
+    arg("--limit", type=_positive_int, metavar="N", help="only the first N frames")
+    arg("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame (default: 10)")
+    arg("--solver", choices=("adam", "gauss-newton"), default="adam", help="refiner per frame (default: %(default)s)")
+    arg("--video", type=Path, metavar="OUT.gif", help="write the frames with the model's silhouette over them")
+    _add_json_flag(parser)
+    parser.set_defaults(run=_run_track)
+
+
+def _run_track(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from narf_core.bundle import load_bundle
+    from narf_core.data.dataset import Dataset
+    from narf_core.track import TrackOptions, track
+    from narf_core.track_io import load_frames, overlay, score, sequence_frames, write_video
+
+    if args.video is not None and args.video.suffix.lower() != ".gif":
+        raise ValueError(f"--video: {args.video.name}: only .gif is supported (no video codec is installed)")
+    dataset = Dataset.open(args.sequence)
+    frames = sequence_frames(dataset, limit=args.limit)
+    if args.init_pose == "label":
+        T_first, joints_first = frames[0].T_cam_obj, frames[0].joints
+    else:
+        T_first, joints_first = _pose_arg(args.init_pose, "--init-pose"), None
+    if args.init_joints:
+        joints_first = _joints_arg(args.init_joints, "--init-joints")
+    options = TrackOptions(solver=args.solver, **({"iterations": args.iterations} if args.iterations else {}))
+    model = load_bundle(args.model)
+    rows, pictures = [], []
+    start = time.perf_counter()
+    results = track(model, load_frames(dataset, frames, rgb_only=args.rgb_only), dataset.camera, T_first,
+                    joints_first, options)
+    for frame, result in zip(frames, results):
+        row = {"frame": frame.id, **result.to_dict(), **score(model, frame, result)}
+        rows.append(row)
+        if not args.json:
+            print(f"{frame.id:5d} {result.time:7.3f}s {result.status:13s} ADD {row['add_m'] * 100:6.2f} cm  "
+                  + " ".join(f"{j.name}={result.joints[j.name]:.4f}" for j in model.joints)
+                  + f"  {result.seconds * 1000:6.1f} ms" + (f"  ({result.reason})" if result.reason else ""), flush=True)
+        if args.video is not None:
+            pictures.append(overlay(model, dataset.camera, dataset.load(frame).rgb, result))
+    seconds = time.perf_counter() - start
+    held = [r["add_m"] for r in rows if r["status"] != "lost"]
+    summary = {
+        "frames": len(rows), "seconds": round(seconds, 3),
+        "frames_per_second": round(len(rows) / sum(r["seconds"] for r in rows), 2),
+        "statuses": {s: sum(r["status"] == s for r in rows) for s in ("tracking", "uncertain", "lost", "reinitialised")},
+        "add_m": {"mean": float(np.mean(held)), "p95": float(np.percentile(held, 95)), "max": float(np.max(held))}
+        if held else None,
+        "video": str(write_video(args.video, pictures, 1 / max(np.median(np.diff([f.time for f in frames])), 1e-3)))
+        if args.video is not None and pictures else None,
+    }
+    if args.json:
+        print(json.dumps({"summary": summary, "frames": rows}, indent=1))
+    else:
+        add_m = summary["add_m"]
+        print(f"{summary['frames']} frames, {summary['frames_per_second']:.1f} frames/s tracking, statuses "
+              f"{summary['statuses']}" + (f", ADD mean {add_m['mean'] * 100:.2f} cm, p95 {add_m['p95'] * 100:.2f} cm, "
+                                          f"max {add_m['max'] * 100:.2f} cm" if add_m else "")
+              + (f", video {summary['video']}" if summary["video"] else ""))
     return 0
 
 
@@ -583,6 +780,27 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--work", type=Path, default=Path("runs/bench"), help="folder for the results")
     _add_json_flag(sub)
     sub.set_defaults(run=_run_bench_distill)
+    sub = which.add_parser(
+        "shift", help="Table II on path-traced images with sensor, depth, mask and occlusion faults",
+        description="Restyles the test and novel frames with Mitsuba (narf restyle) at the camera's native size, "
+                    "then runs the estimate protocol per condition, input (rgb, rgbd), preset and perturbation "
+                    "scale: ADD, share under 1 cm, per-joint error and seconds per scene. Needs the realism extra.",
+    )
+    sub.add_argument("--work", type=Path, default=Path("runs/bench"), help="folder for data, models and results")
+    sub.add_argument("--tools", nargs="+", default=None, metavar="TOOL", help="default: the bundled models")
+    sub.add_argument("--models", type=Path, default=Path("models"), help="bundled models")
+    sub.add_argument("--conditions", nargs="+", choices=CONDITIONS, default=list(CONDITIONS), metavar="NAME")
+    sub.add_argument("--inputs", nargs="+", choices=("rgb", "rgbd"), default=["rgb", "rgbd"])
+    sub.add_argument("--splits", nargs="+", choices=("test", "novel"), default=["test", "novel"])
+    sub.add_argument("--scenes", type=_positive_int, default=17, help="per split (default: %(default)s)")
+    sub.add_argument("--scales", type=_non_negative_float, nargs="+", default=[1.0, 3.0],
+                     help="perturbation scales (default: 1 3)")
+    sub.add_argument("--presets", nargs="+", default=None, metavar="PRESET", help="default: every refiner preset")
+    sub.add_argument("--size", nargs=2, type=_positive_int, default=(640, 480), metavar=("W", "H"))
+    sub.add_argument("--spp", type=_positive_int, default=16, help="path-tracing samples per pixel")
+    sub.add_argument("--quick", action="store_true", help="3 scenes of the first split at the first scale")
+    _add_json_flag(sub)
+    sub.set_defaults(run=_run_bench_shift)
     sub = which.add_parser("service", help="requests/s and latency of /v1/render and /v1/estimate under load")
     sub.add_argument("--models", type=Path, default=Path("models"))
     sub.add_argument("--clients", type=_positive_int, default=8)
@@ -591,6 +809,39 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--estimate-clients", type=_positive_int, default=16)
     _add_json_flag(sub)
     sub.set_defaults(run=_run_bench_service)
+    sub = which.add_parser("hostile", help="/healthz latency while the service refuses hostile bodies and serves "
+                                           "estimates; how fast abandoned estimates leave the queue")
+    sub.add_argument("--models", type=Path, default=Path("models"))
+    sub.add_argument("--estimates", type=_non_negative_int, default=4)
+    sub.add_argument("--hostile-mb", type=_non_negative_float, default=30.0)
+    sub.add_argument("--cancel-clients", type=_positive_int, default=16)
+    _add_json_flag(sub)
+    sub.set_defaults(run=_run_bench_hostile)
+    sub = which.add_parser("viewer", help="web viewer: joint slider to new image on screen, in headless chromium")
+    sub.add_argument("--models", type=Path, default=Path("models"))
+    sub.add_argument("--drags", type=_positive_int, default=20, help="slider moves timed one by one")
+    sub.add_argument("--size", nargs=2, type=_positive_int, default=(160, 120), metavar=("W", "H"))
+    _add_json_flag(sub)
+    sub.set_defaults(run=_run_bench_viewer)
+    sub = which.add_parser("track", help="tracking: frames/s beside ADD and joint error per frame, lost tracks, "
+                                         "NEES coverage, on synthetic sequences (RGB-D and RGB, 160x120 and 640x480)")
+    sub.add_argument("--work", type=Path, default=Path("runs/bench"), help="folder for sequences and results")
+    sub.add_argument("--models", type=Path, default=Path("models"), help="folder of the tools' models")
+    sub.add_argument("--tools", nargs="+", default=None, metavar="TOOL", help="default: every model in --models")
+    sub.add_argument("--frames", type=_positive_int, default=150, help="frames per sequence (default: %(default)s)")
+    sub.add_argument("--size", dest="sizes", nargs=2, type=_positive_int, action="append", metavar=("W", "H"),
+                     help="image size, repeatable (default: 160 120 and 640 480)")
+    sub.add_argument("--modalities", nargs="+", choices=("rgbd", "rgb"), default=["rgbd", "rgb"])
+    sub.add_argument("--events", action="store_true", help="also sequences with a glance away and an occluder")
+    sub.add_argument("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame")
+    sub.add_argument("--service-clients", type=_non_negative_int, default=0, metavar="N",
+                     help="also N clients tracking at once through POST /v1/track on a loopback server")
+    _add_json_flag(sub)
+    sub.set_defaults(run=_run_bench_track)
+    which.choices["estimate"].add_argument(
+        "--shift", action="store_true",
+        help="on path-traced images with sensor, depth, mask and occlusion faults: `narf bench shift` with its defaults",
+    )
     for sub in which.choices.values():  # last, so that it covers every benchmark declared above
         sub.set_defaults(run=_under_load(sub.get_default("run")))
 
@@ -641,7 +892,20 @@ def _run_bench_render(args: argparse.Namespace) -> int:
 
 
 def _run_bench_estimate(args: argparse.Namespace) -> int:
+    if args.shift:
+        if args.noise:
+            raise ValueError("--shift runs on restyled clean data; --noise (label noise) does not combine with it")
+        argv = ["bench", "shift", "--work", str(args.work), "--models", str(args.models)]
+        argv += ["--tools", *args.tools] if args.tools else []
+        argv += ["--quick"] * args.quick + ["--json"] * args.json
+        return _run_bench_shift(build_parser().parse_args(argv))
     from narf_benchmarks.estimate import main as bench_main
+
+    return bench_main(args)
+
+
+def _run_bench_shift(args: argparse.Namespace) -> int:
+    from narf_benchmarks.shift import main as bench_main
 
     return bench_main(args)
 
@@ -658,11 +922,35 @@ def _run_bench_distill(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_bench_track(args: argparse.Namespace) -> int:
+    from narf_benchmarks.track import main as bench_main
+
+    return bench_main(args)
+
+
 def _run_bench_service(args: argparse.Namespace) -> int:
     from narf_benchmarks.service import markdown, run
 
     result = run(models_dir=args.models, clients=args.clients, requests=args.requests, duration_s=args.duration,
                  estimate_clients=args.estimate_clients)
+    print(json.dumps(result, indent=1) if args.json else markdown(result))
+    return 0
+
+
+def _run_bench_viewer(args: argparse.Namespace) -> int:
+    from narf_benchmarks.viewer import chromium_path, markdown, run
+
+    if chromium_path() is None:
+        raise ValueError("no chromium executable (apt-get install chromium, or set NARF_CHROMIUM)")
+    result = run(args.models, drags=args.drags, size=tuple(args.size))
+    print(json.dumps(result, indent=1) if args.json else markdown(result))
+    return 0
+
+
+def _run_bench_hostile(args: argparse.Namespace) -> int:
+    from narf_benchmarks.service_hostile import markdown, run
+
+    result = run(args.models, estimates=args.estimates, hostile_mb=args.hostile_mb, cancel_clients=args.cancel_clients)
     print(json.dumps(result, indent=1) if args.json else markdown(result))
     return 0
 
@@ -681,14 +969,23 @@ def _add_serve(commands: argparse._SubParsersAction) -> None:
     arg("--models", type=Path, default=None, metavar="DIR", help="folder of .narf bundles (default: ./models)")
     arg("--host", default="127.0.0.1")
     arg("--port", type=_non_negative_int, default=8000)
-    arg("--token", default=None, help="require this bearer token (default: NARF_TOKEN, else no auth)")
+    arg("--token-file", type=Path, default=None, metavar="FILE",
+        help="require the bearer token this file holds (default: NARF_TOKEN or NARF_TOKEN_FILE, else no auth)")
+    arg("--token", default=None, help=argparse.SUPPRESS)  # refused: a secret on the command line shows in `ps`
+    arg("--state-key-file", type=Path, default=None, metavar="FILE",
+        help="key signing /v1/track state tokens, shared by every replica (default: NARF_STATE_KEY or "
+             "NARF_STATE_KEY_FILE, else a random key per process)")
     parser.set_defaults(run=_run_serve)
 
 
 def _run_serve(args: argparse.Namespace) -> int:
     from narf_service.main import serve
 
-    serve(models_dir=args.models, host=args.host, port=args.port, token=args.token)
+    if args.token is not None:
+        raise ValueError("--token would show the secret to every user in `ps`; "
+                         "set NARF_TOKEN or write it to a file for --token-file")
+    extra = {} if args.state_key_file is None else {"state_key_file": args.state_key_file}
+    serve(models_dir=args.models, host=args.host, port=args.port, token_file=args.token_file, **extra)
     return 0
 
 

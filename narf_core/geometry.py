@@ -1,6 +1,6 @@
 """Rotations, rigid poses, the pinhole camera and its rays.
 
-Conventions (DESIGN §2): metres and radians; quaternions are ``[qx, qy, qz, qw]`` (ROS order);
+Conventions (docs/design.md §2): metres and radians; quaternions are ``[qx, qy, qz, qw]`` (ROS order);
 poses are 4x4 matrices named ``T_<to>_<from>``; twists are ``xi = [rho (3), omega (3)]`` with the
 translation part first; the camera is OpenCV's (x right, y down, z forward) with pixel ``(u, v)``
 centred at ``(u + 0.5, v + 0.5)``.

@@ -1,9 +1,9 @@
 """Evaluation metrics: image error (MSE, PSNR), pose error (ADD, ADD-S), configuration error.
 
 Pure functions. Inputs are numpy arrays or torch tensors (detached, copied to the CPU, computed in
-float64); outputs are Python floats or numpy arrays. Units follow DESIGN §2: metres and radians,
+float64); outputs are Python floats or numpy arrays. Units follow docs/design.md §2: metres and radians,
 RGB in ``[0, 1]``. ADD and ADD-S are PoseCNN's (Xiang et al. 2018), extended to articulated objects
-by moving each link's surface points with FK (DESIGN §4.5).
+by moving each link's surface points with FK (docs/design.md §4.5).
 """
 
 from __future__ import annotations

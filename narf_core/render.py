@@ -2,7 +2,7 @@
 
 Pure functions on tensors in the nerfacc style; the renderer never imports a concrete field. A
 *field* is any callable ``(x [n,3], d [n,3], theta [n,k] | None) -> (sigma [n], rgb [n,3])``
-(DESIGN §5); if it also has ``density_only(x, theta) -> sigma [n]``, renders without colour use it.
+(docs/design.md §5); if it also has ``density_only(x, theta) -> sigma [n]``, renders without colour use it.
 
 Sampling: every ray is clipped to the box and cut by a lattice of spacing ``step`` anchored at the
 ray origin (``t = 0``), so that the intervals tile ``[t_near, t_far]`` exactly (the first and last
@@ -18,7 +18,7 @@ before, up to 128, while it is still in empty or faint space), composites them i
 leaves the box. Sample positions ``t`` are not differentiated (a quadrature choice); everything
 else is: gradients reach the field, ``theta`` and the ray origins and directions.
 
-Stability (DESIGN §5): ``alpha = -expm1(-sigma * delta)``; transmittance is ``exp`` of minus the
+Stability (docs/design.md §5): ``alpha = -expm1(-sigma * delta)``; transmittance is ``exp`` of minus the
 *exclusive* (shifted) cumulative optical depth, never "cumsum minus the current term"; interval
 lengths are >= 0 by construction; opacity is ``-expm1(-total optical depth)``. All finite for
 ``sigma`` up to 1e6 and beyond, ``delta`` down to 0, rays grazing the box or starting inside it.

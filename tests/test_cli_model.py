@@ -254,6 +254,9 @@ def test_estimate_json_with_ground_truth_reports_add(capsys, tiny_bundle, view):
     metrics = r["metrics"]
     assert 0 <= metrics["add"] < 0.05  # metres: it started 1.2 cm off and moved a little in 4 iterations
     assert "add_s" in metrics and np.isfinite(metrics["add_s"])
+    u = r["uncertainty"]  # every estimate carries its covariance (6 pose + 1 joint)
+    assert np.asarray(u["covariance"]).shape == (7, 7) and len(u["position_sigma_m"]) == 3 and u["dof"] > 0
+    assert set(u["joint_sigma"]) == {"pivot"} and np.isfinite(metrics["nees"])
 
 
 @pytest.mark.slow
@@ -261,6 +264,17 @@ def test_estimate_human_summary(capsys, tiny_bundle, view):
     code, stdout, err = run(capsys, *estimate_argv(tiny_bundle, view, **{"--iterations": "0"}))
     assert code == 0, err
     assert "after 0 iterations" in stdout and "pivot=" in stdout and "position [" in stdout
+    assert "σ position [" in stdout and "] mm, rotation [" in stdout
+
+
+@pytest.mark.slow
+def test_estimate_gauss_newton_preset(capsys, tiny_bundle, view):
+    code, stdout, err = run(capsys, *estimate_argv(tiny_bundle, view, **{"--iterations": "2"}), "--preset", "gauss-newton",
+                            "--json")
+    assert code == 0, err
+    r = json.loads(stdout)
+    assert r["iterations"] <= 2 and r["uncertainty"] is not None
+    assert_error(capsys, "estimate", [*estimate_argv(tiny_bundle, view), "--preset", "newton"], "--preset")
 
 
 @pytest.mark.slow

@@ -1,4 +1,4 @@
-"""The dataset format (DESIGN §3): write -> read round trips, and every malformed input is refused
+"""The dataset format (docs/design.md §3): write -> read round trips, and every malformed input is refused
 with a message naming the file or JSON field that is wrong."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The service must not pull in the dataset generator (narf_core.data.synth) nor pybullet (DESIGN §1)."""
+"""The service must not pull in the dataset generator (narf_core.data.synth) nor pybullet (docs/design.md §1)."""
 
 from __future__ import annotations
 

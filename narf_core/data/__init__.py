@@ -1,1 +1,1 @@
-"""Datasets on disk (DESIGN §3): reading, validating and writing them; ``synth/`` makes them."""
+"""Datasets on disk (docs/design.md §3): reading, validating and writing them; ``synth/`` makes them."""

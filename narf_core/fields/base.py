@@ -1,7 +1,7 @@
 """The radiance-field base class: density and colour split, normalisation by the box and joint limits.
 
 A field is any callable ``(x [n,3], d [n,3], theta [n,k] | None) -> (sigma [n], rgb [n,3])``
-(DESIGN §5); :class:`RadianceField` is the trainable kind. Positions are in the field's own frame
+(docs/design.md §5); :class:`RadianceField` is the trainable kind. Positions are in the field's own frame
 (object or part frame, metres) and are normalised by the box ``aabb`` to [-1, 1]; the
 configuration ``theta`` (radians or metres) by its limits to [-1, 1]. A part field has ``k = 0``.
 """

@@ -1,6 +1,6 @@
 """The articulated object as a configuration-conditioned field built from its part fields.
 
-Composition in ``volumetric`` mode (DESIGN §4.2): a sample ``x`` in the object frame is moved into
+Composition in ``volumetric`` mode (docs/design.md §4.2): a sample ``x`` in the object frame is moved into
 every part's frame by the forward kinematics at its own ``θ``; densities add and colour is the
 density-weighted mean. This is exact and differentiable in ``x``, ``d`` and ``θ``, and it has the
 same call signature as the distilled configuration field, so one renderer serves both.

@@ -1,4 +1,4 @@
-"""Stage 2: distil the part composition into one configuration field F(x, d, θ) (DESIGN §4.3).
+"""Stage 2: distil the part composition into one configuration field F(x, d, θ) (docs/design.md §4.3).
 
 The paper renders 5000 composited images (cameras on a 1 m sphere, θ uniform within the limits)
 and trains on them. Here the same distribution is *streamed*: every step draws fresh cameras and

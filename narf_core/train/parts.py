@@ -1,4 +1,4 @@
-"""Stage 1: one radiance field per rigid part, each in its own frame (DESIGN §4.1).
+"""Stage 1: one radiance field per rigid part, each in its own frame (docs/design.md §4.1).
 
 Supervision per pixel of a training image: a pixel labelled with one of the part's links gives
 colour, opacity 1 and depth (where measured); a background pixel gives opacity 0; a pixel of

@@ -1,7 +1,7 @@
 """Synthetic datasets: views, splits, label noise, and writing them (``narf synth``).
 
 :func:`synthesize` renders an articulated object (one of the procedural tools, or any URDF) with
-pybullet from robot-head-like viewpoints and writes a dataset in the format of DESIGN §3, with the
+pybullet from robot-head-like viewpoints and writes a dataset in the format of docs/design.md §3, with the
 paper's splits (Table I): ``train`` (few configurations), ``test`` (the same configurations from
 other viewpoints) and ``novel`` (configurations absent from ``train``).
 

@@ -1,7 +1,7 @@
 """Ground-truth images of an articulated object from pybullet's CPU renderer (TinyRenderer).
 
 One ``getCameraImage`` call gives RGB, the depth buffer and a per-link segmentation. This module
-turns them into the dataset's conventions (DESIGN §2): an OpenCV camera ``K`` becomes an OpenGL
+turns them into the dataset's conventions (docs/design.md §2): an OpenCV camera ``K`` becomes an OpenGL
 projection that samples every pixel at its centre, the non-linear depth buffer becomes metric
 z-depth (0 = no return), and pybullet's packed segmentation becomes labels ``1 + i`` for link ``i``
 of the URDF's link list (0 = background, including the optional table).

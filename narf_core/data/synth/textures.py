@@ -5,7 +5,7 @@ mapping each texel back to the point of the mesh it lands on, so patterns run on
 a face to the next and keep their physical size whatever the atlas resolution. Noise is seeded
 lattice value noise: the same seed gives the same texture on every machine.
 
-Colours are sRGB floats in ``[0, 1]`` (DESIGN §2); :func:`to_uint8` quantises them for the PNG.
+Colours are sRGB floats in ``[0, 1]`` (docs/design.md §2); :func:`to_uint8` quantises them for the PNG.
 """
 
 from __future__ import annotations

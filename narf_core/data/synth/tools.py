@@ -82,7 +82,7 @@ _SMOOTH_COS = np.cos(np.radians(35.0))  # side walls meeting at a shallower angl
 
 @dataclass(frozen=True)
 class ToolSpec:
-    """The configurations a synthetic dataset of tool ``name`` uses (DESIGN §3, the paper's Table I).
+    """The configurations a synthetic dataset of tool ``name`` uses (docs/design.md §3, the paper's Table I).
 
     ``train_configurations`` are the few configurations seen in training (also used by the ``test``
     split); ``novel_configurations`` are absent from training. Each is ``{joint_name: value}``.
