@@ -32,6 +32,7 @@ EXIT_ERROR = 2  # bad input, as argparse uses for bad arguments
 EXIT_INTERRUPTED = 130
 EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError)
 THREADS_ENV = "NARF_THREADS"
+TRACKING_THREADS = 1  # per-frame work (hundreds of rays) runs faster on one thread than split over two
 NOISE_PRESETS = ("none", "paper")  # generate.NOISE_PRESETS, named here so that --help imports no pybullet
 
 
@@ -44,7 +45,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         import torch
 
-        torch.set_num_threads(choose_threads(args.threads))
+        torch.set_num_threads(_threads_for(args))
         return args.run(args)
     except EXPECTED_ERRORS as e:
         return _fail(args.command, e)
@@ -87,6 +88,14 @@ def _emit(args: argparse.Namespace, result: dict[str, Any], human: Callable[[dic
 
 def _add_json_flag(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object on stdout")
+
+
+def _threads_for(args: argparse.Namespace) -> int:
+    """torch threads for a command: ``--threads``, or with ``auto`` the free cores, capped by the
+    command's ``auto_threads_max`` where its work is too small to split (tracking)."""
+    threads = choose_threads(args.threads)
+    cap = getattr(args, "auto_threads_max", None)
+    return min(threads, cap) if args.threads == AUTO and cap else threads
 
 
 def _threads(text: str) -> int | str:
@@ -683,7 +692,7 @@ def _add_track(commands: argparse._SubParsersAction) -> None:
     arg("--solver", choices=("adam", "gauss-newton"), default="adam", help="refiner per frame (default: %(default)s)")
     arg("--video", type=Path, metavar="OUT.gif", help="write the frames with the model's silhouette over them")
     _add_json_flag(parser)
-    parser.set_defaults(run=_run_track)
+    parser.set_defaults(run=_run_track, auto_threads_max=TRACKING_THREADS)
 
 
 def _run_track(args: argparse.Namespace) -> int:
@@ -837,7 +846,7 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--service-clients", type=_non_negative_int, default=0, metavar="N",
                      help="also N clients tracking at once through POST /v1/track on a loopback server")
     _add_json_flag(sub)
-    sub.set_defaults(run=_run_bench_track)
+    sub.set_defaults(run=_run_bench_track, auto_threads_max=TRACKING_THREADS)
     which.choices["estimate"].add_argument(
         "--shift", action="store_true",
         help="on path-traced images with sensor, depth, mask and occlusion faults: `narf bench shift` with its defaults",
@@ -857,7 +866,7 @@ def _under_load(run: Callable[[argparse.Namespace], int]) -> Callable[[argparse.
         from narf_benchmarks.load import busy_processes
 
         with busy_processes(args.busy):
-            torch.set_num_threads(choose_threads(args.threads))
+            torch.set_num_threads(_threads_for(args))
             print(f"narf bench: {args.busy} busy process(es) running, torch threads {torch.get_num_threads()}",
                   file=sys.stderr)
             return run(args)
