@@ -32,7 +32,7 @@ EXIT_ERROR = 2  # bad input, as argparse uses for bad arguments
 EXIT_INTERRUPTED = 130
 EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError)
 THREADS_ENV = "NARF_THREADS"
-TRACKING_THREADS = 1  # per-frame work (hundreds of rays) runs faster on one thread than split over two
+SMALL_WORK_THREADS = 1  # 'auto' for rendering, refining and tracking: see _threads_for
 NOISE_PRESETS = ("none", "paper")  # generate.NOISE_PRESETS, named here so that --help imports no pybullet
 
 
@@ -91,10 +91,15 @@ def _add_json_flag(parser: argparse.ArgumentParser) -> None:
 
 
 def _threads_for(args: argparse.Namespace) -> int:
-    """torch threads for a command: ``--threads``, or with ``auto`` the free cores, capped by the
-    command's ``auto_threads_max`` where its work is too small to split (tracking)."""
+    """torch threads for a command: ``--threads``, or with ``auto`` the free cores, at most
+    ``SMALL_WORK_THREADS`` unless the command sets ``auto_threads_max`` (``None``: no cap; training).
+
+    Rendering, refining and tracking run parallel regions of a few thousand rays each; with idle
+    threads sleeping between them (the passive wait policy a shared machine needs), waking a second
+    thread costs more than it saves (``narf bench`` figures in the README).
+    """
     threads = choose_threads(args.threads)
-    cap = getattr(args, "auto_threads_max", None)
+    cap = getattr(args, "auto_threads_max", SMALL_WORK_THREADS)
     return min(threads, cap) if args.threads == AUTO and cap else threads
 
 
@@ -471,7 +476,7 @@ def _add_train(commands: argparse._SubParsersAction) -> None:
         "(the paper: 5000) instead of fresh rays every step (0, the default)")
     arg("--no-parts", action="store_true", help="leave the part fields out of the bundle (no 'parts' mode)")
     arg("--seed", type=_non_negative_int, default=0)
-    parser.set_defaults(run=_run_train)
+    parser.set_defaults(run=_run_train, auto_threads_max=None)  # batches of thousands of rays with backward
 
 
 def _run_train(args: argparse.Namespace) -> int:
@@ -692,7 +697,7 @@ def _add_track(commands: argparse._SubParsersAction) -> None:
     arg("--solver", choices=("adam", "gauss-newton"), default="adam", help="refiner per frame (default: %(default)s)")
     arg("--video", type=Path, metavar="OUT.gif", help="write the frames with the model's silhouette over them")
     _add_json_flag(parser)
-    parser.set_defaults(run=_run_track, auto_threads_max=TRACKING_THREADS)
+    parser.set_defaults(run=_run_track)
 
 
 def _run_track(args: argparse.Namespace) -> int:
@@ -846,7 +851,7 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--service-clients", type=_non_negative_int, default=0, metavar="N",
                      help="also N clients tracking at once through POST /v1/track on a loopback server")
     _add_json_flag(sub)
-    sub.set_defaults(run=_run_bench_track, auto_threads_max=TRACKING_THREADS)
+    sub.set_defaults(run=_run_bench_track)
     which.choices["estimate"].add_argument(
         "--shift", action="store_true",
         help="on path-traced images with sensor, depth, mask and occlusion faults: `narf bench shift` with its defaults",

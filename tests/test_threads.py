@@ -107,15 +107,17 @@ def test_cli_threads_option(capsys, monkeypatch) -> None:
     assert "got 'lots'" in capsys.readouterr().err
 
 
-def test_tracking_takes_one_thread_unless_told(monkeypatch) -> None:
+def test_auto_takes_one_thread_for_small_work_and_the_free_cores_for_training(monkeypatch) -> None:
     from narf_core.cli import _threads_for, build_parser
 
     monkeypatch.setattr(threads, "free_cores", lambda interval_s=0.1: 2)
-    track = build_parser().parse_args(["--threads", "auto", "track", "m.narf", "seq", "--init-pose", "label"])
-    assert _threads_for(track) == 1
-    bench = build_parser().parse_args(["--threads", "auto", "bench", "track"])
-    assert _threads_for(bench) == 1
-    told = build_parser().parse_args(["--threads", "2", "track", "m.narf", "seq", "--init-pose", "label"])
-    assert _threads_for(told) == 2
-    render = build_parser().parse_args(["--threads", "auto", "bench", "render", "--quick"])
-    assert _threads_for(render) == 2
+
+    def chosen(*argv: str) -> int:
+        return _threads_for(build_parser().parse_args(list(argv)))
+
+    assert chosen("--threads", "auto", "track", "m.narf", "seq", "--init-pose", "label") == 1
+    assert chosen("--threads", "auto", "bench", "estimate", "--quick") == 1
+    assert chosen("--threads", "auto", "train", "data", "--out", "m.narf") == 2
+    assert chosen("--threads", "2", "track", "m.narf", "seq", "--init-pose", "label") == 2
+    monkeypatch.setattr(threads, "free_cores", lambda interval_s=0.1: 1)
+    assert chosen("--threads", "auto", "train", "data", "--out", "m.narf") == 1
