@@ -1,7 +1,7 @@
 """Service under attack (issue #12): does ``/healthz`` stay fast while the server refuses hostile
 bodies and serves estimates, and does a disconnected client's work stop?
 
-Starts ``python -m narf_service`` as a child process on a free loopback port (so that the client's
+Starts ``narf serve`` as a child process on a free loopback port (so that the client's
 own work never shares the server's interpreter), then, at the same time:
   * a thread polls ``GET /healthz`` every 10 ms and records each latency;
   * ``estimates`` threads each send one estimate (``size``, ``iterations``, from a 10 degree / 2 cm
@@ -20,7 +20,6 @@ import argparse
 import json
 import os
 import socket
-import subprocess
 import sys
 import threading
 import time
@@ -28,17 +27,11 @@ from pathlib import Path
 from typing import Any
 
 import httpx
-import numpy as np
 from narf_client import NarfClient
 from narf_client.client import estimate_files
 
 from narf_benchmarks.service import percentile, perturbed, view
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from narf_service.main import serve_process
 
 
 def _hostile_json(megabytes: float) -> bytes:
@@ -67,28 +60,9 @@ def run(
     hostile_mb: float = 30.0,
     cancel_clients: int = 16,
 ) -> dict[str, Any]:
-    port = _free_port()
-    url = f"http://127.0.0.1:{port}"
-    env = {**os.environ, "NARF_MODELS_DIR": str(models_dir)}
-    env.pop("NARF_TOKEN", None)
-    server = subprocess.Popen(
-        [sys.executable, "-m", "narf_service", "--port", str(port), "--log-level", "warning"], env=env
-    )
-    try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                if httpx.get(f"{url}/readyz", timeout=1).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if time.monotonic() > deadline or server.poll() is not None:
-                raise RuntimeError("the server did not start")
-            time.sleep(0.1)
+    env = {k: v for k, v in os.environ.items() if k != "NARF_TOKEN"}
+    with serve_process(["--models", str(models_dir)], env, startup_timeout_s=60) as url:
         return _measure(url, model, estimates, iterations, size, hostile_mb, cancel_clients)
-    finally:
-        server.terminate()
-        server.wait(timeout=30)
 
 
 def _measure(url, model, estimates, iterations, size, hostile_mb, cancel_clients) -> dict[str, Any]:

@@ -4,10 +4,15 @@ from __future__ import annotations
 
 import argparse
 import logging
+import socket
+import subprocess
 import sys
+import tempfile
 import threading
 import time
-from collections.abc import Iterator
+import urllib.error
+import urllib.request
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -98,6 +103,55 @@ def serve_in_thread(app: FastAPI, host: str = "127.0.0.1", port: int = 0, *, sta
     finally:
         server.should_exit = True
         thread.join(timeout=30)
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that is free on ``host`` now (another process may still take it before it is bound)."""
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+@contextmanager
+def serve_process(
+    args: Sequence[str] = (), env: Mapping[str, str] | None = None, *, startup_timeout_s: float = 90.0
+) -> Iterator[str]:
+    """Run ``narf serve ARGS`` as its own process on a free loopback port, yielding its base URL once
+    ``/readyz`` answers 200; it is terminated (killed if it lingers) on exit.
+
+    For tests and benchmarks that need the server apart from the client's interpreter, as deployed.
+    ``env`` replaces the environment (default: this process's). Its output goes to a temporary file
+    (never a pipe nobody reads, which would stall it) whose end is quoted if it fails to start.
+    """
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    command = [sys.executable, "-m", "narf_core.cli", "serve", *args, "--port", str(port)]
+    with tempfile.TemporaryFile("w+") as log:
+        process = subprocess.Popen(command, env=dict(env) if env is not None else None, stdout=log, stderr=subprocess.STDOUT)
+        try:
+            deadline = time.monotonic() + startup_timeout_s
+            while not _ready(url):
+                if process.poll() is not None or time.monotonic() > deadline:
+                    log.seek(0)
+                    why = f"exited with {process.returncode}" if process.poll() is not None else "is not ready"
+                    raise RuntimeError(f"narf serve {why} after {startup_timeout_s:g} s at most: {log.read()[-2000:]}")
+                time.sleep(0.1)
+            yield url
+        finally:
+            process.terminate()
+            try:
+                process.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+
+def _ready(url: str) -> bool:
+    try:
+        with urllib.request.urlopen(f"{url}/readyz", timeout=2) as response:
+            return response.status == 200
+    except (urllib.error.URLError, ConnectionError, TimeoutError):
+        return False
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -10,14 +10,14 @@ from __future__ import annotations
 import json
 import os
 import re
-import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
 import pytest
+
+from narf_service.main import serve_process
 
 ROOT = Path(__file__).resolve().parent.parent
 MODEL = ROOT / "models" / "clamp.narf"
@@ -25,36 +25,10 @@ MODEL = ROOT / "models" / "clamp.narf"
 pytestmark = [pytest.mark.slow, pytest.mark.skipif(not MODEL.exists(), reason="no bundled demo model")]
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def server():
-    port = _free_port()
-    env = {**os.environ, "NARF_TORCH_THREADS": "1"}
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "narf_core.cli", "serve", "--models", str(MODEL.parent), "--port", str(port)],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-    )
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                if httpx.get(f"{url}/readyz", timeout=1).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert proc.poll() is None, proc.stdout.read()
-            assert time.monotonic() < deadline, "server not ready in 60 s"
-            time.sleep(0.3)
+    with serve_process(["--models", str(MODEL.parent)], {**os.environ, "NARF_TORCH_THREADS": "1"}, startup_timeout_s=60) as url:
         yield url
-    finally:
-        proc.terminate()
-        proc.wait(timeout=10)
 
 
 def test_models_lists_the_demo_clamp(server):

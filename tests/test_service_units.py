@@ -287,3 +287,11 @@ def test_the_real_engine_builds_options_from_a_preset_and_overrides() -> None:
     assert options(preset="robust", iterations=20) == EstimateOptions.robust(iterations=20)
     with pytest.raises(EstimateInputError, match="preset"):
         options(preset="fast")
+
+
+def test_serve_process_reports_a_server_that_does_not_start(tmp_path) -> None:
+    from narf_service.main import serve_process
+
+    with pytest.raises(RuntimeError, match=r"narf serve exited with 2 .*models folder .*absent does not exist"):
+        with serve_process(["--models", str(tmp_path / "absent")], startup_timeout_s=30):
+            pass

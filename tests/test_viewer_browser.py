@@ -10,13 +10,7 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import statistics
-import subprocess
-import sys
-import time
-import urllib.error
-import urllib.request
 from collections.abc import Iterator
 from io import BytesIO
 from pathlib import Path
@@ -25,6 +19,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from narf_service.main import serve_process
 from narf_benchmarks.viewer import CHROMIUM_ARGS, NARF_CANVAS, SLIDE_AND_WAIT, chromium_path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -47,42 +42,13 @@ def _chromium() -> str:
     return path
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="module")
 def server() -> Iterator[str]:
     """``narf serve`` of the bundled model, with a token and the page public, as its own process on a free loopback port."""
-    port = _free_port()
     env = {**os.environ, "NARF_WORKERS": "2", "NARF_TORCH_THREADS": "1", "NARF_TOKEN": TOKEN,
            "NARF_PUBLIC_ROUTES": "/healthz,/readyz,/viewer"}  # the page is public, its API calls carry the token
-    command = [sys.executable, "-m", "narf_core.cli", "serve", "--models", str(ROOT / "models"), "--port", str(port)]
-    process = subprocess.Popen(command, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 90
-    try:
-        while True:
-            try:
-                with urllib.request.urlopen(f"{url}/readyz", timeout=2) as response:
-                    if response.status == 200:
-                        break
-            except (urllib.error.URLError, ConnectionError, TimeoutError):
-                pass
-            if process.poll() is not None:
-                raise RuntimeError(f"narf serve exited with {process.returncode}: {process.stderr.read()[-2000:]}")
-            if time.monotonic() > deadline:
-                raise TimeoutError("narf serve did not become ready in 90 s")
-            time.sleep(0.2)
+    with serve_process(["--models", str(ROOT / "models")], env) as url:
         yield url
-    finally:
-        process.terminate()
-        try:
-            process.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            process.kill()
 
 
 @pytest.fixture(scope="module")
