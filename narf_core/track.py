@@ -389,7 +389,7 @@ def _recentred(model: NarfModel, camera: Pinhole, T: np.ndarray, joints: Mapping
 
 
 def _uncertainty(result: EstimateResult) -> tuple[dict | None, np.ndarray | None]:
-    u = getattr(result, "uncertainty", None)
+    u = result.uncertainty
     if u is None:
         return None, None
     cov = np.asarray(u.covariance, dtype=np.float64)

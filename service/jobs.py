@@ -209,7 +209,7 @@ def check_work(options: Any, max_rays: int, field: str) -> None:
     The cost is ``iterations x rays_per_iteration x theta_starts``: an upper bound (several starts
     share the rays after the first third), known before any work.
     """
-    starts = getattr(options, "theta_starts", 1)
+    starts = options.theta_starts
     rays = options.iterations * options.rays_per_iteration * starts
     if rays > max_rays:
         raise invalid(
@@ -305,6 +305,6 @@ def estimate(
         wall_seconds=time.perf_counter() - started,
         trace=[(_finite_or_none(loss), float(t)) for loss, t in result.trace],
         metrics=metrics,
-        uncertainty=_uncertainty_out(getattr(result, "uncertainty", None)),
-        warnings=list(getattr(result, "warnings", [])),
+        uncertainty=_uncertainty_out(result.uncertainty),
+        warnings=list(result.warnings),
     )

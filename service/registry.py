@@ -76,7 +76,7 @@ class ModelRegistry:
                 logger.error("model %s not loaded: %s", name, registry.failed[name])
             else:
                 logger.info("model %s loaded from %s", name, path)
-                if "checksum" not in (getattr(registry.models[name], "metadata", None) or {}):
+                if "checksum" not in registry.models[name].metadata:
                     logger.warning(
                         "model %s: %s has no checksum (saved before NARF wrote one); only its weights' finiteness "
                         "was checked. Load and save it again (narf_core.bundle) to add one.", name, path.name

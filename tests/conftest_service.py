@@ -158,6 +158,8 @@ class ToyResult:
     status: str
     recovered_non_finite: bool
     metrics: dict[str, float] | None
+    uncertainty: None = None  # the toy refiner has no covariance
+    warnings: list[str] = field(default_factory=list)
 
 
 def toy_refine(
