@@ -13,29 +13,26 @@ from __future__ import annotations
 import asyncio
 import pathlib
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any
 
 import torch
 from fastapi import APIRouter, Depends, FastAPI, File, Form, Header, Path, Request, UploadFile
 from fastapi.responses import JSONResponse, Response
-from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from fastapi.staticfiles import StaticFiles
 from pydantic import Json
 
 from narf_core.threads import AUTO, choose_threads
-from narf_service import jobs
-from narf_service.bodies import CLIENT_CLOSED_REQUEST, GuardedBodyRoute
+from narf_service import jobs, tracking
+from narf_service.bodies import GuardedBodyRoute
 from narf_service.engine import Engine
-from narf_service.errors import ApiError, install_error_handlers, invalid
+from narf_service.errors import install_error_handlers, invalid
 from narf_service.guards import AuthGate, BodyDeadline, authorized
 from narf_service.limits import BodySizeLimit
 from narf_service.monitoring import MetricsMiddleware, ServiceMetrics
 from narf_service.registry import MODEL_NAME_MAX, MODEL_NAME_PATTERN, ModelRegistry
 from narf_service.schemas import (
-    Camera,
-    ErrorResponse,
     EstimateRequest,
     EstimateResponse,
     Health,
@@ -45,19 +42,14 @@ from narf_service.schemas import (
     RenderRequest,
     RenderResponse,
 )
+from narf_service.routing import check_pixels, error_responses, registry_of, require_token, run_job
 from narf_service.settings import Settings
-from narf_service.workers import QueueFull, Stop, WorkQueue
-
-T = TypeVar("T")
+from narf_service.workers import WorkQueue
 
 API_VERSION = "1"
 VIEWER_DIR = pathlib.Path(__file__).resolve().parent / "viewer"
 """The web viewer's static files (plain HTML, CSS and JavaScript modules), served at ``/viewer``."""
 PNG = "image/png"
-
-
-def _errors(*statuses: int) -> dict[int | str, dict[str, Any]]:
-    return {status: {"model": ErrorResponse} for status in statuses}
 
 
 def prefers_png(accept: str | None) -> bool:
@@ -89,83 +81,24 @@ def prefers_png(accept: str | None) -> bool:
     return png > 0 and png > quality("application/json")
 
 
-_bearer = HTTPBearer(auto_error=False, description="Required when the server runs with NARF_TOKEN set.")
-
-
-async def require_token(
-    request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
-) -> None:
-    """The token check as a dependency, for the OpenAPI document; :class:`AuthGate` has already
-    refused a request without it, before its body was read."""
-    given = None if credentials is None else f"Bearer {credentials.credentials}"
-    if not authorized(request.app.state.settings, given):
-        raise ApiError(401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"})
-
-
-def _registry(request: Request) -> ModelRegistry:
-    return request.app.state.registry
-
-
-async def _run(request: Request, fn: Callable[[Stop], T]) -> T | Response:
-    """Run ``fn(stop)`` on the work queue; 503 with ``Retry-After`` when the queue is full.
-
-    If the client disconnects first, the job is cancelled (a waiting one never starts, a running one
-    sees ``stop()`` say ``"cancelled"``) and the answer, which nobody reads, is a bare 499.
-    """
-    stop = Stop(request.app.state.settings.max_seconds)
-    try:
-        future = request.app.state.queue.submit(lambda: fn(stop), stop)
-    except QueueFull as e:
-        request.app.state.metrics.rejected.inc()
-        raise ApiError(503, str(e), headers={"Retry-After": str(e.retry_after_s)}) from None
-    work = asyncio.wrap_future(future)
-    gone = asyncio.ensure_future(_disconnected(request))
-    try:
-        await asyncio.wait({work, gone}, return_when=asyncio.FIRST_COMPLETED)
-    finally:  # on a disconnect, and also when this coroutine is cancelled (server shutdown)
-        gone.cancel()
-        if not work.done():
-            future.cancel()
-            stop.cancel()
-            work.cancel()
-    if work.done() and not work.cancelled():
-        return work.result()
-    request.app.state.metrics.cancelled.inc()
-    return Response(status_code=CLIENT_CLOSED_REQUEST)
-
-
-async def _disconnected(request: Request) -> None:
-    """Returns when the client has gone (called once the body is read: nothing else can arrive)."""
-    while (await request.receive())["type"] != "http.disconnect":
-        pass
-
-
-def _check_pixels(camera: Camera, settings: Settings, field: str) -> None:
-    pixels = camera.width * camera.height
-    if pixels > settings.max_image_pixels:
-        limit = settings.max_image_pixels
-        message = f"{field}: {camera.width}x{camera.height} = {pixels} pixels exceeds the limit of {limit}"
-        raise ApiError(413, message, field=field)
-
-
 v1 = APIRouter(
-    prefix="/v1", dependencies=[Depends(require_token)], responses=_errors(401), route_class=GuardedBodyRoute
+    prefix="/v1", dependencies=[Depends(require_token)], responses=error_responses(401), route_class=GuardedBodyRoute
 )
 
 
 @v1.get("/models", response_model=ModelList, summary="The served models")
-async def list_models(registry: Annotated[ModelRegistry, Depends(_registry)]) -> ModelList:
+async def list_models(registry: Annotated[ModelRegistry, Depends(registry_of)]) -> ModelList:
     return ModelList(models=[jobs.describe(name, registry.models[name], full=False) for name in registry])
 
 
 @v1.get(
     "/models/{name}",
     response_model=ModelInfo,
-    responses=_errors(404, 422),
+    responses=error_responses(404, 422),
     summary="One model: links, joints and limits, bounds, metrics",
 )
 async def get_model(
-    registry: Annotated[ModelRegistry, Depends(_registry)],
+    registry: Annotated[ModelRegistry, Depends(registry_of)],
     name: Annotated[str, Path(max_length=MODEL_NAME_MAX, pattern=MODEL_NAME_PATTERN)],
 ) -> Any:
     return jobs.describe(name, registry.get(name, field="name"), full=True)
@@ -176,7 +109,7 @@ async def get_model(
     response_model=RenderResponse,
     responses={
         200: {"content": {PNG: {"schema": {"type": "string", "format": "binary"}}}},
-        **_errors(400, 404, 413, 422, 503),
+        **error_responses(400, 404, 413, 422, 503),
     },
     summary="Render a model at a pose and configuration",
     description="Images as base64 PNG in JSON; with `Accept: image/png` the one asked output as a PNG body "
@@ -185,29 +118,29 @@ async def get_model(
 async def render(
     request: Request,
     body: RenderRequest,
-    registry: Annotated[ModelRegistry, Depends(_registry)],
+    registry: Annotated[ModelRegistry, Depends(registry_of)],
     accept: Annotated[str | None, Header()] = None,
 ) -> Any:
     settings: Settings = request.app.state.settings
     model = registry.get(body.model)
-    _check_pixels(body.camera, settings, "camera")
+    check_pixels(body.camera, settings, "camera")
     jobs.check_joints(model, body.joints, "joints")
     jobs.check_mode(model, body.mode, "mode")
     if prefers_png(accept):
         if len(body.outputs) != 1:
             raise invalid("outputs", f"'Accept: {PNG}' returns one image; ask for exactly one output")
-        answer = await _run(request, lambda stop: jobs.render_png(model, body, stop))
+        answer = await run_job(request, lambda stop: jobs.render_png(model, body, stop))
         if isinstance(answer, Response):
             return answer
         png, seconds = answer
         return Response(png, media_type=PNG, headers={"X-Render-Seconds": f"{seconds:.6f}"})
-    return await _run(request, lambda stop: jobs.render_json(body.model, model, body, stop))
+    return await run_job(request, lambda stop: jobs.render_json(body.model, model, body, stop))
 
 
 @v1.post(
     "/estimate",
     response_model=EstimateResponse,
-    responses=_errors(400, 404, 413, 422, 503),
+    responses=error_responses(400, 404, 413, 422, 503),
     summary="Estimate pose and configuration from an image and a mask",
     description="Multipart: `image` (PNG/JPEG), `mask` (PNG), optional `depth` (16-bit PNG millimetres or .npy "
     "float32 metres) files and the `request` form field holding an EstimateRequest as JSON (curl: "
@@ -219,13 +152,13 @@ async def estimate(
     params: Annotated[Json[EstimateRequest], Form(alias="request", description="JSON: an EstimateRequest")],
     image: Annotated[UploadFile, File(description="RGB image, PNG or JPEG, the camera's size")],
     mask: Annotated[UploadFile, File(description="Object mask, single-channel PNG, non-zero = object")],
-    registry: Annotated[ModelRegistry, Depends(_registry)],
+    registry: Annotated[ModelRegistry, Depends(registry_of)],
     depth: Annotated[UploadFile | None, File(description="16-bit PNG (mm, 0 = none) or .npy (float32 m)")] = None,
 ) -> Any:
     started = time.perf_counter()
     settings: Settings = request.app.state.settings
     model = registry.get(params.model, field="request.model")
-    _check_pixels(params.camera, settings, "request.camera")
+    check_pixels(params.camera, settings, "request.camera")
     if params.iterations is not None and params.iterations > settings.max_iterations:
         raise invalid(
             "request.iterations", f"{params.iterations} exceeds this server's limit of {settings.max_iterations}"
@@ -242,7 +175,7 @@ async def estimate(
         "mask": await mask.read(),
         "depth": await depth.read() if depth is not None else None,
     }
-    return await _run(
+    return await run_job(
         request,
         lambda stop: jobs.estimate(
             engine,
@@ -279,7 +212,7 @@ async def healthz_head() -> Response:
     description="`failed` names the bundles that were refused, with a one-line reason; when the server "
     "has a token, the reasons are shown only to requests that carry it.",
 )
-async def readyz(request: Request, registry: Annotated[ModelRegistry, Depends(_registry)]) -> Any:
+async def readyz(request: Request, registry: Annotated[ModelRegistry, Depends(registry_of)]) -> Any:
     ready = len(registry) > 0
     failed = registry.failed
     if not authorized(request.app.state.settings, request.headers.get("authorization")):
@@ -340,8 +273,6 @@ def create_app(
     install_error_handlers(app)
     app.include_router(v1)
     app.include_router(ops)
-    from narf_service import tracking  # POST /v1/track; imports this module, so not at its top
-
     tracking.install(app, settings)
     # The viewer needs the token like any route unless NARF_PUBLIC_ROUTES lists /viewer; its API calls carry it.
     app.mount("/viewer", StaticFiles(directory=VIEWER_DIR, html=True), name="viewer")

@@ -26,11 +26,11 @@ from fastapi import APIRouter, Depends, FastAPI, File, Form, Request, UploadFile
 from pydantic import Json
 
 from narf_service import jobs
-from narf_service.app import _check_pixels, _errors, _registry, _run, require_token
 from narf_service.bodies import GuardedBodyRoute
 from narf_service.errors import invalid
 from narf_service.images import decode_depth, decode_mask, decode_rgb
 from narf_service.registry import ModelRegistry
+from narf_service.routing import check_pixels, error_responses, registry_of, require_token, run_job
 from narf_service.schemas import PoseOut, TrackRequest, TrackResponse, UncertaintyOut
 from narf_service.settings import Settings
 
@@ -43,7 +43,7 @@ log = logging.getLogger("narf_service.tracking")
 TOKEN_VERSION = "v1"
 STATE_FIELD = "request.state"
 
-router = APIRouter(prefix="/v1", dependencies=[Depends(require_token)], responses=_errors(401),
+router = APIRouter(prefix="/v1", dependencies=[Depends(require_token)], responses=error_responses(401),
                    route_class=GuardedBodyRoute)
 
 
@@ -134,7 +134,7 @@ def decode_state(key: bytes, token: str, name: str, model: NarfModel) -> TrackSt
 @router.post(
     "/track",
     response_model=TrackResponse,
-    responses=_errors(400, 404, 413, 422, 503),
+    responses=error_responses(400, 404, 413, 422, 503),
     summary="Track an object over frames: one frame per request, the state in a signed token",
     description="Multipart: `image` (PNG/JPEG), optional `mask` (PNG; missing or empty = status 'lost'), optional "
     "`depth` (16-bit PNG millimetres or .npy float32 metres) and the `request` form field holding a TrackRequest "
@@ -144,7 +144,7 @@ async def track(
     request: Request,
     params: Annotated[Json[TrackRequest], Form(alias="request", description="JSON: a TrackRequest")],
     image: Annotated[UploadFile, File(description="RGB image, PNG or JPEG, the camera's size")],
-    registry: Annotated[ModelRegistry, Depends(_registry)],
+    registry: Annotated[ModelRegistry, Depends(registry_of)],
     mask: Annotated[UploadFile | None, File(description="Object mask, single-channel PNG, non-zero = object")] = None,
     depth: Annotated[UploadFile | None, File(description="16-bit PNG (mm, 0 = none) or .npy (float32 m)")] = None,
 ) -> Any:
@@ -152,7 +152,7 @@ async def track(
 
     settings: Settings = request.app.state.settings
     model = registry.get(params.model, field="request.model")
-    _check_pixels(params.camera, settings, "request.camera")
+    check_pixels(params.camera, settings, "request.camera")
     key: bytes = request.app.state.track_key
     if params.state is not None:
         state = decode_state(key, params.state, params.model, model)
@@ -175,7 +175,7 @@ async def track(
         raise invalid("request.options", str(e)) from None
     uploads = {"image": await image.read(), "mask": await mask.read() if mask is not None else None,
                "depth": await depth.read() if depth is not None else None}
-    return await _run(request, lambda stop: _track_frame(key, params, model, state, options, uploads,
+    return await run_job(request, lambda stop: _track_frame(key, params, model, state, options, uploads,
                                                           settings.max_image_pixels))
 
 
