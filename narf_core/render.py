@@ -428,6 +428,7 @@ def render_rays(
     max_samples: int = 1024,
     jitter: bool = False,
     generator: torch.Generator | None = None,
+    t_range: tuple[Tensor, Tensor] | None = None,
 ) -> RenderOutput:
     """Volume-render ``rays`` (in the field's frame) through ``field`` inside the box ``aabb [2,3]``.
 
@@ -442,6 +443,10 @@ def render_rays(
         transmittance_eps: a ray stops once its transmittance falls below this.
         max_samples: at most this many intervals per ray (longer rays get longer intervals).
         jitter: sample each interval at one random offset per ray (training) instead of its middle.
+        t_range: ``(near [n], far [n])`` distances along each ray outside which nothing is marched
+            (a band around an expected surface); a ray whose band misses the box is empty. The
+            interval lattice stays anchored at ``t = 0``, so inside the band the samples are those
+            the full march takes there (while a ray's box segment fits in ``max_samples`` steps).
 
     Without gradients the rays are marched and composited in one pass. When gradients are needed
     (grad mode on, and the rays, ``theta`` or the field's parameters require them), the march runs
@@ -457,12 +462,25 @@ def render_rays(
     if max_samples < 3:
         raise ValueError(f"max_samples must be >= 3, got {max_samples}")
     theta, per_ray = _ray_theta(theta, len(rays))
-    march = _Marcher(grid, theta, per_ray, step, max_samples, transmittance_eps, generator if jitter else None)
+    band = _check_band(t_range, len(rays))
+    march = _Marcher(grid, theta, per_ray, step, max_samples, transmittance_eps, generator if jitter else None, band)
     if not _needs_grad(field, rays, theta):
         return march.render(field, rays, aabb, outputs, background)
     with torch.no_grad():
         samples = march.samples(_density_fn(field), Rays(rays.origins.detach(), rays.directions.detach(), rays.z_per_t), aabb)
     return march.composite(field, rays, samples, outputs, background)
+
+
+def _check_band(t_range: tuple[Tensor, Tensor] | None, n: int) -> tuple[Tensor, Tensor] | None:
+    """Validate ``t_range``: two ``[n]`` tensors of distances along the rays (``NaN`` is refused)."""
+    if t_range is None:
+        return None
+    near, far = t_range
+    if near.shape != (n,) or far.shape != (n,):
+        raise ValueError(f"t_range must be two [n_rays={n}] tensors, got {tuple(near.shape)} and {tuple(far.shape)}")
+    if bool(torch.isnan(near).any() | torch.isnan(far).any()):
+        raise ValueError("t_range must not hold NaN")
+    return near.detach(), far.detach()
 
 
 def _needs_grad(field, rays: Rays, theta: Tensor | None) -> bool:
@@ -496,6 +514,7 @@ class _Marcher:
     max_samples: int
     transmittance_eps: float
     generator: torch.Generator | None
+    band: tuple[Tensor, Tensor] | None = None
 
     def _rounds(
         self, rays: Rays, aabb: Tensor, evaluate: Callable[[_LiveRays, Tensor, Tensor, Tensor, Tensor], Tensor]
@@ -504,7 +523,7 @@ class _Marcher:
         ``[s]`` of a round's samples (live row, slot among the row's samples of the round, position
         and length). Returns the retired rays and their optical depths, in batches."""
         theta, per_ray = self.theta, self.per_ray
-        live = _start(rays, aabb, self.grid, theta, per_ray, self.step, self.max_samples, self.generator)
+        live = _start(rays, aabb, self.grid, theta, per_ray, self.step, self.max_samples, self.generator, self.band)
         tau_stop = -math.log(self.transmittance_eps)
         retired_ids: list[Tensor] = []
         retired_tau: list[Tensor] = []
@@ -674,9 +693,10 @@ class _LiveRays:
 
 def _start(
     rays: Rays, aabb: Tensor, grid: Occupancy | None, theta: Tensor | None, per_ray: bool, step: float,
-    max_samples: int, generator: torch.Generator | None,
+    max_samples: int, generator: torch.Generator | None, band: tuple[Tensor, Tensor] | None = None,
 ) -> _LiveRays:
-    """Clip the rays to the (grid-tightened) box and set up marching for those that meet it.
+    """Clip the rays to the (grid-tightened) box, and to their ``band`` when given, and set up
+    marching for those that meet it.
 
     ``generator``: jitter each ray's sample offset with it; ``None`` samples interval middles.
     """
@@ -688,6 +708,9 @@ def _start(
             t_near = t_far = origins.new_zeros(0)
         else:
             t_near, t_far, hit = ray_aabb(origins, directions, box)
+            if band is not None:
+                t_near, t_far = torch.maximum(t_near, band[0].to(t_near)), torch.minimum(t_far, band[1].to(t_far))
+                hit &= t_far > t_near
             ids = hit.nonzero().squeeze(-1)
             t_near, t_far = t_near[ids], t_far[ids]
     o, d = origins[ids], directions[ids]

@@ -213,6 +213,36 @@ def test_rays_missing_the_box_are_never_evaluated():
     assert out.n_samples == 0 and not field.points
 
 
+def test_a_band_around_the_surface_gives_the_full_render_from_fewer_samples():
+    field = Sphere()  # surface at t = 0.95 - 0.05 * (1 - sqrt(1 - r^2/R^2)) along each ray
+    rays = rays_along_z([[0.0, 0.0], [0.02, 0.01], [-0.03, 0.02], [0.08, 0.0]])  # the last misses the sphere
+    outputs = ("rgb", "depth", "opacity")
+    full = render_rays(field, rays, BOX, step=STEP, outputs=outputs)
+    n_full = field.n_evaluated
+    field.points.clear()
+    near, far = torch.full((4,), 0.93), torch.full((4,), 0.99)
+    band = render_rays(field, rays, BOX, step=STEP, outputs=outputs, t_range=(near, far))
+    evaluated = torch.cat(field.points)
+    assert band.n_samples < 0.5 * full.n_samples and field.n_evaluated < 0.5 * n_full
+    assert ((evaluated[:, 2] >= -0.07 - 1e-6) & (evaluated[:, 2] <= -0.01 + 1e-6)).all()  # t in [0.93, 0.99]
+    # the same samples up to where each ray stops (rounds differ, so by less than transmittance_eps)
+    torch.testing.assert_close(band.rgb, full.rgb, atol=1e-3, rtol=0)
+    torch.testing.assert_close(band.opacity, full.opacity, atol=1e-3, rtol=0)
+    torch.testing.assert_close(band.depth[:3], full.depth[:3], atol=STEP, rtol=0)
+    assert full.opacity[0] > 0.99 and full.opacity[3] == 0
+    field.points.clear()
+    before = render_rays(field, rays, BOX, step=STEP, outputs=outputs, t_range=(near - 0.7, far - 0.7))  # ends before the box
+    assert before.n_samples == 0 and not field.points and (before.opacity == 0).all()
+
+
+def test_a_band_of_the_wrong_shape_or_with_nan_is_refused():
+    rays = rays_along_z([[0.0, 0.0], [0.01, 0.0]])
+    with pytest.raises(ValueError, match="t_range"):
+        render_rays(Sphere(), rays, BOX, step=STEP, t_range=(torch.zeros(3), torch.ones(3)))
+    with pytest.raises(ValueError, match="NaN"):
+        render_rays(Sphere(), rays, BOX, step=STEP, t_range=(torch.tensor([0.0, float("nan")]), torch.ones(2)))
+
+
 def test_early_termination_changes_the_result_by_less_than_eps():
     field = Constant(100.0)  # T < 1e-3 after 7 cm of the 20 cm through the box
     rays = rays_along_z(torch.rand(64, 2, generator=torch.Generator().manual_seed(0)) * 0.18 - 0.09)
