@@ -153,6 +153,12 @@ def rotate_vectors(T: Tensor, v: Tensor) -> Tensor:
     return (T[..., :3, :3] @ v[..., None])[..., 0]
 
 
+def box_corners(aabb: Tensor) -> Tensor:
+    """``[2,3] -> [8,3]`` the corners of the axis-aligned box ``aabb`` (min, max)."""
+    sel = torch.tensor([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], device=aabb.device)
+    return torch.where(sel.bool(), aabb[1], aabb[0])
+
+
 def se3_exp(xi: Tensor) -> Tensor:
     """Twist ``xi = [rho, omega] [..., 6]`` to a pose ``[..., 4, 4]`` (series near 0)."""
     rho, omega = xi[..., :3], xi[..., 3:]

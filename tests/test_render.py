@@ -1,4 +1,4 @@
-"""The volume renderer: ray/box clipping, compositing, occupancy grids, images and part composition.
+"""The volume renderer: ray/box clipping, marching (samples), compositing, occupancy grids, images, part composition.
 
 Fields here are analytic (spheres, constant densities) so that every expected value is hand-checked.
 """
@@ -8,20 +8,12 @@ import math
 import pytest
 import torch
 
+from narf_core.compositing import composite, volume_render_weights
+from narf_core.fields.composed import compose_parts, composed_aabb
 from narf_core.geometry import Pinhole, Rays, invert_pose, look_at, make_pose, se3_exp, so3_exp
-from narf_core.render import (
-    OccupancyGrid,
-    RenderOutput,
-    compose_parts,
-    composed_aabb,
-    depth_test,
-    ray_aabb,
-    render_depth_test,
-    render_image,
-    render_parts_image,
-    render_rays,
-    volume_render_weights,
-)
+from narf_core.occupancy import OccupancyGrid
+from narf_core.render import ray_aabb, render_image, render_rays
+from narf_core.sampling import Samples, march
 
 BOX = torch.tensor([[-0.1, -0.1, -0.1], [0.1, 0.1, 0.1]])
 STEP = 0.2 / 256
@@ -128,6 +120,80 @@ def test_ray_aabb_grazing_a_corner_gives_a_tiny_nonnegative_segment():
 
 
 # --------------------------------------------------------------------------------------------
+# march: the samples along each ray
+
+
+UNIT = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+
+def test_march_cuts_the_clipped_segment_on_a_lattice_anchored_at_the_origin(dtype):
+    faint = Constant(1e-3).__call__  # never stops a ray early
+    rays = rays_along_z([[0.0, 0.0], [0.5, 0.5], [2.0, 0.0]], z0=-3.0, dtype=dtype)
+    rays.origins[1, 2] = -2.875  # enters the box at t = 1.875, between two lattice points
+    samples = march(lambda x, theta: faint(x, x)[0], rays, UNIT, step=0.25)
+    assert samples.ray.tolist() == [0] * 8 + [1] * 9  # the third ray misses the box
+    first = [2.125 + 0.25 * i for i in range(8)]
+    second = [1.9375] + [2.125 + 0.25 * i for i in range(7)] + [3.8125]  # short first and last intervals
+    torch.testing.assert_close(samples.t, torch.tensor(first + second, dtype=dtype))
+    torch.testing.assert_close(samples.delta, torch.tensor([0.25] * 8 + [0.125] + [0.25] * 7 + [0.125], dtype=dtype))
+
+
+def test_march_skips_empty_cells_and_clips_to_the_occupied_bounds():
+    occ = torch.zeros(2, 2, 2, dtype=torch.bool)
+    occ[:, :, 0] = True  # only z < 0 may hold density
+    grid = OccupancyGrid(UNIT, occ)
+    evaluated = []
+
+    def density(x, theta):
+        evaluated.append(x)
+        return torch.full_like(x[:, 0], 1e-3)
+
+    samples = march(density, rays_along_z([[0.0, 0.0]], z0=-3.0), UNIT, grid=grid, step=0.25)
+    torch.testing.assert_close(samples.t, torch.tensor([2.125, 2.375, 2.625, 2.875]))
+    assert (torch.cat(evaluated)[:, 2] < 0).all()
+
+
+def test_march_stops_a_ray_soon_after_it_is_opaque_and_the_samples_composite_to_it():
+    dense = Constant(100.0)  # optical depth 25 per interval: opaque after the first
+    rays = rays_along_z([[0.0, 0.0]], z0=-3.0)
+    samples = march(lambda x, theta: dense(x, x)[0], rays, UNIT, step=0.25)
+    assert 1 <= len(samples) < 8
+    torch.testing.assert_close(samples.t, 2.125 + 0.25 * torch.arange(len(samples), dtype=torch.float32))  # a prefix
+    out = composite(dense, rays, samples, outputs=("opacity", "depth"))
+    assert out.opacity.item() == pytest.approx(1.0) and out.depth.item() == pytest.approx(2.125, abs=1e-6)
+
+
+def test_march_jitter_keeps_one_offset_per_ray_and_a_band_keeps_only_its_samples():
+    faint = Constant(1e-3)
+    rays = rays_along_z([[0.0, 0.0], [0.1, 0.0]], z0=-3.0)
+    samples = march(lambda x, theta: faint(x, x)[0], rays, UNIT, step=0.25, jitter=True, generator=torch.Generator().manual_seed(0))
+    start = torch.floor(samples.t / 0.25) * 0.25
+    offset = (samples.t - start) / samples.delta
+    for r in (0, 1):
+        torch.testing.assert_close(offset[samples.ray == r], offset[samples.ray == r][:1].expand(8))
+    assert not torch.equal(offset[samples.ray == 0][0], offset[samples.ray == 1][0])
+    near, far = torch.tensor([2.5, 0.0]), torch.tensor([3.0, 0.5])  # the second band ends before the box
+    band = march(lambda x, theta: faint(x, x)[0], rays, UNIT, step=0.25, t_range=(near, far))
+    assert band.ray.tolist() == [0, 0]
+    torch.testing.assert_close(band.t, torch.tensor([2.625, 2.875]))
+
+
+def test_march_takes_theta_per_ray_to_the_density():
+    seen = []
+
+    def density(x, theta):
+        seen.append(theta)
+        return torch.full_like(x[:, 0], 1e-3)
+
+    rays = rays_along_z([[0.0, 0.0], [0.1, 0.0]], z0=-3.0)
+    samples = march(density, rays, UNIT, theta=torch.tensor([[1.0], [2.0]]), step=0.25)
+    assert torch.cat(seen)[:, 0].sort().values.tolist() == [1.0] * 8 + [2.0] * 8
+    with pytest.raises(ValueError, match=r"theta must be \[k\] or \[n_rays=2, k\]"):
+        march(density, rays, UNIT, theta=torch.zeros(3, 1), step=0.25)
+    assert len(samples) == 16
+
+
+# --------------------------------------------------------------------------------------------
 # Compositing weights
 
 
@@ -154,6 +220,59 @@ def test_volume_render_weights_huge_density_and_tiny_steps(dtype):
     assert w[2].tolist() == [1.0, 0.0, 0.0]  # optical depth overflows to inf (float32): still exact
     w[:2].sum().backward()
     assert torch.isfinite(sigma.grad).all()
+
+
+# --------------------------------------------------------------------------------------------
+# composite: colour, depth and opacity from given samples
+
+
+class Layers:
+    """Density 1 below z = 0.25 and 2 above it; red below, green above."""
+
+    def __call__(self, x, d, theta=None):
+        above = x[:, 2] > 0.25
+        sigma = torch.where(above, 2.0, 1.0).to(x.dtype)
+        rgb = torch.stack([(~above).to(x.dtype), above.to(x.dtype), torch.zeros_like(x[:, 0])], -1)
+        return sigma, rgb
+
+
+def test_composite_hand_checked(dtype):
+    rays = rays_along_z([[0.0, 0.0], [0.1, 0.0], [0.2, 0.0]], z0=-1.0, dtype=dtype, z_per_t=0.5)
+    # ray 0: samples at z = 0 (sigma 1) and z = 0.5 (sigma 2), each over 0.5; ray 1: none; ray 2: one at z = 0
+    samples = Samples(torch.tensor([0, 0, 2]), torch.tensor([1.0, 1.5, 1.0], dtype=dtype), torch.tensor([0.5, 0.5, 0.25], dtype=dtype))
+    out = composite(Layers(), rays, samples, outputs=("rgb", "depth", "opacity"), background=torch.tensor([0.0, 0.0, 1.0]))
+    e = math.exp
+    w0, w1 = 1 - e(-0.5), e(-0.5) * (1 - e(-1.0))
+    torch.testing.assert_close(out.opacity, torch.tensor([1 - e(-1.5), 0.0, 1 - e(-0.25)], dtype=dtype))
+    torch.testing.assert_close(out.depth, torch.tensor([0.5 * (w0 * 1.0 + w1 * 1.5), 0.0, 0.5 * (1 - e(-0.25))], dtype=dtype))
+    torch.testing.assert_close(
+        out.rgb, torch.tensor([[w0, w1, e(-1.5)], [0.0, 0.0, 1.0], [1 - e(-0.25), 0.0, e(-0.25)]], dtype=dtype)
+    )
+    assert out.n_samples == 3
+
+
+def test_composite_of_the_march_equals_the_one_pass_render():
+    field = Sphere(center=(0.01, 0.0, 0.02))
+    rays = rays_along_z(torch.rand(40, 2, generator=torch.Generator().manual_seed(4)) * 0.2 - 0.1)
+    outputs = ("rgb", "depth", "opacity")
+    with torch.no_grad():
+        one_pass = render_rays(field, rays, BOX, step=STEP, outputs=outputs)
+    two_pass = composite(field, rays, march(field.density_only, rays, BOX, step=STEP), outputs=outputs)
+    for a, b in zip((one_pass.rgb, one_pass.depth, one_pass.opacity), (two_pass.rgb, two_pass.depth, two_pass.opacity)):
+        torch.testing.assert_close(a, b)
+    assert one_pass.n_samples == two_pass.n_samples > 0
+
+
+def test_composite_is_differentiable_in_theta_and_the_rays():
+    blob = Blob()
+    rays = rays_along_z(torch.tensor([[0.0, 0.0], [0.02, -0.01]]), dtype=torch.float64)
+    samples = march(lambda x, theta: blob(x, x, theta)[0], rays, BOX, theta=torch.tensor([0.3], dtype=torch.float64), step=4 * STEP)
+
+    def rgb_of(theta, origins):
+        return composite(blob, Rays(origins, rays.directions, rays.z_per_t), samples, theta=theta).rgb
+
+    inputs = (torch.tensor([0.3], dtype=torch.float64, requires_grad=True), rays.origins.clone().requires_grad_(True))
+    assert torch.autograd.gradcheck(rgb_of, inputs)
 
 
 # --------------------------------------------------------------------------------------------
@@ -356,6 +475,25 @@ def test_occupancy_lookup_hand_checked():
     assert OccupancyGrid.full(BOX, 4).occupied(torch.zeros(1, 3)).item()
 
 
+def test_grid_along_rays_agrees_with_the_pointwise_lookup_per_configuration_bin():
+    g = torch.Generator().manual_seed(5)
+    grid = OccupancyGrid(BOX, torch.rand(3, 8, 8, 8, generator=g) > 0.6, torch.tensor([[0.0], [3.0]]))
+    origins = torch.rand(20, 3, generator=g) * 0.2 - 0.1
+    directions = torch.nn.functional.normalize(torch.randn(20, 3, generator=g), dim=-1)
+    t = torch.rand(20, 16, generator=g) * 0.05  # short steps: every point stays near the box
+    theta = torch.rand(20, 1, generator=g) * 3
+    x = origins[:, None] + t[..., None] * directions[:, None]
+    inside = ((x >= BOX[0]) & (x <= BOX[1])).all(-1)
+    pointwise = grid.occupied(x.reshape(-1, 3), theta.repeat_interleave(16, 0)).reshape(20, 16)
+    along = grid.along(origins, directions, theta)
+    assert torch.equal(along(t)[inside], pointwise[inside]) and pointwise.any() and not pointwise.all()
+    kept = torch.tensor([3, 7])
+    assert torch.equal(along.select(kept)(t[kept]), along(t)[kept])
+    shared = grid.along(origins, directions, torch.tensor([2.5]))  # one theta: the last bin for every ray
+    last = grid.occupied(x.reshape(-1, 3), torch.tensor([2.5])).reshape(20, 16)
+    assert torch.equal(shared(t)[inside], last[inside])
+
+
 def test_grid_validation_errors():
     with pytest.raises(ValueError, match="max > min"):
         OccupancyGrid(torch.tensor([[0.0, 0, 0], [0, 1, 1]]), torch.ones(2, 2, 2))
@@ -501,32 +639,42 @@ def test_volumetric_composition_equals_the_analytic_union():
         assert ((seen >= part.aabb[0] - 1e-6) & (seen <= part.aabb[1] + 1e-6)).all()
 
 
-def test_depth_test_keeps_the_nearer_part():
+def test_volumetric_composition_shows_the_nearer_part():
     parts, T_obj_part = two_parts()  # blue sits 8 cm further along +z
+    composition = compose_parts(parts, [None, None], T_obj_part)
     toward_plus_z = rays_along_z([[0.0, 0.0]] * 2)  # meets red first
     toward_minus_z = Rays(torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([[0.0, 0.0, -1.0]]), torch.ones(1))  # blue first
-    out = render_depth_test(parts, [None, None], T_obj_part, toward_plus_z, step=STEP)
+    out = render_rays(composition, toward_plus_z, composition.aabb, grid=composition, step=STEP, outputs=("rgb", "depth", "opacity"))
     torch.testing.assert_close(out.rgb[0], torch.tensor([1.0, 0.0, 0.0]), atol=1e-3, rtol=0)  # T < 1e-3 left
     # surface at 0.96; with sigma = 200 the expected depth lies 1 / sigma behind it
     assert (out.depth / out.opacity)[0].item() == pytest.approx(0.96 + 1 / 200, abs=2 * STEP)
-    out = render_depth_test(parts, [None, None], T_obj_part, toward_minus_z, step=STEP)
+    out = render_rays(composition, toward_minus_z, composition.aabb, grid=composition, step=STEP)
     torch.testing.assert_close(out.rgb[0], torch.tensor([0.0, 0.0, 1.0]), atol=1e-3, rtol=0)
 
 
-def test_depth_test_skips_a_near_part_that_is_too_faint():
-    faint_near = RenderOutput(torch.tensor([[0.3, 0.0, 0.0]]), torch.tensor([0.3 * 0.5]), torch.tensor([0.3]))
-    solid_far = RenderOutput(torch.tensor([[0.0, 0.0, 1.0]]), torch.tensor([0.9]), torch.tensor([1.0]))
-    out = depth_test([faint_near, solid_far], background=0.0)
-    torch.testing.assert_close(out.rgb, torch.tensor([[0.0, 0.0, 1.0]]))
-    both_faint = depth_test([faint_near, RenderOutput(torch.zeros(1, 3), torch.zeros(1), torch.tensor([0.1]))], background=1.0)
-    torch.testing.assert_close(both_faint.rgb, torch.tensor([[1.0, 0.7, 0.7]]))  # the most opaque, over the background
-
-
-def test_render_parts_image_matches_the_per_ray_depth_test():
+def test_the_composition_as_its_own_occupancy_changes_no_pixel():
     parts, T_obj_part = two_parts()
+    composition = compose_parts(parts, [None, None], T_obj_part)
     camera, T_cam_obj = camera_looking_at_origin(distance=0.4, width=40, height=30)
-    images = render_parts_image(parts, [None, None], T_obj_part, camera, T_cam_obj, step=STEP, outputs=("rgb", "opacity"))
+    exact = {"step": STEP, "outputs": ("rgb", "depth", "opacity"), "transmittance_eps": 1e-30}  # no early stop
+    with_grid = render_image(composition, camera, T_cam_obj, aabb=BOX, grid=composition, **exact)
+    without = render_image(composition, camera, T_cam_obj, aabb=BOX, **exact)
+    for name in exact["outputs"]:
+        torch.testing.assert_close(with_grid[name], without[name])
+    assert (with_grid["opacity"] > 0.5).sum() > 50
     rays = camera.rays().transform(invert_pose(T_cam_obj))
-    out = render_depth_test(parts, [None, None], T_obj_part, rays, step=STEP)
-    torch.testing.assert_close(images["rgb"].reshape(-1, 3), out.rgb, atol=1e-6, rtol=0)
-    assert (images["opacity"] > 0.5).any()
+    skipping = render_rays(composition, rays, BOX, grid=composition, **exact)
+    assert skipping.n_samples < 0.5 * render_rays(composition, rays, BOX, **exact).n_samples
+
+
+def test_the_composition_answers_the_occupancy_protocol():
+    parts, T_obj_part = two_parts()
+    composition = compose_parts(parts, [None, None], T_obj_part)
+    torch.testing.assert_close(composition.bounds(), composition.aabb)
+    x = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.08], [0.0, 0.0, 0.2], [0.06, 0.0, 0.0]])
+    assert composition.occupied(x).tolist() == [True, True, False, False]  # 0.06 > the red box's 0.05
+    rays = rays_along_z([[0.0, 0.0], [0.08, 0.0]], z0=-0.1)  # the second passes beside both (rotated) boxes
+    t = torch.tensor([[0.1, 0.18, 0.3], [0.1, 0.18, 0.3]])
+    along = composition.along(rays.origins, rays.directions)
+    assert along(t).tolist() == [[True, True, False], [False, False, False]]
+    assert along.select(torch.tensor([1]))(t[1:]).tolist() == [[False, False, False]]

@@ -1,9 +1,17 @@
-"""The articulated object as a configuration-conditioned field built from its part fields.
+"""The articulated object as one field composed of its rigid part fields (docs/design.md §4.2, ``volumetric``).
 
-Composition in ``volumetric`` mode (docs/design.md §4.2): a sample ``x`` in the object frame is moved into
-every part's frame by the forward kinematics at its own ``θ``; densities add and colour is the
-density-weighted mean. This is exact and differentiable in ``x``, ``d`` and ``θ``, and it has the
-same call signature as the distilled configuration field, so one renderer serves both.
+A sample ``x`` in the object frame is moved into every part's frame (``x_part = T_part_obj x``, ``d``
+rotated); a part is evaluated only where the sample lies in its box (in its occupied cells when it has
+a grid); densities add and the colour is the density-weighted mean (0 where no part has density).
+This is exact and differentiable in ``x``, ``d`` and the part poses (so in ``θ`` through the forward
+kinematics), and it has the same call signature as the distilled configuration field, so one
+renderer serves both.
+
+One composition (:func:`compose`), posed two ways: :class:`ComposedField` runs the forward kinematics
+for every ``θ`` it is given (per sample, or once for a shared ``θ``); :class:`PosedComposition` holds
+the parts at fixed poses (:func:`compose_parts`, e.g. one render at one ``θ``) and is also an
+:class:`~narf_core.occupancy.Occupancy` (the union of its parts' grids), so a render can skip its
+empty space. :func:`union_occupancy` builds the object-frame grid over every ``θ`` from the part grids.
 """
 
 from __future__ import annotations
@@ -15,15 +23,64 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from narf_core.geometry import invert_pose, rotate_vectors, transform_points
-from narf_core.render import OccupancyGrid
+from narf_core.geometry import box_corners, invert_pose, rotate_vectors, transform_points
+from narf_core.occupancy import Field, Occupancy, OccupancyGrid, PointwiseRays
+
+
+def compose(
+    part_fields: Sequence[Field], part_grids: Sequence[Occupancy | None], T_part_obj: Tensor, x: Tensor, d: Tensor
+) -> tuple[Tensor, Tensor]:
+    """``(sigma [n], rgb [n,3])`` of the parts at ``x``, ``d [n,3]`` (object frame, any float dtype).
+
+    ``T_part_obj``: ``[p,4,4]`` (one pose per part) or ``[n,p,4,4]`` (per sample). A part without a
+    grid counts as occupied inside its box (its ``aabb`` attribute). Results are in ``x``'s dtype.
+    """
+    sigma = x.new_zeros(x.shape[0])
+    weighted = x.new_zeros(x.shape[0], 3)
+    for i, (idx, xp) in enumerate(_part_samples(part_fields, part_grids, T_part_obj, x)):
+        if idx.numel() == 0:
+            continue
+        T = T_part_obj[..., i, :, :].to(d.dtype)
+        dp = rotate_vectors(T if T.dim() == 2 else T[idx], d[idx])
+        s, c = part_fields[i](xp, dp, None)
+        s = s.to(x.dtype)
+        sigma = sigma.index_add(0, idx, s)
+        weighted = weighted.index_add(0, idx, s[:, None] * c.to(x.dtype))
+    rgb = torch.where(sigma[:, None] > 0, weighted / sigma.clamp_min(1e-30)[:, None], 0.0)
+    return sigma, rgb
+
+
+def _part_samples(
+    part_fields: Sequence[Field], part_grids: Sequence[Occupancy | None], T_part_obj: Tensor, x: Tensor
+) -> list[tuple[Tensor, Tensor]]:
+    """Per part: the indices of the samples ``x [n,3]`` it covers and their positions in its frame."""
+    out = []
+    for i, grid in enumerate(part_grids):
+        xp = transform_points(T_part_obj[..., i, :, :].to(x.dtype), x)
+        inside = grid.occupied(xp) if grid is not None else _inside(xp, part_fields[i].aabb.to(x.dtype))
+        idx = inside.nonzero().squeeze(-1)
+        out.append((idx, xp[idx]))
+    return out
+
+
+def _inside(x: Tensor, aabb: Tensor) -> Tensor:
+    """``x [n,3]`` inside the box ``aabb [2,3]`` (faces included) -> ``[n]`` bool."""
+    return ((x >= aabb[0]) & (x <= aabb[1])).all(-1)
+
+
+def composed_aabb(part_aabbs: Tensor, T_obj_part: Tensor) -> Tensor:
+    """``[2,3]``: the object-frame box around part boxes ``part_aabbs [p,2,3]`` posed by ``T_obj_part [p,4,4]``."""
+    corners = torch.stack([box_corners(b) for b in part_aabbs.to(T_obj_part.dtype)])  # [p, 8, 3]
+    moved = transform_points(T_obj_part[:, None], corners).reshape(-1, 3)
+    return torch.stack([moved.amin(0), moved.amax(0)])
 
 
 class ComposedField(nn.Module):
-    """``(x [n,3], d [n,3], θ [n,k] | [k]) -> (σ [n], rgb [n,3])`` from rigid part fields.
+    """``(x [n,3], d [n,3], θ [n,k] | [k]) -> (σ [n], rgb [n,3])`` from rigid part fields (:func:`compose`).
 
     ``part_poses(θ [..., k]) -> T_obj_part [..., n_parts, 4, 4]`` is the object's forward
-    kinematics; ``part_grids`` (optional) skip the samples that fall in a part's empty space.
+    kinematics; ``part_grids`` (optional) skip the samples that fall in a part's empty space. A
+    ``θ`` shared by all samples (``[k]``, or equal rows) runs the kinematics once.
     """
 
     def __init__(
@@ -38,32 +95,56 @@ class ComposedField(nn.Module):
         self.part_poses = part_poses
 
     def forward(self, x: Tensor, d: Tensor, theta: Tensor | None) -> tuple[Tensor, Tensor]:
-        n = x.shape[0]
-        if n == 0:
+        if x.shape[0] == 0:
             return x.new_zeros(0), x.new_zeros(0, 3)
         shared = theta is None or theta.dim() == 1 or (theta.shape[0] > 0 and bool((theta == theta[:1]).all()))
         theta_one = theta if theta is None or theta.dim() == 1 else theta[0]
         T_part_obj = invert_pose(self.part_poses(theta_one if shared else theta).to(x.dtype))
-        sigma = x.new_zeros(n)
-        weighted_rgb = x.new_zeros(n, 3)
-        for i, (part, grid) in enumerate(zip(self.parts, self.grids)):
-            T = T_part_obj[..., i, :, :]
-            xp = transform_points(T, x)
-            dp = rotate_vectors(T, d)
-            keep = grid.occupied(xp) if grid is not None else _inside(xp, part.aabb)
-            idx = keep.nonzero().squeeze(-1)
-            if idx.numel() == 0:
-                continue
-            s, c = part(xp[idx], dp[idx], None)
-            sigma = sigma.index_add(0, idx, s)
-            weighted_rgb = weighted_rgb.index_add(0, idx, s[:, None] * c)
-        rgb = weighted_rgb / sigma.clamp_min(1e-10)[:, None]
-        return sigma, rgb.clamp(0, 1)
+        return compose(self.parts, self.grids, T_part_obj, x, d)
 
 
-def _inside(x: Tensor, aabb: Tensor) -> Tensor:
-    """``x [n,3]`` inside the box ``aabb [2,3]`` -> ``[n]`` bool."""
-    return ((x >= aabb[0]) & (x <= aabb[1])).all(-1)
+class PosedComposition:
+    """The parts at fixed poses ``T_obj_part [p,4,4]``: a field (``θ`` is ignored) and an occupancy.
+
+    As a field, :func:`compose` (differentiable in the poses). As an
+    :class:`~narf_core.occupancy.Occupancy`: ``occupied(x)`` is the union of the parts' occupancy
+    (their grids, or their boxes), ``bounds()`` is :attr:`aabb`, the object-frame box around the
+    posed part boxes, so the composition can be passed as its own ``grid``.
+    """
+
+    def __init__(self, part_fields: Sequence[Field], part_grids: Sequence[Occupancy | None], T_obj_part: Tensor) -> None:
+        if not (len(part_fields) == len(part_grids) == T_obj_part.shape[0]) or T_obj_part.shape[1:] != (4, 4):
+            raise ValueError(
+                f"need one grid (or None) and one pose [4,4] per part: got {len(part_fields)} fields, "
+                f"{len(part_grids)} grids and poses of shape {tuple(T_obj_part.shape)}"
+            )
+        self.fields, self.grids = list(part_fields), list(part_grids)
+        self.T_obj_part = T_obj_part
+        self.T_part_obj = invert_pose(T_obj_part)
+        self.part_aabbs = torch.stack([f.aabb.to(T_obj_part.dtype) for f in self.fields])
+        self.aabb = composed_aabb(self.part_aabbs, T_obj_part)
+
+    def __call__(self, x: Tensor, d: Tensor, theta: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        return compose(self.fields, self.grids, self.T_part_obj, x, d)
+
+    def occupied(self, x: Tensor, theta: Tensor | None = None) -> Tensor:
+        hit = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+        for idx, _ in _part_samples(self.fields, self.grids, self.T_part_obj, x):
+            hit[idx] = True
+        return hit
+
+    def bounds(self, theta: Tensor | None = None) -> Tensor:
+        return self.aabb
+
+    def along(self, origins: Tensor, directions: Tensor, theta: Tensor | None = None) -> PointwiseRays:
+        return PointwiseRays(self.occupied, origins, directions)
+
+
+def compose_parts(
+    part_fields: Sequence[Field], part_grids: Sequence[Occupancy | None], T_obj_part: Tensor
+) -> PosedComposition:
+    """The composition of ``part_fields`` posed by ``T_obj_part [p,4,4]`` (see :class:`PosedComposition`)."""
+    return PosedComposition(part_fields, part_grids, T_obj_part)
 
 
 def union_occupancy(
