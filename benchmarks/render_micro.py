@@ -22,12 +22,13 @@ import torch
 from torch import Tensor
 
 from narf_core.fields import KPlanesField
+from narf_core.bundle import march_step
 from narf_core.geometry import Pinhole, Rays, invert_pose, look_at, se3_exp
 from narf_core.render import OccupancyGrid, render_image, render_rays
 
 AABB = torch.tensor([[-0.10, -0.06, -0.015], [0.10, 0.06, 0.015]])
 THETA_LIMITS = (0.0, 0.8)  # radians
-STEP = float((AABB[1] - AABB[0]).norm()) / 256
+STEP = march_step(AABB)
 
 
 class Hinge:

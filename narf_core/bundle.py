@@ -16,6 +16,7 @@ finiteness check only (load and save it again to add one).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -30,30 +31,29 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import Tensor
 
+from narf_core.checks import JointSpec
 from narf_core.fields import make_field
-from narf_core.fields.composed import ComposedField
+from narf_core.fields.composed import ComposedField, compose_parts
+from narf_core.diameter import object_diameter
 from narf_core.geometry import Pinhole, Rays
 from narf_core.kinematics import KinematicTree
-from narf_core.render import OccupancyGrid, RenderOutput, compose_parts, render_image, render_rays
+from narf_core.render import OccupancyGrid, RenderOutput, render_image, render_rays
 
 FORMAT = "narf-bundle"
 FORMAT_VERSION = 2  # 2: occupancy grids stored as packed bits, their shapes in the metadata
 CHECKSUM_ALGORITHM = "sha256"
 RENDER_MODES = ("narf", "parts")
+STEPS_PER_DIAGONAL = 256
+
+
+def march_step(aabb: Tensor) -> float:
+    """The ray-marching interval (metres) of a model whose box is ``aabb [2, 3]``: its diagonal /
+    :data:`STEPS_PER_DIAGONAL`, used in training and by every render of the trained model."""
+    return float((aabb[1] - aabb[0]).norm()) / STEPS_PER_DIAGONAL
 
 
 class BundleError(ValueError):
     """A bundle file that cannot be used: missing, corrupt, foreign or of another version."""
-
-
-@dataclass(frozen=True)
-class JointSpec:
-    """A movable joint: its name, URDF type and limits (radians or metres)."""
-
-    name: str
-    type: str
-    lower: float
-    upper: float
 
 
 @dataclass
@@ -83,7 +83,7 @@ class NarfModel:
         self.upper = kin.upper.to(torch.float32)
         self.aabb = self.grid.aabb.to(torch.float32)
         if self.step is None:
-            self.step = float((self.aabb[1] - self.aabb[0]).norm()) / 256
+            self.step = march_step(self.aabb)
         if not self.sample_points:
             self.sample_points = kin.sample_points()
         points = np.concatenate(list(self.sample_points.values())) if self.sample_points else np.zeros((0, 3))
@@ -93,12 +93,13 @@ class NarfModel:
     def has_parts(self) -> bool:
         return bool(self.part_fields)
 
-    def joint_vector(self, joints: Mapping[str, float] | None) -> Tensor:
+    def joint_vector(self, joints: Mapping[str, float] | None, *, field: str = "joints") -> Tensor:
         """θ ``[k]`` (float32) from ``{name: value}``; missing joints at mid-range.
 
-        Raises ``ValueError`` naming an unknown joint, a non-finite value or one outside its limits.
+        Raises :class:`~narf_core.checks.InputError` naming ``field`` and an unknown joint, a
+        non-finite value or one outside its limits.
         """
-        return self.kinematics.joint_vector(joints).to(torch.float32)
+        return self.kinematics.joint_vector(joints, field=field).to(torch.float32)
 
     def joint_dict(self, theta: Tensor) -> dict[str, float]:
         return self.kinematics.joint_dict(theta)
@@ -129,11 +130,14 @@ class NarfModel:
         mode: str = "narf",
         outputs: tuple[str, ...] = ("rgb",),
         background: float = 0.0,
+        t_range: tuple[Tensor, Tensor] | None = None,
     ) -> RenderOutput:
-        """Render rays given in the object frame at configuration ``θ [k]``; differentiable."""
+        """Render rays given in the object frame at configuration ``θ [k]``; differentiable.
+        ``t_range``: ``(near [n], far [n])``, march only that band of each ray (see :func:`render_rays`)."""
         field, grid = self._field_for(mode, theta)
         return render_rays(
-            field, rays_obj, self.aabb, theta=theta, grid=grid, step=self.step, outputs=outputs, background=background
+            field, rays_obj, self.aabb, theta=theta, grid=grid, step=self.step, outputs=outputs, background=background,
+            t_range=t_range,
         )
 
     def render(
@@ -164,24 +168,23 @@ class NarfModel:
             )
 
     def describe(self) -> dict:
-        """JSON-able description: links, joints and limits, bounds, metrics."""
+        """JSON-able description: links, joints and limits, bounds, metrics (the service's
+        ``/v1/models`` answers are made of it)."""
         return {
             "name": self.name,
-            "links": self.links,
-            "joints": [j.__dict__ for j in self.joints],
+            "links": list(self.links),
+            "joints": [dataclasses.asdict(j) for j in self.joints],
             "bounds": self.aabb.tolist(),
             "diameter": self.diameter,
             "modes": ["narf", "parts"] if self.has_parts else ["narf"],
-            "field": self.metadata.get("field", {}),
-            "metrics": self.metadata.get("metrics", {}),
-            "provenance": self.metadata.get("provenance", {}),
+            "field": self.metadata.get("field") or {},
+            "metrics": self.metadata.get("metrics") or {},
+            "provenance": self.metadata.get("provenance") or {},
         }
 
 
 def _diameter(points: np.ndarray, kin: KinematicTree, sample_points: dict[str, np.ndarray]) -> float:
     """Largest distance between surface points of the object at mid-range θ."""
-    from narf_core.metrics import object_diameter
-
     if len(points) == 0:
         return 0.0
     poses = kin.link_poses(kin.mid_configuration()).numpy()

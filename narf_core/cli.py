@@ -349,8 +349,11 @@ def _json_arg(text: str, what: str) -> Any:
 
 
 def _pose_arg(text: str, what: str):
-    """A pose from ``{"matrix": 4x4}`` or ``{"position": [x,y,z], "orientation": [qx,qy,qz,qw]}``."""
+    """A pose from ``{"matrix": 4x4}`` or ``{"position": [x,y,z], "orientation": [qx,qy,qz,qw]}``,
+    checked by :func:`narf_core.checks.check_pose`."""
     import numpy as np
+
+    from narf_core.checks import ROTATION_TOLERANCE, check_pose
 
     value = _json_arg(text, what)
     if isinstance(value, dict) and "pose" in value:
@@ -368,17 +371,12 @@ def _pose_arg(text: str, what: str):
         q = np.asarray(value["orientation"], dtype=np.float64)
         if p.shape != (3,) or q.shape != (4,):
             raise ValueError(f"{what}: position needs 3 values and orientation 4 (qx, qy, qz, qw)")
-        if not np.isfinite(q).all() or abs(np.linalg.norm(q) - 1) > 1e-3:
+        if not np.isfinite(q).all() or abs(np.linalg.norm(q) - 1) > ROTATION_TOLERANCE:
             raise ValueError(f"{what}: orientation must be a unit quaternion, got norm {np.linalg.norm(q):.4g}")
         T = _pose_from(p, q)
     else:
         raise ValueError(f"{what}: expected {{'matrix': 4x4}} or {{'position', 'orientation'}}")
-    if not np.isfinite(T).all():
-        raise ValueError(f"{what}: pose has NaN or infinite values")
-    R = T[:3, :3]
-    if np.abs(R @ R.T - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0:
-        raise ValueError(f"{what}: rotation is not orthonormal (a proper rotation)")
-    return T
+    return check_pose(T, what)
 
 
 def _pose_from(position, orientation):
@@ -566,7 +564,7 @@ def _run_render(args: argparse.Namespace) -> int:
     camera = _camera_arg(args.K, width, height) if args.K else Pinhole.primesense(width, height)
     T = _pose_arg(args.pose, "--pose")
     model = load_bundle(args.model)
-    theta = model.joint_vector(_joints_arg(args.joints))
+    theta = model.joint_vector(_joints_arg(args.joints), field="--joints")
     outputs = ("rgb", "depth") if args.depth else ("rgb",)
     start = time.perf_counter()
     images = model.render(torch.as_tensor(T, dtype=torch.float32), theta, camera, outputs=outputs, mode=args.mode)
@@ -810,6 +808,8 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--scales", type=_non_negative_float, nargs="+", default=[1.0, 3.0],
                      help="perturbation scales (default: 1 3)")
     sub.add_argument("--presets", nargs="+", default=None, metavar="PRESET", help="default: every refiner preset")
+    sub.add_argument("--set", action="append", default=[], metavar="OPTION=JSON",
+                     help="override a refiner option in every preset, e.g. --set ray_sampling='\"edges\"' (repeatable)")
     sub.add_argument("--size", nargs=2, type=_positive_int, default=(640, 480), metavar=("W", "H"))
     sub.add_argument("--spp", type=_positive_int, default=16, help="path-tracing samples per pixel")
     sub.add_argument("--quick", action="store_true", help="3 scenes of the first split at the first scale")
@@ -848,6 +848,8 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--modalities", nargs="+", choices=("rgbd", "rgb"), default=["rgbd", "rgb"])
     sub.add_argument("--events", action="store_true", help="also sequences with a glance away and an occluder")
     sub.add_argument("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame")
+    sub.add_argument("--band-m", type=_non_negative_float, metavar="M",
+                     help="march only this far around the model's surface (0: the whole box; default: the tracker's)")
     sub.add_argument("--service-clients", type=_non_negative_int, default=0, metavar="N",
                      help="also N clients tracking at once through POST /v1/track on a loopback server")
     _add_json_flag(sub)

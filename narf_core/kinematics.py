@@ -11,6 +11,16 @@ the joint frame moved by the joint value along (prismatic) or about (revolute, c
 joint ``axis``, which is expressed in the joint frame, must be a unit vector (to 1e-3: tools
 disagree on other lengths) and is normalised here. So
 ``T_parent_child(q) = origin @ motion(axis, q)`` and ``T_obj_link`` composes those from the root.
+
+This is the one URDF reader of NARF (the dataset format and the generator use it too), with one
+set of rules:
+  - joint types: revolute, continuous, prismatic, fixed; a revolute or prismatic joint needs
+    finite limits with ``lower < upper`` (a joint that cannot move is a fixed joint);
+  - mimic joints are supported: ``<mimic joint="src" multiplier="m" offset="o"/>`` makes the
+    joint's value ``m * q_src + o``. The source must be a joint of ``theta`` (not itself a mimic
+    joint); a mimic joint is not part of ``theta``, and its own ``<limit>`` is not used: its range
+    is the source's range mapped through ``m``, ``o``;
+  - mesh filenames resolve by :func:`resolve_mesh` (relative, absolute, ``file://``, ``package://``).
 """
 
 from __future__ import annotations
@@ -18,11 +28,10 @@ from __future__ import annotations
 import io
 import itertools
 import math
-import numbers
 import xml.etree.ElementTree as ET
 from collections import Counter
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -31,13 +40,11 @@ import trimesh
 import yourdfpy
 from torch import Tensor
 
+from narf_core.checks import InputError, check_joints
 from narf_core.geometry import make_pose, skew
 
 MOVABLE_TYPES = ("revolute", "continuous", "prismatic")
 SUPPORTED_TYPES = (*MOVABLE_TYPES, "fixed")
-LIMIT_TOLERANCE = 1e-6
-"""Joint values this far (radians or metres) outside their limits are still accepted: float32 round-off."""
-
 _AXIS_NORM_TOLERANCE = 1e-3  # axes written with 3-4 digits ("0.707 0 0.707") are normalised
 _BOUNDS_ANGLE_STEP = math.radians(10.0)
 _BOUNDS_MAX_CONFIGS = 4096
@@ -57,7 +64,8 @@ class Joint:
     """One URDF joint: ``origin [4, 4]`` is ``T_parent_child`` at zero, ``axis [3]`` unit if movable.
 
     ``lower``/``upper`` are the limits in the joint's unit (radians or metres); a continuous joint
-    gets ``[-pi, pi]`` and a fixed joint ``[0, 0]``.
+    gets ``[-pi, pi]`` and a fixed joint ``[0, 0]``. ``mimic`` is ``(source joint, multiplier,
+    offset)`` for a mimic joint (its limits are then the source's, mapped), else ``None``.
     """
 
     name: str
@@ -68,10 +76,16 @@ class Joint:
     axis: np.ndarray
     lower: float
     upper: float
+    mimic: tuple[str, float, float] | None = None
 
     @property
     def is_movable(self) -> bool:
         return self.type in MOVABLE_TYPES
+
+    @property
+    def is_actuated(self) -> bool:
+        """Movable and not a mimic joint: a coordinate of ``theta``."""
+        return self.is_movable and self.mimic is None
 
 
 class KinematicTree:
@@ -79,11 +93,14 @@ class KinematicTree:
 
     Attributes:
         urdf_text: the URDF it was built from (bundles store it).
+        name: the ``<robot name=...>`` (may be empty).
         root: the root link's name; ``T_obj_link`` is expressed in its frame.
         links: link names, root first, parents before children (depth first, in file order).
+        links_in_file: link names in the order the file lists them (a dataset's label order).
         joints: every joint, ``joints[i]`` being the parent joint of ``links[i + 1]``.
-        movable: the revolute, continuous and prismatic joints in URDF file order: the order of
-            ``theta``.
+        movable: the revolute, continuous and prismatic joints in URDF file order, mimic joints
+            left out: the order of ``theta``.
+        mimics: the mimic joints, in file order.
         joint_names: the names of ``movable``.
         lower, upper: ``[k]`` float64 joint limits.
         parts: rigid groups of link names (links joined by fixed joints), ordered like ``links``;
@@ -100,6 +117,7 @@ class KinematicTree:
         self.source = source
         self.mesh_dir = None if mesh_dir is None else Path(mesh_dir)
         robot = _parse_robot(urdf_text, source)
+        self.name = robot.name or ""
         if not robot.links:
             raise _error(source, "the robot has no <link>")
         for kind, elements in (("link", robot.links), ("joint", robot.joints)):
@@ -107,11 +125,13 @@ class KinematicTree:
             if repeated:
                 raise _error(source, f"duplicate {kind} names {repeated}")
         self._robot_links = {link.name: link for link in robot.links}
-        joints_in_file = [_make_joint(j, set(self._robot_links), source) for j in robot.joints]
+        joints_in_file = _resolve_mimics([_make_joint(j, set(self._robot_links), source) for j in robot.joints], source)
 
         self.root, self.joints = _topological_order(list(self._robot_links), joints_in_file, source)
         self.links = [self.root] + [j.child for j in self.joints]
-        self.movable = [j for j in joints_in_file if j.is_movable]
+        self.links_in_file = list(self._robot_links)
+        self.movable = [j for j in joints_in_file if j.is_actuated]
+        self.mimics = [j for j in joints_in_file if j.mimic is not None]
         self.joint_names = [j.name for j in self.movable]
         self.lower = torch.tensor([j.lower for j in self.movable], dtype=torch.float64)
         self.upper = torch.tensor([j.upper for j in self.movable], dtype=torch.float64)
@@ -119,7 +139,8 @@ class KinematicTree:
         link_index = {name: i for i, name in enumerate(self.links)}
         self._parent_index = [link_index[j.parent] for j in self.joints]
         theta_index = {name: i for i, name in enumerate(self.joint_names)}
-        self._theta_index = [theta_index.get(j.name, -1) for j in self.joints]
+        self._theta_index = [theta_index.get(j.name if j.mimic is None else j.mimic[0], -1) for j in self.joints]
+        self._mimic = [(1.0, 0.0) if j.mimic is None else j.mimic[1:] for j in self.joints]
         self._origins = torch.tensor(np.array([j.origin for j in self.joints]).reshape(-1, 4, 4))
         self._axes = torch.tensor(np.array([j.axis for j in self.joints]).reshape(-1, 3))
 
@@ -142,8 +163,10 @@ class KinematicTree:
         path = Path(path)
         try:
             text = path.read_text()
+        except FileNotFoundError as e:
+            raise _error(str(path), "no such URDF file") from e
         except (OSError, UnicodeDecodeError) as e:
-            raise _error(str(path), f"cannot read the file ({e.__class__.__name__}: {e})") from e
+            raise _error(str(path), f"cannot read the file ({e.__class__.__name__})") from e
         tree = cls(text, mesh_dir=path.parent, source=str(path))
         if load_meshes:
             tree.visual_meshes()
@@ -186,13 +209,19 @@ class KinematicTree:
                 local = origin
             elif joint.type == "prismatic":
                 shift = origin[:3, :3] @ axes[i]
-                t = origin[:3, 3] + theta[..., self._theta_index[i], None] * shift
+                t = origin[:3, 3] + self._value(theta, i)[..., None] * shift
                 local = make_pose(origin[:3, :3].expand(*batch, 3, 3), t)
             else:
-                R = origin[:3, :3] @ _rotation_about(axes[i], theta[..., self._theta_index[i]])
+                R = origin[:3, :3] @ _rotation_about(axes[i], self._value(theta, i))
                 local = make_pose(R, origin[:3, 3].expand(*batch, 3))
             poses.append(poses[self._parent_index[i]] @ local)
         return torch.stack(poses, dim=-3)
+
+    def _value(self, theta: Tensor, i: int) -> Tensor:
+        """Joint ``i``'s value ``[...]``: its coordinate of ``theta``, or its mimic of one."""
+        value = theta[..., self._theta_index[i]]
+        multiplier, offset = self._mimic[i]
+        return value if (multiplier, offset) == (1.0, 0.0) else value * multiplier + offset
 
     def part_poses(self, theta: Tensor) -> Tensor:
         """``T_obj_part [..., n_parts, 4, 4]``: the pose of each part's top link."""
@@ -204,36 +233,24 @@ class KinematicTree:
         """``[k]`` float64: every joint half-way between its limits (0 for continuous joints)."""
         return (self.lower + self.upper) / 2
 
-    def joint_vector(self, joints: Mapping[str, float] | None, *, fill_mid: bool = True) -> Tensor:
-        """``{name: value}`` to ``theta [k]`` float64, checked against the limits.
+    def joint_vector(
+        self,
+        joints: Mapping[str, float] | None,
+        *,
+        fill_mid: bool = True,
+        field: str = "joints",
+        error: type[InputError] = InputError,
+    ) -> Tensor:
+        """``{name: value}`` to ``theta [k]`` float64, checked by :func:`narf_core.checks.check_joints`.
 
         Joints left out take their mid value when ``fill_mid`` (else that is an error). Raises
-        ``ValueError`` naming an unknown joint, a value that is not a finite number, or one outside
-        ``[lower, upper]`` by more than :data:`LIMIT_TOLERANCE`.
+        ``error`` (an :class:`~narf_core.checks.InputError`) naming ``field`` and the joint.
         """
-        joints = {} if joints is None else joints
-        if not isinstance(joints, Mapping):
-            raise ValueError(f"joints must be a mapping of joint name to value, got {_describe(joints)}")
-        unknown = [name for name in joints if name not in self.joint_names]
-        if unknown:
-            raise ValueError(f"unknown joint(s) {unknown}; this object's joints are {self.joint_names}")
-        missing = [name for name in self.joint_names if name not in joints]
-        if missing and not fill_mid:
-            raise ValueError(f"missing value(s) for joint(s) {missing}")
+        values = check_joints(self.movable, joints, field, complete=not fill_mid, error=error)
         theta = self.mid_configuration()
-        for i, joint in enumerate(self.movable):
-            if joint.name not in joints:
-                continue
-            value = joints[joint.name]
-            if isinstance(value, bool) or not isinstance(value, numbers.Real):
-                raise ValueError(f"joint {joint.name!r}: value must be a number, got {_describe(value)}")
-            value = float(value)
-            if not math.isfinite(value):
-                raise ValueError(f"joint {joint.name!r}: value must be finite, got {value}")
-            if not joint.lower - LIMIT_TOLERANCE <= value <= joint.upper + LIMIT_TOLERANCE:
-                limits = f"[{joint.lower}, {joint.upper}] ({_unit(joint)})"
-                raise ValueError(f"joint {joint.name!r}: {value} is outside its limits {limits}")
-            theta[i] = value
+        for i, name in enumerate(self.joint_names):
+            if name in values:
+                theta[i] = values[name]
         return theta
 
     def joint_dict(self, theta: Tensor) -> dict[str, float]:
@@ -259,6 +276,18 @@ class KinematicTree:
                 if (link := self._robot_links[name]).visuals
             }
         return {name: mesh.copy() for name, mesh in self._meshes.items()}
+
+    def mesh_files(self) -> dict[str, Path]:
+        """Every ``<mesh filename=...>`` of the links (visual and collision) and the file it resolves to."""
+        if self.mesh_dir is None:
+            return {}
+        files = {}
+        for name, link in self._robot_links.items():
+            for element in [*link.visuals, *link.collisions]:
+                mesh = None if element.geometry is None else element.geometry.mesh
+                if mesh is not None:
+                    files[mesh.filename] = resolve_mesh(mesh.filename, self.mesh_dir, link=name, source=self.source)
+        return files
 
     def sample_points(self, n_per_link: int = 500, seed: int = 0) -> dict[str, np.ndarray]:
         """``{link: [n_per_link, 3]}`` float64 points, uniform on each link's visual surface (link frame)."""
@@ -329,8 +358,15 @@ def _make_joint(j: yourdfpy.Joint, links: set[str], source: str) -> Joint:
     where = f"joint {j.name!r}"
     if j.type not in SUPPORTED_TYPES:
         raise _error(source, f"{where} has type {j.type!r}; supported: {', '.join(SUPPORTED_TYPES)}")
+    mimic = None
     if j.mimic is not None:
-        raise _error(source, f"{where} mimics {j.mimic.joint!r}; mimic joints are not supported")
+        if j.type == "fixed":
+            raise _error(source, f"{where} is fixed and cannot mimic {j.mimic.joint!r}")
+        multiplier = 1.0 if j.mimic.multiplier is None else float(j.mimic.multiplier)
+        offset = 0.0 if j.mimic.offset is None else float(j.mimic.offset)
+        if not (math.isfinite(multiplier) and math.isfinite(offset)):
+            raise _error(source, f"{where} mimics {j.mimic.joint!r} with a non-finite multiplier or offset")
+        mimic = (str(j.mimic.joint), multiplier, offset)
     for role, link in (("parent", j.parent), ("child", j.child)):
         if link not in links:
             raise _error(source, f"{where} names {role} link {link!r}, which is not a <link>")
@@ -346,19 +382,41 @@ def _make_joint(j: yourdfpy.Joint, links: set[str], source: str) -> Joint:
         raise _error(source, f"{where} has a non-finite origin")
     if j.type == "continuous":
         lower, upper = -math.pi, math.pi
-    elif j.type == "fixed":
-        lower, upper = 0.0, 0.0
+    elif j.type == "fixed" or mimic is not None:
+        lower, upper = 0.0, 0.0  # a mimic joint's range is its source's, set by _resolve_mimics
     else:
         if j.limit is None or j.limit.lower is None or j.limit.upper is None:
             raise _error(source, f"{where} ({j.type}) needs <limit lower=... upper=...>")
         lower, upper = float(j.limit.lower), float(j.limit.upper)
-        if not (math.isfinite(lower) and math.isfinite(upper) and lower <= upper):
-            raise _error(source, f"{where} has limits [{lower}, {upper}]; they must be finite with lower <= upper")
+        if not (math.isfinite(lower) and math.isfinite(upper) and lower < upper):
+            raise _error(
+                source,
+                f"{where} has limits [{lower}, {upper}]; they must be finite with lower < upper "
+                "(a joint that cannot move is a fixed joint)",
+            )
     origin.setflags(write=False)
     if j.type != "fixed":
         axis = axis / np.linalg.norm(axis)
     axis.setflags(write=False)
-    return Joint(j.name, j.type, j.parent, j.child, origin, axis, lower, upper)
+    return Joint(j.name, j.type, j.parent, j.child, origin, axis, lower, upper, mimic)
+
+
+def _resolve_mimics(joints: list[Joint], source: str) -> list[Joint]:
+    """``joints`` with each mimic joint's limits set to its source's range mapped through it."""
+    by_name = {j.name: j for j in joints}
+    out = []
+    for joint in joints:
+        if joint.mimic is not None:
+            name, multiplier, offset = joint.mimic
+            src = by_name.get(name)
+            if src is None or not src.is_actuated:
+                what = "no joint" if src is None else ("a mimic joint" if src.mimic else f"a {src.type} joint")
+                raise _error(source, f"joint {joint.name!r} mimics {name!r}, which is {what}; "
+                                     "the source must be a revolute, continuous or prismatic joint")
+            ends = sorted((multiplier * src.lower + offset, multiplier * src.upper + offset))
+            joint = replace(joint, lower=ends[0], upper=ends[1])
+        out.append(joint)
+    return out
 
 
 def _topological_order(links: list[str], joints: list[Joint], source: str) -> tuple[str, list[Joint]]:
@@ -390,6 +448,25 @@ def _topological_order(links: list[str], joints: list[Joint], source: str) -> tu
 # --- meshes -------------------------------------------------------------------------------------
 
 
+def resolve_mesh(filename: str, mesh_dir: str | Path, *, link: str = "?", source: str = "<urdf string>") -> Path:
+    """The file a ``<mesh filename=...>`` names: a path relative to ``mesh_dir`` (the URDF's folder),
+    an absolute path, ``file://...`` or ``package://<pkg>/...`` (the package is a folder named
+    ``<pkg>`` at or above ``mesh_dir``, else ``mesh_dir`` itself)."""
+    base = Path(mesh_dir).resolve()
+    if filename.startswith("file://"):
+        candidates = [Path(filename[len("file://"):])]
+    elif filename.startswith("package://"):
+        package, _, rest = filename[len("package://"):].partition("/")
+        candidates = [d / rest for d in (base, *base.parents) if d.name == package]
+        candidates.append(base / rest)
+    else:
+        candidates = [base / filename]
+    for candidate in candidates:
+        if candidate.is_file():
+            return candidate
+    raise _error(source, f"link {link!r}: mesh file {filename!r} not found (looked in {mesh_dir})")
+
+
 def _merge(link: str, visuals: list[yourdfpy.Visual], mesh_dir: Path | None, source: str) -> trimesh.Trimesh:
     parts = []
     for visual in visuals:
@@ -415,9 +492,7 @@ def _geometry_mesh(link: str, geometry: yourdfpy.Geometry, mesh_dir: Path | None
     filename = geometry.mesh.filename
     if mesh_dir is None:
         raise _error(source, f"{where} uses mesh {filename!r} but no mesh folder was given")
-    path = Path(yourdfpy.filename_handler_magic(filename, dir=str(mesh_dir)))
-    if not path.is_file():
-        raise _error(source, f"{where}: mesh file {filename!r} not found (looked in {mesh_dir})")
+    path = resolve_mesh(filename, mesh_dir, link=link, source=source)
     try:
         mesh = trimesh.load(path, force="mesh")
     except Exception as e:  # trimesh raises many types for corrupt files
@@ -439,10 +514,6 @@ def _rotation_about(axis: Tensor, angle: Tensor) -> Tensor:
     s = torch.sin(angle)[..., None, None]
     one_minus_c = 2 * torch.sin(angle / 2)[..., None, None] ** 2  # 1 - cos, without cancellation
     return torch.eye(3, dtype=axis.dtype, device=axis.device) + s * k + one_minus_c * (k @ k)
-
-
-def _unit(joint: Joint) -> str:
-    return "m" if joint.type == "prismatic" else "rad"
 
 
 def _describe(value: object) -> str:

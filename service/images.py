@@ -15,11 +15,11 @@ import warnings
 import numpy as np
 from PIL import Image, ImageOps
 
+from narf_core.depth import mm_to_depth
 from narf_service.errors import ApiError, invalid
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 NPY_MAGIC = b"\x93NUMPY"
-DEPTH_MM_MAX = 65535  # the largest 16-bit value: 65.535 m
 
 
 def _open(data: bytes, field: str, max_pixels: int, formats: tuple[str, ...]) -> Image.Image:
@@ -77,7 +77,7 @@ def decode_depth(data: bytes, field: str, max_pixels: int) -> np.ndarray:
         image = _open(data, field, max_pixels, ("PNG",))
         if image.mode not in ("I;16", "I", "I;16B"):
             raise invalid(field, f"expected a 16-bit PNG in millimetres, got mode {image.mode!r}")
-        depth = np.asarray(image).astype(np.float32) / 1000.0
+        depth = mm_to_depth(np.asarray(image))
     else:
         raise invalid(field, "expected a 16-bit PNG (millimetres) or a .npy float32 array (metres)")
     if (depth < 0).any():
@@ -129,12 +129,3 @@ def opacity_to_uint8(opacity: np.ndarray) -> np.ndarray:
     return rgb_to_uint8(opacity)
 
 
-def depth_to_mm(depth: np.ndarray) -> np.ndarray:
-    """float metres ``[H, W]`` -> ``uint16`` millimetres, 0 = no return (ROS 16UC1).
-
-    A positive depth never rounds to "no return" (it is at least 1 mm) and depths beyond 65.535 m
-    saturate; non-finite or non-positive values are "no return".
-    """
-    depth = np.nan_to_num(depth.astype(np.float64), nan=0.0, posinf=0.0, neginf=0.0)
-    mm = np.clip(np.round(depth * 1000.0), 1, DEPTH_MM_MAX)
-    return np.where(depth > 0, mm, 0).astype(np.uint16)

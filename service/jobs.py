@@ -16,6 +16,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from narf_core.checks import InputError, check_joints as check_joints_core
+from narf_core.depth import depth_to_mm
 from narf_core.geometry import Pinhole
 from narf_service.engine import Engine
 from narf_service.errors import ApiError, invalid
@@ -23,7 +25,6 @@ from narf_service.images import (
     decode_depth,
     decode_mask,
     decode_rgb,
-    depth_to_mm,
     encode_png,
     opacity_to_uint8,
     rgb_to_uint8,
@@ -43,25 +44,19 @@ from narf_service.schemas import (
 
 if TYPE_CHECKING:
     from narf_core.bundle import NarfModel
+    from narf_core.estimate import EstimateOptions
 
 
 def check_joints(model: NarfModel, joints: Mapping[str, float] | None, field: str, *, complete: bool = False) -> None:
-    """422 naming ``<field>.<joint>`` for an unknown joint or a value outside its limits.
+    """The core's joint check (:func:`narf_core.checks.check_joints`) as a 422 naming
+    ``<field>.<joint>`` (an unknown joint, a value outside its limits) or ``field``.
 
     With ``complete``, every movable joint of the model must be given.
     """
-    specs = {j.name: j for j in model.joints}
-    for name, value in (joints or {}).items():
-        spec = specs.get(name)
-        if spec is None:
-            known = ", ".join(specs) or "none"
-            raise invalid(f"{field}.{name}", f"unknown joint (joints of {model.name!r}: {known})")
-        if not spec.lower <= value <= spec.upper:
-            raise invalid(f"{field}.{name}", f"{value:g} is outside the limits [{spec.lower:g}, {spec.upper:g}]")
-    if complete:
-        missing = [name for name in specs if name not in (joints or {})]
-        if missing:
-            raise invalid(field, f"missing joint(s) {', '.join(missing)}")
+    try:
+        check_joints_core(model.joints, joints, field, complete=complete)
+    except InputError as e:
+        raise invalid(e.field or field, e.reason) from None
 
 
 def check_mode(model: NarfModel, mode: str | None, field: str) -> None:
@@ -74,16 +69,15 @@ def pinhole(camera: Camera, device: torch.device) -> Pinhole:
 
 
 def describe(name: str, model: NarfModel, *, full: bool) -> ModelSummary | ModelInfo:
-    summary = {
-        "name": name,
-        "links": list(model.links),
-        "joints": [JointInfo(name=j.name, type=j.type, lower=j.lower, upper=j.upper) for j in model.joints],
-        "modes": ["narf", "parts"] if model.has_parts else ["narf"],
-    }
+    """The model as served under ``name``, from :meth:`NarfModel.describe` (plus, in full, its
+    metadata less the URDF text)."""
+    about = model.describe()
+    summary = {"name": name, "links": about["links"], "joints": [JointInfo(**j) for j in about["joints"]],
+               "modes": about["modes"]}
     if not full:
         return ModelSummary(**summary)
     metadata = _json_safe({k: v for k, v in model.metadata.items() if k != "urdf"})
-    return ModelInfo(**summary, bounds=model.aabb.tolist(), metrics=metadata.get("metrics") or {}, metadata=metadata)
+    return ModelInfo(**summary, bounds=about["bounds"], metrics=_json_safe(about["metrics"]), metadata=metadata)
 
 
 def _json_safe(value: Any) -> Any:
@@ -200,22 +194,23 @@ def refine_options(engine: Engine, request: EstimateRequest, field: str) -> Any:
     try:
         return engine.options(**fields)
     except engine.input_error as e:
-        raise invalid(field, str(e)) from None
+        if not isinstance(e, InputError) or e.field is None:
+            raise invalid(field, str(e)) from None
+        raise invalid(field + e.field.removeprefix("options"), e.reason) from None  # "options.<name>" of the core
 
 
-def check_work(options: Any, max_rays: int, field: str) -> None:
+def check_work(options: EstimateOptions, max_rays: int, field: str) -> None:
     """422 naming ``field`` if the refinement would trace more than ``max_rays`` rays in all.
 
-    The cost is ``iterations x rays_per_iteration x theta_starts``: an upper bound (several starts
-    share the rays after the first third), known before any work.
+    The cost is the core's bound, :meth:`EstimateOptions.max_rays` (iterations x rays_per_iteration
+    x the largest box scale x theta_starts), known before any work.
     """
-    starts = options.theta_starts
-    rays = options.iterations * options.rays_per_iteration * starts
+    rays = options.max_rays()
     if rays > max_rays:
         raise invalid(
             field,
-            f"iterations ({options.iterations}) x rays_per_iteration ({options.rays_per_iteration}) x theta_starts "
-            f"({starts}) = {rays} rays exceeds this server's work limit of {max_rays}",
+            f"would trace up to {rays} rays (iterations x rays_per_iteration x box scale x theta_starts), "
+            f"over this server's work limit of {max_rays}",
         )
 
 
@@ -231,15 +226,19 @@ _REFINE_ARGUMENTS = {
 }
 
 
-def _refine_input_error(message: str) -> ApiError:
-    """The refiner's input error as a 422 naming the request field its first word is about."""
-    first = message.replace(":", " ").split(maxsplit=1)[0] if message.strip() else ""
+def _refine_input_error(message: str, field: str | None = None, reason: str | None = None) -> ApiError:
+    """The refiner's input error as a 422 naming the request field it is about: its ``field`` and
+    ``reason`` (:class:`~narf_core.checks.InputError`'s, about an argument of ``refine``), else the
+    field its message's first word names."""
+    first = field or (message.replace(":", " ").split(maxsplit=1)[0] if message.strip() else "")
     root, _, rest = first.partition(".")
-    field = _REFINE_ARGUMENTS.get(root)
-    if field is None:
+    named = _REFINE_ARGUMENTS.get(root)
+    if named is None:
         return ApiError(422, message)
-    field = f"{field}.{rest}" if rest else field
-    return ApiError(422, message if message.startswith(field) else f"{field}: {message}", field=field)
+    named = f"{named}.{rest}" if rest else named
+    if field is not None and reason is not None:
+        return invalid(named, reason)
+    return ApiError(422, message if message.startswith(named) else f"{named}: {message}", field=named)
 
 
 def estimate(
@@ -287,6 +286,8 @@ def estimate(
             should_stop=should_stop,
         )
     except engine.input_error as e:
+        if isinstance(e, InputError):
+            raise _refine_input_error(str(e), e.field, e.reason) from None
         raise _refine_input_error(str(e)) from None
 
     T = np.asarray(result.T_cam_obj, dtype=np.float64)

@@ -8,18 +8,20 @@ a 422 naming the field, as are non-rigid matrices, non-unit quaternions and impo
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, Optional
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
+from narf_core.checks import ROTATION_TOLERANCE, check_pose
+from narf_core.estimate import MODES, PRESETS, RAY_SAMPLINGS, ROBUST_LOSSES, SOLVERS, EstimateOptions
 from narf_core.geometry import pose_from_position_quaternion, pose_to_position_quaternion
 from narf_service.registry import MODEL_NAME_MAX, MODEL_NAME_PATTERN
 
-ROTATION_TOLERANCE = 1e-3
-"""Largest entry of ``|R^T R - I|`` (and of ``| |q| - 1 |``) still accepted; such input is re-projected."""
 MAX_COORDINATE = 1e3  # metres: a pose farther than a kilometre is a unit mistake
 MAX_IMAGE_SIDE = 16384
 MAX_JOINTS = 64
@@ -73,16 +75,8 @@ class Pose(StrictModel):
     def _rigid(cls, m: list[list[float]] | None) -> list[list[float]] | None:
         if m is None:
             return None
-        T = np.asarray(m, dtype=np.float64)
-        if np.abs(T[3] - [0, 0, 0, 1]).max() > 1e-6:
-            raise ValueError(f"last row must be [0, 0, 0, 1], got {T[3].tolist()}")
-        R = T[:3, :3]
-        error = float(np.abs(R.T @ R - np.eye(3)).max())
-        if error > ROTATION_TOLERANCE:
-            raise ValueError(f"rotation is not orthonormal (|R^T R - I| = {error:.3g} > {ROTATION_TOLERANCE})")
-        if np.linalg.det(R) < 0:
-            raise ValueError("rotation is a reflection (determinant -1)")
-        U, _, Vt = np.linalg.svd(R)
+        T = check_pose(m, "the matrix")  # the core's rule; a pose within its tolerance is re-projected
+        U, _, Vt = np.linalg.svd(T[:3, :3])
         T[:3, :3] = U @ Vt
         return T.tolist()
 
@@ -205,40 +199,69 @@ class RenderResponse(BaseModel):
     seconds: float = Field(description="Render time, excluding the wait in the queue")
 
 
-class RefineOptions(StrictModel):
-    """Refiner settings (``narf_core.estimate.EstimateOptions``); a field left out keeps the value of
-    the preset (``paper``, the default, follows the paper; ``robust`` adds silhouette and depth
-    terms, several joint starts and coarse-to-fine). Bounds here keep one request's cost within reason."""
+_REFINE_OPTIONS: dict[str, tuple[str, dict[str, float]]] = {
+    # The fields of EstimateOptions a request may set: what each means, and the caps that keep one
+    # request's cost within reason (the validity rules themselves are EstimateOptions', applied when
+    # the options are built: a 422 naming request.options.<field>).
+    "lr_pose": ("Adam step, radians and object radii", {"le": 10}),
+    "lr_theta": ("Adam step on the joints' sine parameter", {"le": 10}),
+    "lr_decay": ("Final over first learning rate", {}),
+    "rays_per_iteration": ("Rays rendered per iteration", {"ge": 16, "le": 65536}),
+    "mode": ("'narf': the configuration field; 'parts': the composed part fields", {}),
+    "silhouette_weight": ("Weight of the silhouette term (opacity - mask)^2", {"le": 1e3}),
+    "depth_weight": ("Weight of the depth term; used when a depth part is sent", {"le": 1e3}),
+    "theta_starts": ("Configurations tried at first", {"le": 16}),
+    "coarse_to_fine": ("Image pyramid levels; 1 = the plain loss", {}),
+    "box_margin": ("Growth of the mask's box rays come from", {"le": 10}),
+    "early_stop": ("Stop once the estimate and the loss settle", {}),
+    "tolerance": ("Early stop: mean motion per iteration", {"le": 1}),
+    "loss_tolerance": ("Early stop: relative loss change", {"le": 1}),
+    "patience": ("Early stop: iterations looked back over", {"le": 10_000}),
+    "seed": ("Seed of the rays' random choice", {"ge": 0, "le": 2**31 - 1}),
+    "solver": ("Adam (the paper) or Levenberg-Marquardt", {}),
+    "robust_loss": ("Per-residual loss (either solver)", {}),
+    "robust_scale": ("Where the robust loss bends, residual units", {"le": 1e3}),
+    "damping": ("First Levenberg-Marquardt damping", {}),
+    "photometric_compensation": ("Fit a gain and bias per colour channel", {}),
+    "occlusion_margin": ("Metres; depth this far in front = occluder", {"le": 10}),
+    "depth_sigma": ("Depth noise at 1 m (σ = depth_sigma z²)", {"le": 1}),
+    "ray_sampling": ("Where each iteration's rays go", {}),
+    "reference_box_px": ("Mask box side (px) above which more rays are drawn; 0 = off", {"le": 65536}),
+    "band_m": ("Metres; march only this band around the model's surface; 0 = off", {}),
+    "adam_iterations": ("gauss-newton: Adam iterations first", {"le": 100_000}),
+    "uncertainty": ("Return the covariance of the estimate", {}),
+    "sigma_floor_position": ("Model error added to Σ, metres", {"le": 10}),
+    "sigma_floor_rotation": ("Model error added to Σ, radians", {"le": 10}),
+    "sigma_floor_joint": ("Model error added to Σ, joint range fraction", {"le": 10}),
+}
+_OPTION_CHOICES = {"mode": MODES, "solver": SOLVERS, "robust_loss": ROBUST_LOSSES, "ray_sampling": RAY_SAMPLINGS}
+_OPTION_TYPES = {"int": int, "float": float, "bool": bool}
 
-    preset: Literal["paper", "robust", "gauss-newton"] | None = Field(None, description="The starting set of options")
-    lr_pose: float | None = Field(None, gt=0, le=10, description="Adam step, radians and object radii")
-    lr_theta: float | None = Field(None, gt=0, le=10, description="Adam step on the joints' sine parameter")
-    lr_decay: float | None = Field(None, gt=0, le=1, description="Final over first learning rate")
-    rays_per_iteration: int | None = Field(None, ge=16, le=65536)
-    mode: RenderMode | None = None
-    silhouette_weight: float | None = Field(None, ge=0, le=1e3)
-    depth_weight: float | None = Field(None, ge=0, le=1e3, description="Used when a depth part is sent")
-    theta_starts: int | None = Field(None, ge=1, le=16, description="Configurations tried at first")
-    coarse_to_fine: int | None = Field(None, ge=1, le=6, description="Image pyramid levels; 1 = the plain loss")
-    box_margin: float | None = Field(None, ge=0, le=10, description="Growth of the mask's box rays come from")
-    early_stop: bool | None = None
-    tolerance: float | None = Field(None, ge=0, le=1, description="Early stop: mean motion per iteration")
-    loss_tolerance: float | None = Field(None, ge=0, le=1, description="Early stop: relative loss change")
-    patience: int | None = Field(None, ge=1, le=10_000, description="Early stop: iterations looked back over")
-    seed: int | None = Field(None, ge=0, le=2**31 - 1)
-    solver: Literal["adam", "gauss-newton"] | None = Field(None, description="Adam (the paper) or Levenberg-Marquardt")
-    robust_loss: Literal["none", "huber", "cauchy"] | None = Field(None, description="Per-residual loss (gauss-newton)")
-    robust_scale: float | None = Field(None, gt=0, le=1e3, description="Where the robust loss bends, residual units")
-    damping: float | None = Field(None, ge=0, le=1e6, description="First Levenberg-Marquardt damping")
-    photometric_compensation: bool | None = Field(None, description="Fit a gain and bias per colour channel")
-    occlusion_margin: float | None = Field(None, ge=0, le=10, description="Metres; depth this far in front = occluder")
-    depth_sigma: float | None = Field(None, ge=0, le=1, description="Depth noise at 1 m (σ = depth_sigma z²)")
-    ray_sampling: Literal["uniform", "edges"] | None = Field(None, description="Where each iteration's rays go")
-    adam_iterations: int | None = Field(None, ge=0, le=100_000, description="gauss-newton: Adam iterations first")
-    uncertainty: bool | None = Field(None, description="Return the covariance of the estimate")
-    sigma_floor_position: float | None = Field(None, ge=0, le=10, description="Model error added to Σ, metres")
-    sigma_floor_rotation: float | None = Field(None, ge=0, le=10, description="Model error added to Σ, radians")
-    sigma_floor_joint: float | None = Field(None, ge=0, le=10, description="Model error added to Σ, joint range fraction")
+
+def _refine_options_model() -> type[StrictModel]:
+    """``RefineOptions``, built from ``EstimateOptions``' fields (types, choices, defaults) and
+    ``_REFINE_OPTIONS``; every field optional: one left out keeps the preset's value."""
+    core = {f.name: f for f in dataclasses.fields(EstimateOptions)}
+    fields: dict[str, Any] = {
+        "preset": (Optional[Literal[PRESETS]], Field(None, description="The starting set of options (default: paper)")),
+    }
+    for name, (meaning, caps) in _REFINE_OPTIONS.items():
+        spec = core[name]
+        kind = Literal[_OPTION_CHOICES[name]] if name in _OPTION_CHOICES else _OPTION_TYPES[spec.type]
+        extra = {"allow_inf_nan": False} if kind is float else {}
+        description = f"{meaning}. Left out: the preset's value (paper: {json.dumps(spec.default)})"
+        fields[name] = (Optional[kind], Field(None, description=description, **caps, **extra))
+    return create_model(
+        "RefineOptions",
+        __base__=StrictModel,
+        __doc__="Refiner settings (``narf_core.estimate.EstimateOptions``); a field left out keeps the value of "
+        "the preset (``paper``, the default, follows the paper; ``robust`` adds silhouette and depth terms, "
+        "several joint starts and coarse-to-fine; ``gauss-newton`` uses Levenberg-Marquardt steps).",
+        **fields,
+    )
+
+
+RefineOptions = _refine_options_model()
 
 
 class UncertaintyOut(BaseModel):
@@ -345,7 +368,7 @@ class ErrorResponse(BaseModel):
 class TrackOptionsIn(StrictModel):
     """Tracker settings a request may change (the rest are the server's, see narf_core.track.TrackOptions)."""
 
-    iterations: int | None = Field(None, ge=1, le=200, description="Refiner iterations per frame (default 10)")
+    iterations: int | None = Field(None, ge=1, le=200, description="Refiner iterations per frame (default 6)")
     rays_per_iteration: int | None = Field(None, ge=16, le=8192)
     solver: Literal["adam", "gauss-newton"] | None = None
     uncertainty: bool | None = Field(None, description="Compute Σ per frame (default true)")

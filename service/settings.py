@@ -49,7 +49,7 @@ class Settings(BaseSettings):
         "status 'budget_exceeded' and returns its best estimate so far."
     )
     max_work_rays: int = Field(
-        8_000_000, gt=0, description="Largest estimate, in rays traced: iterations x rays_per_iteration x "
+        8_000_000, gt=0, description="Largest estimate, in rays traced: iterations x rays_per_iteration x box scale x "
         "theta_starts (422 above, before any work)."
     )
     header_timeout_s: float = Field(

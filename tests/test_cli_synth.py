@@ -88,7 +88,7 @@ def bad_urdfs(tmp_path: Path) -> dict[str, Path]:
     [
         (["--tool", "hammer"], "unknown tool 'hammer'; expected one of clamp, lineman-a"),
         (["--tool", "{broken}"], "broken.urdf: not valid XML"),
-        (["--tool", "{missing_mesh}"], "link 'a': mesh 'meshes/gone.obj' not found"),
+        (["--tool", "{missing_mesh}"], "link 'a': mesh file 'meshes/gone.obj' not found"),
         (["--tool", "{tmp}/nowhere.urdf"], "nowhere.urdf: no such URDF file"),
         (["--tool", str(ARTICULATED_URDF), "--size", "0", "24"], "argument --size: 0 is not a positive integer"),
         (["--tool", str(ARTICULATED_URDF), "--size", "32"], "argument --size: expected 2 arguments"),

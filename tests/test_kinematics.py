@@ -8,7 +8,9 @@ import pytest
 import torch
 
 from narf_core.geometry import invert_pose, pose_from_position_quaternion
-from narf_core.kinematics import LIMIT_TOLERANCE, KinematicTree, UrdfError
+from narf_core.checks import InputError
+from narf_core.checks import LIMIT_TOLERANCE
+from narf_core.kinematics import KinematicTree, UrdfError
 
 pybullet = pytest.importorskip("pybullet")
 
@@ -243,6 +245,38 @@ def test_joint_vector_rejects(tree, joints, message):
         tree.joint_vector(joints)
 
 
+def test_joint_errors_name_the_field_and_the_joint(tree):
+    with pytest.raises(InputError, match="^joints_init: joint 'hinge': 1.0 is outside") as info:
+        tree.joint_vector({"hinge": 1.0}, field="joints_init")
+    assert info.value.field == "joints_init.hinge"
+    with pytest.raises(InputError) as info:
+        tree.joint_vector({"elbow": 1.0}, field="request.joints")
+    assert info.value.field == "request.joints.elbow"
+
+
+def test_mimic_joint_follows_its_source():
+    """A mimic joint is not in theta; it moves by multiplier * source + offset, its range mapped from the source's."""
+    text = urdf_with(
+        f'<joint name="drive" type="revolute"><parent link="root"/><child link="a"/><axis xyz="0 0 1"/>{LIMIT}</joint>'
+        '<joint name="follow" type="prismatic"><parent link="a"/><child link="b"/><axis xyz="1 0 0"/>'
+        '<mimic joint="drive" multiplier="-0.5" offset="0.1"/></joint>',
+        '<link name="root"/><link name="a"/><link name="b"/>',
+    )
+    tree = KinematicTree.from_urdf_string(text)
+    assert tree.joint_names == ["drive"] and [j.name for j in tree.mimics] == ["follow"]
+    assert (tree.mimics[0].lower, tree.mimics[0].upper) == pytest.approx((-0.4, 0.6))
+    poses = tree.link_poses(torch.tensor([[0.0], [0.6]], dtype=torch.float64))
+    # b sits at x = -0.5 * q + 0.1 along a's x axis, which turns by q about z
+    q = 0.6
+    expected = np.array([math.cos(q), math.sin(q), 0.0]) * (-0.5 * q + 0.1)
+    np.testing.assert_allclose(poses[0, 2, :3, 3].numpy(), [0.1, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(poses[1, 2, :3, 3].numpy(), expected, atol=1e-12)
+    with pytest.raises(UrdfError, match="joint 'twice' mimics 'follow', which is a mimic joint"):
+        KinematicTree.from_urdf_string(text.replace(
+            "</robot>", '<link name="c"/><joint name="twice" type="continuous"><parent link="b"/><child link="c"/>'
+            '<mimic joint="follow"/></joint></robot>'))
+
+
 def test_joint_vector_without_fill(tree):
     with pytest.raises(ValueError, match=r"missing value\(s\) for joint\(s\) \['spin', 'hinge'\]"):
         tree.joint_vector({"slide": 0.0}, fill_mid=False)
@@ -337,8 +371,14 @@ def test_missing_mesh(tmp_path):
 
 
 def test_unreadable_file(tmp_path):
-    with pytest.raises(UrdfError, match=r"nope.urdf: cannot read the file \(FileNotFoundError"):
+    with pytest.raises(UrdfError, match=r"nope.urdf: no such URDF file$"):
         KinematicTree.from_urdf(tmp_path / "nope.urdf")
+    (tmp_path / "folder.urdf").mkdir()
+    with pytest.raises(UrdfError, match=r"folder.urdf: cannot read the file \(IsADirectoryError\)$"):
+        KinematicTree.from_urdf(tmp_path / "folder.urdf")
+    (tmp_path / "binary.urdf").write_bytes(b"\xff\xfe\x00<robot")
+    with pytest.raises(UrdfError, match=r"binary.urdf: cannot read the file \(UnicodeDecodeError\)$"):
+        KinematicTree.from_urdf(tmp_path / "binary.urdf")
 
 
 def test_corrupt_mesh(tmp_path):
@@ -359,13 +399,14 @@ LIMIT = '<limit lower="-1" upper="1" effort="1" velocity="1"/>'
         ('<robot name="x"/>', "the robot has no <link>"),
         ('<robot name="x"><link/></robot>', r"malformed URDF \(missing attribute 'name'\)"),
         ('<robot name="x"><link name="a"/><link name="a"/></robot>', r"duplicate link names \['a'\]"),
-        (urdf_with(f'<joint name="j" type="floating"><parent link="root"/><child link="a"/></joint>'), "joint 'j' has type 'floating'; supported: revolute, continuous, prismatic, fixed"),
-        (urdf_with(f'<joint name="j" type="revolute"><parent link="root"/><child link="a"/></joint>'), r"joint 'j' \(revolute\) needs <limit lower=... upper=...>"),
-        (urdf_with(f'<joint name="j" type="prismatic"><parent link="root"/><child link="a"/><limit lower="1" upper="0" effort="1" velocity="1"/></joint>'), r"joint 'j' has limits \[1.0, 0.0\]; they must be finite with lower <= upper"),
+        (urdf_with('<joint name="j" type="floating"><parent link="root"/><child link="a"/></joint>'), "joint 'j' has type 'floating'; supported: revolute, continuous, prismatic, fixed"),
+        (urdf_with('<joint name="j" type="revolute"><parent link="root"/><child link="a"/></joint>'), r"joint 'j' \(revolute\) needs <limit lower=... upper=...>"),
+        (urdf_with('<joint name="j" type="prismatic"><parent link="root"/><child link="a"/><limit lower="1" upper="0" effort="1" velocity="1"/></joint>'), r"joint 'j' has limits \[1.0, 0.0\]; they must be finite with lower < upper"),
+        (urdf_with('<joint name="j" type="revolute"><parent link="root"/><child link="a"/><limit lower="0.1" upper="0.1" effort="1" velocity="1"/></joint>'), r"joint 'j' has limits \[0.1, 0.1\]; they must be finite with lower < upper \(a joint that cannot move is a fixed joint\)"),
         (urdf_with(f'<joint name="j" type="revolute"><parent link="root"/><child link="b"/>{LIMIT}</joint>'), "joint 'j' names child link 'b', which is not a <link>"),
         (urdf_with(f'<joint name="j" type="revolute"><parent link="root"/><child link="a"/><axis xyz="0 0 0"/>{LIMIT}</joint>'), r"joint 'j' has axis \[0.0, 0.0, 0.0\] of length 0; it must be a unit vector"),
         (urdf_with(f'<joint name="j" type="prismatic"><parent link="root"/><child link="a"/><axis xyz="0 3 4"/>{LIMIT}</joint>'), "joint 'j' has axis .* of length 5; it must be a unit vector"),
-        (urdf_with('<joint name="j" type="continuous"><parent link="root"/><child link="a"/><mimic joint="k"/></joint>'), "joint 'j' mimics 'k'; mimic joints are not supported"),
+        (urdf_with('<joint name="j" type="continuous"><parent link="root"/><child link="a"/><mimic joint="k"/></joint>'), "joint 'j' mimics 'k', which is no joint; the source must be a revolute, continuous or prismatic joint"),
         (urdf_with('<joint name="j" type="fixed"><parent link="a"/><child link="root"/></joint><joint name="k" type="fixed"><parent link="root"/><child link="a"/></joint>'), r"expected exactly one root link .*, found \[\]"),
         (urdf_with("", '<link name="a"/><link name="b"/>'), r"expected exactly one root link .*, found \['a', 'b'\]"),
         (urdf_with('<joint name="j" type="fixed"><parent link="a"/><child link="b"/></joint><joint name="k" type="fixed"><parent link="b"/><child link="a"/></joint>', '<link name="root"/><link name="a"/><link name="b"/>'), r"links \['a', 'b'\] are not connected to the root 'root'"),

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
+from narf_core.diameter import object_diameter
 from narf_core.metrics import (
     _nearest_distances,
     add,
     add_s,
     joint_errors,
     mse,
-    object_diameter,
     psnr_from_mse,
     success_rates,
 )
@@ -53,7 +53,7 @@ def test_mse_takes_torch_and_a_channel_mask(dtype):
     mask = torch.zeros(4, 3, dtype=torch.bool)
     mask[0, 0] = True
     assert mse(pred, target, mask) == 1.0
-    assert isinstance(mse(pred, target), float)
+    assert mse(pred, target) == 1.0 and isinstance(mse(pred, target), float)
 
 
 def test_mse_rejects():
@@ -129,10 +129,12 @@ def test_add_rejects():
         add({"thumb": np.zeros((1, 3))}, poses, EYE, poses, EYE, LINKS)
     with pytest.raises(ValueError, match=r"link_poses_est must have shape \[2, 4, 4\] \(one per link\), got \[1, 4, 4\]"):
         add(POINTS, poses, EYE, poses[:1], EYE, LINKS)
-    with pytest.raises(ValueError, match=r"T_cam_obj_true must have shape \[4, 4\], got \[3, 4\]"):
+    with pytest.raises(ValueError, match=r"T_cam_obj_true must be a 4x4 pose matrix, got shape \(3, 4\)"):
         add_s(POINTS, poses, EYE[:3], poses, EYE, LINKS)
     with pytest.raises(ValueError, match=r"points_per_link\['base'\] must have shape \[n, 3\], got \[3\]"):
         add({"base": np.zeros(3)}, poses, EYE, poses, EYE, LINKS)
+    with pytest.raises(ValueError, match="T_cam_obj_est has a rotation block that is not orthonormal"):
+        add(POINTS, poses, EYE, poses, np.diag([2.0, 1.0, 1.0, 1.0]), LINKS)
     with pytest.raises(ValueError, match="points_per_link holds no points"):
         add({}, poses, EYE, poses, EYE, LINKS)
 

@@ -305,9 +305,9 @@ def test_bounds_follow_configuration(articulated_scene):
     "config, message",
     [
         ({"slide": 0.13, "lever": 0.0}, "outside its limits"),
-        ({"slide": float("nan"), "lever": 0.0}, "outside its limits"),
-        ({"slide": 0.0}, "missing joints \\['lever'\\]"),
-        ({"slide": 0.0, "lever": 0.0, "jaw": 1.0}, "unknown joints \\['jaw'\\]"),
+        ({"slide": float("nan"), "lever": 0.0}, "joint 'slide': value must be finite"),
+        ({"slide": 0.0}, "missing value\\(s\\) for joint\\(s\\) \\['lever'\\]"),
+        ({"slide": 0.0, "lever": 0.0, "jaw": 1.0}, "unknown joint\\(s\\) \\['jaw'\\]"),
     ],
 )
 def test_set_configuration_rejects(articulated_scene, config, message):

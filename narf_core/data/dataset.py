@@ -31,7 +31,10 @@ import numpy as np
 import torch
 from PIL import Image
 
+from narf_core.checks import InputError, JointSpec, check_joints, check_pose
+from narf_core.depth import DEPTH_MM_MAX, depth_to_mm, mm_to_depth
 from narf_core.geometry import Pinhole
+from narf_core.kinematics import KinematicTree, UrdfError  # noqa: F401  (UrdfError: the one URDF error)
 
 SPLITS = ("train", "test", "novel")
 JOINT_TYPES = ("revolute", "prismatic", "continuous")
@@ -39,18 +42,12 @@ SCENE_FILE = "scene.json"
 URDF_FILE = "object.urdf"
 MESH_DIR = "meshes"
 MAX_LINKS = 255  # labels are uint8 with 0 for the background
-DEPTH_MM_MAX = np.iinfo(np.uint16).max
 
 _MTL_MAPS = ("map_kd", "map_ka", "map_ks", "map_d", "map_bump", "bump", "norm")  # MTL keys naming textures
-_ROTATION_TOL = 1e-4  # |R^T R - I| and |det R - 1| allowed in a stored pose (float32 writers)
 
 
 class DatasetError(ValueError):
     """A dataset on disk is malformed; the message names the file or JSON field that is wrong."""
-
-
-class UrdfError(ValueError):
-    """A URDF file does not parse, uses an unsupported joint, or references a missing file."""
 
 
 @dataclass
@@ -97,7 +94,8 @@ class FrameImages:
 
 @dataclass(frozen=True)
 class UrdfInfo:
-    """The parts of a URDF the dataset format uses.
+    """The parts of a URDF the dataset format uses, read by :class:`~narf_core.kinematics.KinematicTree`
+    (the one URDF reader, with its rules for joints, limits and mimic joints).
 
     ``links`` in the order the file lists them (this is the label order); ``joints`` the actuated
     joints as ``{"name", "type", "lower", "upper"}`` (continuous joints get ``[-pi, pi]``);
@@ -114,93 +112,18 @@ class UrdfInfo:
 
 
 def read_urdf(path: str | os.PathLike) -> UrdfInfo:
-    """Parse a URDF strictly: links, actuated joints with limits, mimic joints, mesh files.
+    """Parse a URDF with :class:`~narf_core.kinematics.KinematicTree` and resolve its mesh files.
 
-    Raises :class:`UrdfError` for a missing file, malformed XML, a joint of an unsupported type,
-    a limit that is missing or empty, or a mesh that does not resolve to a file.
+    Raises :class:`UrdfError` for anything the tree refuses, a mesh that does not resolve to a
+    file, or more links than labels can hold.
     """
     path = Path(path)
-    if not path.is_file():
-        raise UrdfError(f"{path}: no such URDF file")
-    try:
-        root = ET.parse(path).getroot()
-    except ET.ParseError as e:
-        raise UrdfError(f"{path}: not valid XML ({e})") from None
-    if root.tag != "robot":
-        raise UrdfError(f"{path}: root element is <{root.tag}>, expected <robot>")
-    links = [_attr(path, link, "name") for link in root.findall("link")]
-    if not links:
-        raise UrdfError(f"{path}: has no <link>")
-    if len(set(links)) != len(links):
-        raise UrdfError(f"{path}: duplicate link names")
-    if len(links) > MAX_LINKS:
-        raise UrdfError(f"{path}: {len(links)} links, labels hold at most {MAX_LINKS}")
-    joints: list[dict[str, Any]] = []
-    mimics: dict[str, tuple[str, float, float]] = {}
-    children: set[str] = set()
-    for el in root.findall("joint"):
-        name, kind = _attr(path, el, "name"), _attr(path, el, "type")
-        for tag in ("parent", "child"):
-            node = el.find(tag)
-            if node is None or _attr(path, node, "link") not in links:
-                raise UrdfError(f"{path}: joint '{name}' has no valid <{tag} link=...>")
-        children.add(el.find("child").get("link"))  # type: ignore[union-attr]
-        if kind == "fixed":
-            continue
-        if kind not in JOINT_TYPES:
-            supported = ", ".join(("fixed", *JOINT_TYPES))
-            raise UrdfError(f"{path}: joint '{name}' has type '{kind}'; supported: {supported}")
-        mimic = el.find("mimic")
-        if mimic is not None:
-            mimics[name] = (
-                _attr(path, mimic, "joint"),
-                _float_attr(path, mimic, "multiplier", name, 1.0),
-                _float_attr(path, mimic, "offset", name, 0.0),
-            )
-            continue
-        if kind == "continuous":
-            lower, upper = -math.pi, math.pi
-        else:
-            limit = el.find("limit")
-            if limit is None:
-                raise UrdfError(f"{path}: {kind} joint '{name}' has no <limit>")
-            lower = _float_attr(path, limit, "lower", name, 0.0)
-            upper = _float_attr(path, limit, "upper", name, 0.0)
-            if not lower < upper:
-                raise UrdfError(f"{path}: joint '{name}' has an empty range [{lower}, {upper}]")
-        joints.append({"name": name, "type": kind, "lower": lower, "upper": upper})
-    names = {j["name"] for j in joints}
-    for name, (source, _, _) in mimics.items():
-        if source not in names:
-            raise UrdfError(f"{path}: joint '{name}' mimics '{source}', which is not an actuated joint")
-    roots = [link for link in links if link not in children]
-    if len(roots) != 1:
-        raise UrdfError(f"{path}: expected one root link, found {roots or 'none (a cycle)'}")
-    meshes: dict[str, Path] = {}
-    for link in root.findall("link"):
-        for mesh in link.iter("mesh"):
-            filename = _attr(path, mesh, "filename")
-            meshes[filename] = resolve_mesh(path, filename, link.get("name", "?"))
-    return UrdfInfo(path, root.get("name", path.stem), links, joints, mimics, meshes)
-
-
-def resolve_mesh(urdf_path: Path, filename: str, link: str = "?") -> Path:
-    """The file a URDF ``<mesh filename=...>`` points to: a path relative to the URDF, an absolute
-    path, ``file://...`` or ``package://<pkg>/...`` (the package is a folder named ``<pkg>`` at or
-    above the URDF's folder)."""
-    base = urdf_path.resolve().parent
-    if filename.startswith("file://"):
-        candidates = [Path(filename[len("file://"):])]
-    elif filename.startswith("package://"):
-        package, _, rest = filename[len("package://"):].partition("/")
-        candidates = [d / rest for d in (base, *base.parents) if d.name == package]
-        candidates.append(base / rest)
-    else:
-        candidates = [base / filename]
-    for candidate in candidates:
-        if candidate.is_file():
-            return candidate
-    raise UrdfError(f"{urdf_path}: link '{link}': mesh '{filename}' not found (looked for {candidates[0]})")
+    tree = KinematicTree.from_urdf(path, load_meshes=False)
+    if len(tree.links) > MAX_LINKS:
+        raise UrdfError(f"{path}: {len(tree.links)} links, labels hold at most {MAX_LINKS}")
+    joints = [{"name": j.name, "type": j.type, "lower": j.lower, "upper": j.upper} for j in tree.movable]
+    mimics = {j.name: j.mimic for j in tree.mimics}
+    return UrdfInfo(path, tree.name or path.stem, tree.links_in_file, joints, mimics, tree.mesh_files())
 
 
 def mesh_assets(mesh: Path) -> list[Path]:
@@ -245,26 +168,6 @@ def copy_urdf(info: UrdfInfo, root: Path) -> Path:
     return out
 
 
-def _attr(path: Path, el: ET.Element, key: str) -> str:
-    value = el.get(key)
-    if not value:
-        raise UrdfError(f"{path}: <{el.tag}> without a '{key}' attribute")
-    return value
-
-
-def _float_attr(path: Path, el: ET.Element, key: str, joint: str, default: float) -> float:
-    raw = el.get(key)
-    if raw is None:
-        return default
-    try:
-        value = float(raw)
-    except ValueError:
-        raise UrdfError(f"{path}: joint '{joint}': <{el.tag} {key}='{raw}'> is not a number") from None
-    if not math.isfinite(value):
-        raise UrdfError(f"{path}: joint '{joint}': <{el.tag} {key}='{raw}'> is not finite")
-    return value
-
-
 def _directives(path: Path, keys: tuple[str, ...]) -> list[str]:
     """The arguments of lines starting with one of ``keys`` in an OBJ/MTL file (options skipped)."""
     found = []
@@ -291,21 +194,10 @@ def write_png_labels(path: Path, labels: np.ndarray) -> None:
     Image.fromarray(np.ascontiguousarray(labels, dtype=np.uint8), mode="L").save(path)
 
 
-def depth_to_millimetres(depth: np.ndarray) -> np.ndarray:
-    """Metric depth ``[H, W]`` (0 = no return) to uint16 millimetres, rounded to the nearest."""
-    depth = np.asarray(depth)
-    if not np.isfinite(depth).all() or (depth < 0).any():
-        raise ValueError("depth must be finite and >= 0 (0 = no return)")
-    mm = np.rint(depth.astype(np.float64) * 1000.0)
-    if mm.max(initial=0) > DEPTH_MM_MAX:
-        limit = DEPTH_MM_MAX / 1000
-        raise ValueError(f"depth {depth.max():.3f} m exceeds the 16-bit millimetre range ({limit} m)")
-    return mm.astype(np.uint16)
-
-
 def write_png_depth(path: Path, depth: np.ndarray) -> None:
-    """Metric depth float ``[H, W]`` as a uint16 millimetre PNG (ROS 16UC1; 0 = no return)."""
-    Image.fromarray(depth_to_millimetres(depth)).save(path)
+    """Metric depth float ``[H, W]`` as a uint16 millimetre PNG (:func:`narf_core.depth.depth_to_mm`:
+    ROS 16UC1, 0 = no return, saturating beyond 65.535 m)."""
+    Image.fromarray(depth_to_mm(depth)).save(path)
 
 
 def read_depth(path: Path) -> np.ndarray:
@@ -324,7 +216,7 @@ def read_depth(path: Path) -> np.ndarray:
         mm = np.asarray(im).astype(np.int64)
     if mm.min(initial=0) < 0 or mm.max(initial=0) > DEPTH_MM_MAX:
         raise DatasetError(f"{path}: depth values outside the uint16 range")
-    return (mm / 1000.0).astype(np.float32)
+    return mm_to_depth(mm)
 
 
 def _open_image(path: Path) -> Image.Image:
@@ -535,7 +427,7 @@ class _Validator:
             kind = self.choice(j.get("type"), f"{field}.type", JOINT_TYPES)
             lower = self.number(j.get("lower"), f"{field}.lower")
             upper = self.number(j.get("upper"), f"{field}.upper")
-            self.require(lower <= upper, field, f"lower {lower} > upper {upper}")
+            self.require(lower < upper, field, f"lower {lower} must be < upper {upper}")
             joints.append({"name": name, "type": kind, "lower": lower, "upper": upper})
         names = [j["name"] for j in joints]
         self.require(len(set(names)) == len(names), "joints", "joint names must be unique")
@@ -569,28 +461,17 @@ class _Validator:
         return value
 
     def pose(self, value: Any, field: str) -> np.ndarray:
-        T = self.matrix(value, field, 4, 4)
-        self.require(np.array_equal(T[3], [0, 0, 0, 1]), field, "last row must be [0, 0, 0, 1]")
-        R = T[:3, :3]
-        err = float(np.abs(R.T @ R - np.eye(3)).max())
-        self.require(err < _ROTATION_TOL, field, f"rotation is not orthonormal (max |R^T R - I| = {err:.2g})")
-        self.require(np.linalg.det(R) > 0, field, "rotation has determinant -1 (a reflection)")
-        return T
+        try:
+            return check_pose(self.matrix(value, field, 4, 4), field)
+        except InputError as e:
+            raise DatasetError(f"{self.path}: {e}") from None
 
     def configuration(self, value: Any, field: str, joints: list[dict[str, Any]]) -> dict[str, float]:
         self.require(isinstance(value, dict), field, "expected an object {joint name: value}")
-        known = {j["name"]: j for j in joints}
-        unknown = sorted(set(value) - set(known))
-        self.require(not unknown, field, f"unknown joints {unknown}; scene.json joints are {sorted(known)}")
-        missing = sorted(set(known) - set(value))
-        self.require(not missing, field, f"missing joints {missing}")
-        config = {}
-        for name, j in known.items():
-            x = self.number(value[name], f"{field}.{name}")
-            inside = j["lower"] <= x <= j["upper"]
-            self.require(inside, f"{field}.{name}", f"{x} is outside the limits [{j['lower']}, {j['upper']}]")
-            config[name] = x
-        return config
+        try:
+            return check_joints([JointSpec(**j) for j in joints], value, field, complete=True)
+        except InputError as e:
+            raise DatasetError(f"{self.path}: {e}") from None
 
 
 # --------------------------------------------------------------------------------------------
@@ -734,6 +615,8 @@ class DatasetWriter:
             raise ValueError(f"label {images.labels.max()} but the object has {len(self.urdf.links)} links")
         if images.depth is not None and images.depth.shape != (h, w):
             raise ValueError(f"depth must be [{h}, {w}], got {list(images.depth.shape)}")
+        if images.depth is not None and (not np.isfinite(images.depth).all() or (images.depth < 0).any()):
+            raise ValueError("depth must be finite and >= 0 metres (0 = no return)")
 
     def _write(
         self,

@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 from narf_core import __version__
-from narf_core.bundle import NarfModel, save_bundle
+from narf_core.bundle import NarfModel, march_step, save_bundle
 from narf_core.data.dataset import Dataset
 from narf_core.fields import make_field
 from narf_core.fields.composed import ComposedField, union_occupancy
@@ -69,10 +69,6 @@ def ray_loss(out, targets: RayTargets, config: TrainConfig) -> torch.Tensor:
         else out.rgb.new_zeros(())
     )
     return rgb_loss + config.opacity_weight * opacity_loss + config.depth_weight * depth_loss
-
-
-def _step_size(aabb: torch.Tensor) -> float:
-    return float((aabb[1] - aabb[0]).norm()) / 256
 
 
 def _git_commit() -> str | None:
@@ -165,7 +161,7 @@ def train(
                 "timings_s": timings,
             },
         },
-        step=_step_size(aabb),
+        step=march_step(aabb),
     )
     save_bundle(out, model)
     shutil.rmtree(work, ignore_errors=True)
@@ -230,7 +226,7 @@ def _fit_step(field, optimizer, batch: RayTargets, theta, box, grid, step: float
 def _train_part(field, box, targets: RayTargets, config: TrainConfig, ckpt: Path, budget_s, progress: bool, name: str):
     generator = torch.Generator().manual_seed(config.seed)
     optimizer = torch.optim.Adam(field.parameters(), lr=config.lr, eps=1e-15)
-    step = _step_size(box)
+    step = march_step(box)
     grid = OccupancyGrid.full(box, config.grid_resolution)
     warmup = config.part_steps // 4
 
@@ -261,7 +257,7 @@ def distill(
     started = time.perf_counter()
     generator = torch.Generator().manual_seed(config.seed + 1)
     optimizer = torch.optim.Adam(student.parameters(), lr=config.lr, eps=1e-15)
-    step = _step_size(aabb)
+    step = march_step(aabb)
     rays_per_view = max(config.batch_rays // config.views_per_batch, 1)
 
     def teacher_render(field, rays, theta):

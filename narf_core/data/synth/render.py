@@ -25,8 +25,10 @@ import numpy as np
 import yourdfpy
 from PIL import Image
 
-from narf_core.data.dataset import FrameImages, UrdfError, UrdfInfo, resolve_mesh
+from narf_core.data.dataset import FrameImages, UrdfError, UrdfInfo
+from narf_core.checks import JointSpec, check_joints
 from narf_core.geometry import Pinhole
+from narf_core.kinematics import resolve_mesh
 
 log = logging.getLogger(__name__)
 
@@ -195,7 +197,7 @@ class BulletScene:
             str(urdf.path),
             load_meshes=True,
             build_scene_graph=True,
-            filename_handler=lambda fname: str(resolve_mesh(urdf.path, fname)),
+            filename_handler=lambda fname: str(resolve_mesh(fname, urdf.path.parent, source=str(urdf.path))),
         )
         self._table = self._add_table(np.random.default_rng(texture_seed)) if background else None
         self.configuration: dict[str, float] = {}
@@ -213,16 +215,7 @@ class BulletScene:
 
     def set_configuration(self, joints: dict[str, float]) -> None:
         """Set every actuated joint (``{name: value}``, within limits); mimic joints follow."""
-        known = {j["name"]: j for j in self.joints}
-        unknown = sorted(set(joints) - set(known))
-        missing = sorted(set(known) - set(joints))
-        if unknown or missing:
-            raise ValueError(f"configuration: unknown joints {unknown}, missing joints {missing}")
-        for name, value in joints.items():
-            j = known[name]
-            if not (np.isfinite(value) and j["lower"] <= value <= j["upper"]):
-                limits = f"[{j['lower']}, {j['upper']}]"
-                raise ValueError(f"joint '{name}' = {value} is outside its limits {limits}")
+        joints = check_joints([JointSpec(**j) for j in self.joints], joints, "configuration", complete=True)
         values = dict(joints)
         for name, (source, multiplier, offset) in self.urdf.mimics.items():
             values[name] = multiplier * joints[source] + offset

@@ -154,7 +154,7 @@ def object_visuals(urdf_path: Path, scratch: Path) -> list[_Visual]:
     import trimesh
     import yourdfpy
 
-    from narf_core.data.dataset import resolve_mesh
+    from narf_core.kinematics import resolve_mesh
 
     robot = yourdfpy.URDF.load(str(urdf_path), load_meshes=False, build_scene_graph=False).robot
     visuals = []
@@ -167,7 +167,7 @@ def object_visuals(urdf_path: Path, scratch: Path) -> list[_Visual]:
                 colour = [float(c) for c in visual.material.color.rgba[:3]]
             texture = None
             if g.mesh is not None:
-                path = resolve_mesh(urdf_path, g.mesh.filename, link.name)
+                path = resolve_mesh(g.mesh.filename, Path(urdf_path).parent, link=link.name, source=str(urdf_path))
                 scale = np.ones(3) if g.mesh.scale is None else np.broadcast_to(np.asarray(g.mesh.scale, float), 3)
                 origin = origin @ np.diag([*scale, 1.0])
                 if path.suffix.lower() == ".obj":
