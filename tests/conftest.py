@@ -1,10 +1,14 @@
-"""Shared test fixtures: the hand-written assets and the two float dtypes every numeric test runs in."""
+"""Shared test fixtures: the hand-written assets and the two float dtypes every numeric test runs in.
+
+The service and client tests live in ``tests/service/`` with their own ``conftest.py``.
+"""
 
 import os
 from pathlib import Path
 
 import pytest
 import torch
+from checkout import import_from_checkout
 
 ASSETS = Path(__file__).parent / "assets"
 
@@ -12,6 +16,7 @@ ASSETS = Path(__file__).parent / "assets"
 def pytest_configure(config: pytest.Config) -> None:
     torch.set_num_threads(1)  # 2 shared CPU cores: threads only add contention for tiny tensors
     os.environ.setdefault("NARF_THREADS", "1")  # the same for `narf` commands run in-process or as children
+    import_from_checkout()  # narf_service and narf_client, installed or not, before any test module imports them
 
 
 @pytest.fixture(scope="session")

@@ -18,7 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from narf_core.bundle import NarfModel
-from narf_core.estimate import EstimateInputError, EstimateOptions, EstimateResult, refine
+from narf_core.estimate import EstimateInputError, EstimateOptions, EstimateResult, _level, refine
 from narf_core.geometry import Pinhole, invert_pose, look_at, so3_exp
 from narf_core.kinematics import KinematicTree
 from narf_core.render import OccupancyGrid
@@ -248,30 +248,75 @@ def test_a_field_that_is_always_nan_gives_back_the_initial_pose(model):
     json.dumps(result.to_dict(), allow_nan=False)
 
 
+def spy_on_renders(model: NarfModel, monkeypatch) -> list[tuple[int, Tensor, bool]]:
+    """Record ``(rays, θ, with gradients)`` of every ``model.render_rays`` call from now on."""
+    calls = []
+    render_rays = model.render_rays
+
+    def spy(rays, theta, **kw):
+        calls.append((len(rays), theta.detach().clone(), torch.is_grad_enabled()))
+        return render_rays(rays, theta, **kw)
+
+    monkeypatch.setattr(model, "render_rays", spy)
+    return calls
+
+
+def starts_in(theta: Tensor) -> int:
+    """How many configurations a render call carries: ``θ [k]`` is one, ``θ [n, k]`` one per ray."""
+    return 1 if theta.dim() == 1 else len(torch.unique(theta, dim=0))
+
+
 def test_theta_starts_run_as_one_batch_and_keep_the_best(model, monkeypatch):
+    """Four joint starts find the joint where one start stays stuck. What the loop promises (and
+    tuning keeps): every start in one render per iteration while several run, never more rays per
+    start than ``rays_per_iteration`` (so ``iterations x rays_per_iteration x theta_starts`` bounds
+    the loop's rays, as the service's work limit assumes), one start per stratum of the joint
+    range, all starts compared on the same rays before the weaker ones are dropped, never a dropped
+    one back, and the one kept the one nearest the truth."""
     T = view()
     truth, init = {"slide": -0.05}, {"slide": 0.05}  # the jaws do not overlap: the loss is flat in θ there
     image, mask, _ = observe(model, T, truth)
     one = refine(model, image, mask, CAMERA, T, joints_init=init, options=EstimateOptions(**{**FAST, "iterations": 30}), ground_truth=(T, truth))
-    calls = []
-    render_rays = model.render_rays
-    monkeypatch.setattr(model, "render_rays", lambda rays, theta, **kw: calls.append((len(rays), theta)) or render_rays(rays, theta, **kw))
-    options = EstimateOptions(theta_starts=4, uncertainty=False, **FAST)  # no covariance pass: count the loop's calls
+    calls = spy_on_renders(model, monkeypatch)
+    options = EstimateOptions(theta_starts=4, uncertainty=False, **FAST)  # no covariance pass: only the loop's renders
     four = refine(model, image, mask, CAMERA, T, joints_init=init, options=options, ground_truth=(T, truth))
     assert one.metrics["joint_error/slide"] > 0.05
     assert four.metrics["joint_error/slide"] < 0.003
     assert four.loss < one.loss / 10
-    n, theta = calls[0]
-    assert n == 4 * 256 and theta.shape == (n, 1)  # four starts in one call, half the rays each: 4 x 256
-    assert torch.unique(theta).tolist() == pytest.approx([-0.045, -0.015, 0.015, 0.05], abs=1e-6)  # 3 strata + the start
-    assert [c[0] for c in calls[:26]] == [4 * 256] * 26
-    compared = calls[26][0]  # after a third, the starts are compared on one larger fixed set of rays ...
-    assert compared % 4 == 0 and compared > 4 * 512
-    assert [c[0] for c in calls[27:-1]] == [512] * 54  # ... and the best goes on alone with every ray
+
+    loop = [i for i, (_, _, grad) in enumerate(calls) if grad]  # the iterations' renders; comparisons need no gradient
+    assert len(loop) == four.iterations  # one render per iteration, however many starts
+    starts = [starts_in(calls[i][1]) for i in loop]
+    assert starts[0] == 4 and starts[-1] == 1 and starts == sorted(starts, reverse=True)
+    assert all(calls[i][0] <= s * options.rays_per_iteration for i, s in zip(loop, starts))
+    first = torch.unique(calls[loop[0]][1]).tolist()
+    assert init["slide"] == pytest.approx(first[-1], abs=1e-6)  # the given start is one of them ...
+    assert sorted(int((v - LOWER) / (UPPER - LOWER) * 4) for v in first) == [0, 1, 2, 3]  # ... one per stratum
+    alone = loop[starts.index(1)]
+    between = calls[loop[starts.index(1) - 1] + 1 : alone]  # after the last batched iteration, before the first alone
+    assert any(not grad and starts_in(theta) == 4 for _, theta, grad in between)  # the starts compared
+    kept = float(calls[alone][1][0])
+    assert LOWER <= kept <= LOWER + (UPPER - LOWER) / 4  # the truth's stratum: the best start went on
+
     calls.clear()
-    parts = refine(model, image, mask, CAMERA, T, joints_init=init, options=EstimateOptions(theta_starts=2, iterations=3, mode="parts"))
-    assert [(n, tuple(theta.shape)) for n, theta in calls[:2]] == [(512, (1,)), (512, (1,))]  # parts: a call per start
+    options = EstimateOptions(theta_starts=2, iterations=3, mode="parts")
+    parts = refine(model, image, mask, CAMERA, T, joints_init=init, options=options)
+    (n_a, theta_a, _), (n_b, theta_b, _) = [c for c in calls if c[2]][:2]  # parts: one render per start
+    assert theta_a.shape == theta_b.shape == (1,) and float(theta_a) != float(theta_b)
+    assert n_a == n_b <= options.rays_per_iteration
     assert_finite(parts)
+
+
+@pytest.mark.parametrize("levels", [1, 2, 3, 6])
+@pytest.mark.parametrize("iterations", [1, 2, 7, 80, 150])
+def test_coarse_levels_come_before_the_fine_one(iterations, levels):
+    """The pyramid schedule: never back to a coarser level, the last iteration at the finest (the
+    only level early stopping looks at), and at the paper's 150 iterations every level used."""
+    schedule = [_level(i, iterations, levels) for i in range(iterations)]
+    assert schedule == sorted(schedule) and all(0 <= level < levels for level in schedule)
+    assert schedule[-1] == levels - 1
+    if iterations >= 150:
+        assert set(schedule) == set(range(levels))
 
 
 def test_early_stop_stops_early_and_can_be_switched_off(model):
@@ -292,7 +337,8 @@ def test_robust_options_and_depth(model):
     options = EstimateOptions.robust(depth_weight=1.0, record_every=25, **FAST)
     result = refine(model, image, mask, CAMERA, perturbed(T, 10, 0.02, 4), depth=depth, options=options, ground_truth=(T, TRUTH))
     assert result.metrics["add"] < 0.006
-    assert [s.iteration for s in result.history] == [25, 50, 75]
+    assert [s.iteration for s in result.history] == list(range(25, result.iterations + 1, 25))  # every 25th
+    assert len(result.history) >= 2 and all(np.isfinite(s.T_cam_obj).all() for s in result.history)
 
 
 # --- inputs and outputs ---------------------------------------------------------------------
@@ -350,12 +396,12 @@ def test_bad_inputs_raise_a_clear_error(model):
         (dict(camera=Pinhole(Pinhole.primesense(640, 480).K, 64, 48)), "principal point .* outside the 64x48 image"),
         (dict(T_init=nan_pose), "T_init must be finite"),
         (dict(T_init=T[:3]), "T_init must be a 4x4 pose matrix"),
-        (dict(T_init=sheared), "T_init has a rotation block that is not a proper orthonormal matrix"),
+        (dict(T_init=sheared), "T_init has a rotation block that is not orthonormal"),
         (dict(joints_init={"slid": 0.0}), r"joints_init: unknown joint\(s\) \['slid'\]"),
         (dict(joints_init={"slide": 0.5}), "joints_init: joint 'slide': 0.5 is outside its limits"),
         (dict(depth=np.zeros((10, 10), np.float32)), r"depth must be \[H, W\]"),
         (dict(depth=-np.ones(mask.shape, np.float32)), "depth has negative values"),
-        (dict(ground_truth=(T, {})), r"ground_truth joints lacks joint\(s\) slide"),
+        (dict(ground_truth=(T, {})), r"ground_truth.joints: missing value\(s\) for joint\(s\) \['slide'\]"),
         (dict(options=EstimateOptions(mode="parts"), model=make_model(SliderField())), "options.mode 'parts' needs part fields"),
     ]
     for override, message in cases:
@@ -423,3 +469,12 @@ def test_benchmark_writes_table_curves_and_sweep(model, tmp_path):
         assert (tmp_path / "out" / name).stat().st_size > 0
     assert json.loads((tmp_path / "out" / "estimate.json").read_text())["config"]["scenes"] == 2
     assert "| toy | test | narf | robust | 2 |" in (tmp_path / "out" / "estimate.md").read_text()
+
+
+def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_start():
+    paper = EstimateOptions.preset("paper")
+    assert paper.max_rays() == paper.iterations * paper.rays_per_iteration * paper.theta_starts
+    robust = EstimateOptions.preset("robust")  # a box larger than the reference draws up to 4x the rays
+    assert robust.max_rays() == robust.iterations * robust.rays_per_iteration * 4 * robust.theta_starts
+    warm = EstimateOptions.preset("gauss-newton", adam_iterations=20)
+    assert warm.max_rays() == (warm.iterations + 20) * warm.rays_per_iteration * warm.theta_starts

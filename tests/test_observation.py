@@ -143,10 +143,6 @@ def test_cli_estimate_prints_the_warnings(tmp_path: Path, capsys: pytest.Capture
 @needs_model
 @pytest.mark.slow
 def test_service_answers_with_the_warnings() -> None:
-    pytest.register_assert_rewrite("conftest_service")
-    from conftest_service import import_from_checkout
-
-    import_from_checkout()
     import httpx
     from narf_client import NarfClient
     from narf_core.bundle import load_bundle

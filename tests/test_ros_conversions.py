@@ -9,10 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-pytest.register_assert_rewrite("conftest_service")
-from conftest_service import ROOT, import_from_checkout  # noqa: E402
-
-import_from_checkout()
+from checkout import ROOT
 
 
 def _load_node_module():

@@ -10,14 +10,12 @@ from pathlib import Path
 
 import pytest
 
-pytest.register_assert_rewrite("conftest_service")
-pytest_plugins = ("conftest_service",)
-
-from narf_service.errors import ApiError  # noqa: E402
-from narf_service.jobs import _refine_input_error  # noqa: E402
-from narf_service.registry import one_line_reason  # noqa: E402
-from narf_service.settings import Settings  # noqa: E402
-from narf_service.workers import Stop, WorkQueue  # noqa: E402
+from helpers import ToyModel
+from narf_service.errors import ApiError
+from narf_service.jobs import _refine_input_error
+from narf_service.registry import one_line_reason
+from narf_service.settings import Settings
+from narf_service.workers import Stop, WorkQueue
 
 
 def test_stop_says_cancelled_or_budget_exceeded() -> None:
@@ -118,7 +116,7 @@ def test_a_refused_bundle_reason_is_one_line_without_its_path(tmp_path: Path) ->
         ("mask: 1 object pixel(s); need at least 2", "mask"),
         ("depth must be float metres, got dtype int16", "depth"),
         ("options.theta_starts must be in [1, 64], got 99", "request.options.theta_starts"),
-        ("T_init has a rotation block that is not a proper orthonormal matrix", "request.initial_pose"),
+        ("T_init has a rotation block that is not orthonormal (max |R^T R - I| = 0.2 > 0.001)", "request.initial_pose"),
         ("joints_init: unknown joint 'x'", "request.initial_joints"),
         ("something else entirely", None),
     ],
@@ -130,17 +128,15 @@ def test_refiner_input_errors_name_the_request_field(message: str, field: str | 
         assert error.message.startswith(field) and message in error.message
 
 
-def test_a_render_in_bands_is_the_render_of_the_whole_image() -> None:
+def test_a_render_in_bands_is_the_render_of_the_whole_image(bundled_model) -> None:
     """The bundled clamp at 600x500 (two bands) through the service's renderer and in one piece."""
     import numpy as np
     import torch
 
-    from conftest_service import ROOT
-    from narf_core.bundle import load_bundle
     from narf_service import jobs
     from narf_service.schemas import RenderRequest
 
-    model = load_bundle(ROOT / "models" / "clamp.narf")
+    model = bundled_model
     camera = {"K": [[900.0, 0, 310], [0, 900, 240], [0, 0, 1]], "width": 600, "height": 500}
     request = RenderRequest(model="clamp", pose={"position": [0, 0, 0.45], "orientation": [0, 0, 0, 1]},
                             camera=camera, outputs=["rgb", "depth", "opacity"])
@@ -154,7 +150,6 @@ def test_a_render_in_bands_is_the_render_of_the_whole_image() -> None:
 
 
 def test_a_render_past_the_budget_stops_between_bands() -> None:
-    from conftest_service import ToyModel
     from narf_service import jobs
     from narf_service.schemas import RenderRequest
 

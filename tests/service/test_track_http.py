@@ -6,32 +6,26 @@ from __future__ import annotations
 import asyncio
 import copy
 from collections.abc import Iterator
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-pytest.register_assert_rewrite("conftest_service")
-pytest_plugins = ("conftest_service",)
+from helpers import ROOT
+from narf_client import AsyncNarfClient, InvalidInput, NarfClient, TrackFrame
+from narf_service.app import create_app
+from narf_service.errors import ApiError
+from narf_service.main import serve_in_thread
+from narf_service.registry import ModelRegistry
+from narf_service.settings import Settings
+from narf_service.tracking import decode_state, encode_state
 
-from narf_client import AsyncNarfClient, InvalidInput, NarfClient, TrackFrame  # noqa: E402
-from narf_service.app import create_app  # noqa: E402
-from narf_service.errors import ApiError  # noqa: E402
-from narf_service.main import serve_in_thread  # noqa: E402
-from narf_service.registry import ModelRegistry  # noqa: E402
-from narf_service.settings import Settings  # noqa: E402
-from narf_service.tracking import decode_state, encode_state  # noqa: E402
-
-ROOT = Path(__file__).resolve().parent.parent
 KEY = b"k" * 32
 FAST = {"iterations": 2, "rays_per_iteration": 64, "uncertainty": False}
 
 
 @pytest.fixture(scope="module")
-def clamp():
-    from narf_core.bundle import load_bundle
-
-    return load_bundle(ROOT / "models" / "clamp.narf")
+def clamp(bundled_model):
+    return bundled_model
 
 
 @pytest.fixture(scope="module")

@@ -14,19 +14,17 @@ import pytest
 from PIL import Image
 from pydantic import ValidationError
 
-pytest.register_assert_rewrite("conftest_service")
-pytest_plugins = ("conftest_service",)
-
-from conftest_service import toy_load_bundle  # noqa: E402
-from narf_service.app import prefers_png  # noqa: E402
-from narf_service.errors import ApiError, field_path  # noqa: E402
-from narf_service.images import decode_depth, decode_mask, decode_rgb, depth_to_mm, rgb_to_uint8  # noqa: E402
-from narf_service.main import serve  # noqa: E402
-from narf_service.monitoring import peak_rss_bytes  # noqa: E402
-from narf_service.registry import ModelRegistry, valid_model_name  # noqa: E402
-from narf_service.schemas import Camera, Pose, PoseOut  # noqa: E402
-from narf_service.settings import Settings  # noqa: E402
-from narf_service.workers import QueueFull, WorkQueue  # noqa: E402
+from helpers import toy_load_bundle
+from narf_service.app import prefers_png
+from narf_service.errors import ApiError, field_path
+from narf_core.depth import depth_to_mm
+from narf_service.images import decode_depth, decode_mask, decode_rgb, rgb_to_uint8
+from narf_service.main import serve
+from narf_service.monitoring import peak_rss_bytes
+from narf_service.registry import ModelRegistry, valid_model_name
+from narf_service.schemas import Camera, Pose, PoseOut
+from narf_service.settings import Settings
+from narf_service.workers import QueueFull, WorkQueue
 
 
 def png(array: np.ndarray) -> bytes:

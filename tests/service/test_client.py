@@ -7,6 +7,7 @@ import base64
 import io
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -15,13 +16,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-pytest.register_assert_rewrite("conftest_service")
-from conftest_service import ROOT, import_from_checkout  # noqa: E402
-
-import_from_checkout()
-
-import narf_client  # noqa: E402
-from narf_client import (  # noqa: E402
+import narf_client
+from helpers import ROOT
+from narf_client import (
     AsyncNarfClient,
     InvalidInput,
     NarfClient,
@@ -31,7 +28,7 @@ from narf_client import (  # noqa: E402
     ServerError,
     ServiceUnavailable,
 )
-from narf_client.types import matrix_to_quaternion, quaternion_to_matrix  # noqa: E402
+from narf_client.types import matrix_to_quaternion, quaternion_to_matrix
 
 K = np.array([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]])
 
@@ -313,4 +310,5 @@ def test_client_never_imports_torch() -> None:
     env = {**os.environ, "PYTHONPATH": str(ROOT / "clients" / "python")}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
-    assert narf_client.__version__
+    declared = re.search(r'^version = "(.+)"$', (ROOT / "clients" / "python" / "pyproject.toml").read_text(), re.M)
+    assert narf_client.__version__ == declared.group(1)  # the package says the version it is published under

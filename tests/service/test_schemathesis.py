@@ -13,20 +13,13 @@ import schemathesis
 from hypothesis import HealthCheck, settings
 from schemathesis.checks import not_a_server_error
 
-pytest.register_assert_rewrite("conftest_service")
-pytest_plugins = ("conftest_service",)
-
-from conftest_service import import_from_checkout  # noqa: E402
-
-import_from_checkout()
-
-from narf_service.app import create_app  # noqa: E402
-from narf_service.registry import ModelRegistry  # noqa: E402
-from narf_service.settings import Settings  # noqa: E402
+from narf_service.app import create_app
+from narf_service.registry import ModelRegistry
+from narf_service.settings import Settings
 
 
 @pytest.fixture(scope="module")
-def api_schema(service_engine, service_model, tmp_path_factory):
+def api_schema(toy_engine, toy_model, tmp_path_factory):
     limits = Settings(
         models_dir=Path(tmp_path_factory.mktemp("models")),
         workers=2,
@@ -36,7 +29,7 @@ def api_schema(service_engine, service_model, tmp_path_factory):
         max_iterations=3,
         max_body_bytes=256 * 1024,
     )
-    app = create_app(limits, engine=service_engine, registry=ModelRegistry(models={"toy": service_model}))
+    app = create_app(limits, engine=toy_engine, registry=ModelRegistry(models={"toy": toy_model}))
     return schemathesis.openapi.from_asgi("/openapi.json", app)
 
 

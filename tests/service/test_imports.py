@@ -6,12 +6,12 @@ import json
 import subprocess
 import sys
 
-from conftest_service import ROOT
+from helpers import ROOT
 
 PROBE = """
 import importlib.util, json, sys
 sys.path.insert(0, "tests")
-from conftest_service import import_from_checkout
+from checkout import import_from_checkout
 import_from_checkout()
 import narf_service, narf_service.app, narf_service.main
 from narf_service.engine import Engine

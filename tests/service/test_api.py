@@ -9,13 +9,12 @@ import threading
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
-pytest.register_assert_rewrite("conftest_service")
-pytest_plugins = ("conftest_service",)
-
-from conftest_service import GatedEngine, ToyModel, camera_json, make_client, pose_json, wait_until  # noqa: E402
-from narf_service.settings import Settings  # noqa: E402
+from helpers import ON_BOTH_MODELS, GatedEngine, ToyModel, camera_json, make_client, pose_json, scene_for, wait_until
+from narf_service.engine import Engine
+from narf_service.settings import Settings
 
 
 def png(array: np.ndarray) -> bytes:
@@ -39,11 +38,12 @@ def post_json(client, path: str, body: dict, **kwargs):
 
 
 def assert_error(response, status: int, field: str | None = None, *words: str) -> dict:
+    """The error body of ``response``: its status, the field it names (``None``: none) and words of its message."""
     assert response.status_code == status, response.text
     error = response.json()["error"]
     assert set(error) <= {"code", "message", "field"} and error["code"] and error["message"]
+    assert error.get("field") == field, error
     if field is not None:
-        assert error["field"] == field, error
         assert error["message"].startswith(field), error
     for word in words:
         assert word in error["message"], error
@@ -77,10 +77,11 @@ def estimate_request(**overrides) -> dict:
 # --- operations -----------------------------------------------------------------------------------
 
 
-def test_healthz_and_readyz(client) -> None:
+@ON_BOTH_MODELS
+def test_healthz_and_readyz(client, service_model) -> None:
     assert client.get("/healthz").json() == {"status": "ok"}
     r = client.get("/readyz")
-    assert r.status_code == 200 and r.json() == {"status": "ready", "models": ["toy"], "failed": {}}
+    assert r.status_code == 200 and r.json() == {"status": "ready", "models": [service_model.name], "failed": {}}
 
 
 def test_readyz_is_503_without_models(service_settings, service_engine) -> None:
@@ -116,18 +117,24 @@ def test_openapi_documents_the_error_body_and_both_pose_forms(client) -> None:
 # --- models ---------------------------------------------------------------------------------------
 
 
+@ON_BOTH_MODELS
 def test_models_list_and_detail(client, service_model) -> None:
     listed = client.get("/v1/models").json()["models"]
-    assert [m["name"] for m in listed] == ["toy"]
+    assert [m["name"] for m in listed] == [service_model.name]
     assert [j["name"] for j in listed[0]["joints"]] == [j.name for j in service_model.joints]
-    info = client.get("/v1/models/toy").json()
+    assert listed[0]["modes"] == (["narf", "parts"] if service_model.has_parts else ["narf"])
+    info = client.get(f"/v1/models/{service_model.name}").json()
     assert info["links"] == list(service_model.links)
     assert np.allclose(info["bounds"], service_model.aabb.tolist())
-    assert "urdf" not in info["metadata"] and isinstance(info["metrics"], dict)
+    assert "urdf" not in info["metadata"]
     if isinstance(service_model, ToyModel):
         assert info["metrics"] == {"psnr_test": None}  # an infinite PSNR: JSON has no infinity
-    lower, upper = info["joints"][0]["lower"], info["joints"][0]["upper"]
-    assert (lower, upper) == (service_model.joints[0].lower, service_model.joints[0].upper)
+        assert info["metadata"]["arch"] == "box"
+    else:  # the bundle's own metadata, passed through
+        assert info["metadata"]["checksum"] == service_model.metadata["checksum"]
+        assert info["metrics"] == (service_model.metadata.get("metrics") or {})
+    got = [(j["name"], j["type"], j["lower"], j["upper"]) for j in info["joints"]]
+    assert got == [(j.name, j.type, j.lower, j.upper) for j in service_model.joints]
 
 
 @pytest.mark.parametrize(
@@ -142,24 +149,46 @@ def test_model_names_resolve_only_to_served_models(client, path: str, status: in
 # --- render ---------------------------------------------------------------------------------------
 
 
-def test_render_json_images_are_pngs_of_the_asked_outputs(client, service_model) -> None:
-    r = client.post("/v1/render", json=render_body(outputs=["rgb", "depth", "opacity"]))
-    assert r.status_code == 200
-    body = r.json()
+def scene_render(client, scene, **overrides) -> dict:
+    """The JSON answer to a render of ``scene`` (all three outputs, the scene's joints)."""
+    body = {"model": scene.model, "pose": scene.pose_json(), "camera": scene.camera_json(), "joints": scene.joints,
+            "outputs": ["rgb", "depth", "opacity"], **overrides}
+    r = client.post("/v1/render", json=body)
+    assert r.status_code == 200, r.text
+    return r.json()
+
+
+@ON_BOTH_MODELS
+def test_render_json_images_are_pngs_of_the_models_own_render(client, service_model) -> None:
+    """rgb and opacity in 8 bits, depth in millimetres (16 bits) of the model's render at the asked
+    pose and joints; the object whole in the image, its depth within its box's depth range."""
+    scene = scene_for(service_model)
+    body = scene_render(client, scene)
     rgb, depth, opacity = (decode_png(body[k]) for k in ("rgb", "depth", "opacity"))
-    assert rgb.shape == (24, 32, 3) and rgb.dtype == np.uint8
+    assert rgb.shape == (scene.height, scene.width, 3) and rgb.dtype == np.uint8
+    assert depth.shape == opacity.shape == (scene.height, scene.width)
     assert depth.dtype == np.uint16 and opacity.dtype == np.uint8
+    own = service_model.render(torch.tensor(scene.T_cam_obj, dtype=torch.float32), service_model.joint_vector(scene.joints),
+                               scene.pinhole(), outputs=("rgb", "depth", "opacity"))
+    np.testing.assert_allclose(rgb, own["rgb"].numpy() * 255, atol=1)
+    np.testing.assert_allclose(opacity, own["opacity"].numpy() * 255, atol=1)
+    np.testing.assert_allclose(depth, own["depth"].numpy() * 1000, atol=1)
     inside = opacity > 127
-    assert inside.any() and not inside.all()
-    assert (depth[~inside] == 0).all() and (depth[inside] > 0).all()
+    assert inside.sum() > 0.05 * inside.size and not inside[[0, -1]].any() and not inside[:, [0, -1]].any()
+    near, far = scene.depth_range()
+    solid = opacity == 255  # (rendered depth is opacity-weighted)
+    assert solid.any() and (depth[solid] >= 1000 * near - 1).all() and (depth[solid] <= 1000 * far + 1).all()
+    assert (depth[opacity == 0] <= 1).all() and (rgb[inside].max(-1) > 0).all()
+    assert np.allclose(body["pose"]["matrix"], scene.T_cam_obj) and body["joints"] == pytest.approx(scene.joints)
+
+
+def test_render_answers_the_pose_in_both_forms(client) -> None:
+    body = client.post("/v1/render", json=render_body()).json()
     assert body["pose"]["position"] == [0, 0, 0.4] and body["pose"]["orientation"] == [0, 0, 0, 1]
-    assert set(body["joints"]) == {j.name for j in service_model.joints}
 
 
-def test_render_depth_is_millimetres(client, service_model) -> None:
+def test_render_depth_is_millimetres(client) -> None:
     """The toy box's near face is 0.4 - 0.02 m from the camera: 380 mm at the centre pixel."""
-    if not isinstance(service_model, ToyModel):
-        pytest.skip("exact depth is known for the toy box only")
     r = client.post("/v1/render", json=render_body(outputs=["depth"]))
     depth = decode_png(r.json()["depth"])
     assert depth[12, 16] == 380 and r.json()["rgb"] is None
@@ -180,13 +209,15 @@ def test_render_accept_png_returns_one_image(client) -> None:
     assert_error(r, 422, "outputs", "exactly one")
 
 
+@ON_BOTH_MODELS
 def test_render_joints_move_the_image(client, service_model) -> None:
+    scene = scene_for(service_model, 64, 48)
     j = service_model.joints[0]
-    a = client.post("/v1/render", json=render_body(joints={j.name: j.lower}))
-    b = client.post("/v1/render", json=render_body(joints={j.name: j.upper}))
-    assert a.status_code == b.status_code == 200
-    assert a.json()["joints"][j.name] == pytest.approx(j.lower) and b.json()["joints"][j.name] == pytest.approx(j.upper)
-    assert a.json()["rgb"] != b.json()["rgb"]
+    a = scene_render(client, scene, joints={j.name: j.lower})
+    b = scene_render(client, scene, joints={j.name: j.upper})
+    assert a["joints"][j.name] == pytest.approx(j.lower) and b["joints"][j.name] == pytest.approx(j.upper)
+    changed = np.abs(decode_png(a["rgb"]).astype(int) - decode_png(b["rgb"]).astype(int)).max(-1) > 8
+    assert changed.sum() >= 10  # pixels, not rounding noise
 
 
 BAD_POSES = [
@@ -273,7 +304,7 @@ def test_render_other_bad_fields(client, service_model) -> None:
 
 def test_malformed_json_is_400(client) -> None:
     r = client.post("/v1/render", content=b'{"model": "toy", ', headers={"content-type": "application/json"})
-    assert_error(r, 400, None, "malformed JSON")
+    assert_error(r, 400, "body", "malformed JSON")
     assert r.json()["error"]["code"] == "malformed_json"
 
 
@@ -307,19 +338,65 @@ def test_unknown_route_and_method_use_the_error_body(client) -> None:
 # --- estimate -------------------------------------------------------------------------------------
 
 
-def test_estimate_returns_pose_joints_trace_and_metrics(client, observation, service_model) -> None:
-    gt_joints = {j.name: observation["joints"][j.name] for j in service_model.joints}
-    request = estimate_request(ground_truth={"pose": pose_json(), "joints": gt_joints})
-    r = client.post("/v1/estimate", files=estimate_parts(observation, request))
+def add_of(model, T: np.ndarray, joints: dict, T_true: np.ndarray, joints_true: dict) -> float:
+    """ADD (metres) of ``T``, ``joints`` against the truth, from the model's surface points."""
+    from narf_core.metrics import add
+
+    links = model.kinematics.link_poses
+    return add(model.sample_points, links(model.joint_vector(joints_true)).numpy(), T_true,
+               links(model.joint_vector(joints)).numpy(), T, model.links)
+
+
+@ON_BOTH_MODELS
+def test_estimate_of_a_rendered_view_is_scored_against_the_truth(client, service_model) -> None:
+    """Render the scene, then estimate it from 1 cm off in x and z, the joints at mid-range, with depth.
+
+    The toy refiner stays at its start, so its ADD is the start's 1.41 cm exactly. The real one must
+    at least halve the start's ADD (measured: to 0.29 cm from 2.19 cm), its reported ADD must be the
+    ADD of the pose and joints it answers, and it comes with a finite covariance.
+    """
+    toy = isinstance(service_model, ToyModel)
+    scene = scene_for(service_model)
+    view = scene_render(client, scene)
+    rgb, depth_mm, opacity = (decode_png(view[k]) for k in ("rgb", "depth", "opacity"))
+    start = scene.moved((0.01, 0.0, 0.01))
+    iterations = 5 if toy else 30
+    request = {"model": scene.model, "camera": scene.camera_json(), "initial_pose": scene.pose_json(start),
+               "iterations": iterations, "options": {"depth_weight": 1.0},
+               "ground_truth": {"pose": scene.pose_json(), "joints": scene.joints}}
+    files = {
+        "image": ("image.png", png(rgb), "image/png"),
+        "mask": ("mask.png", png((opacity > 127).astype(np.uint8) * 255), "image/png"),
+        "depth": ("depth.png", png(depth_mm), "image/png"),
+        "request": (None, json.dumps(request), "application/json"),
+    }
+    r = client.post("/v1/estimate", files=files)
     assert r.status_code == 200, r.text
     body = r.json()
-    assert np.asarray(body["pose"]["matrix"]).shape == (4, 4) and len(body["pose"]["orientation"]) == 4
-    assert set(body["joints"]) == set(gt_joints)
-    assert body["iterations"] <= 5 and 1 <= len(body["trace"]) <= 5
-    assert body["status"] in ("converged", "max_iterations", "no_overlap")
-    assert body["wall_seconds"] >= body["seconds"] >= 0
-    # The toy refiner scores its (unmoved) start: 1 cm in z from the truth; the service passes it on as is.
-    assert body["metrics"]["add"] == pytest.approx(0.01) and all(f"joint_error/{j}" in body["metrics"] for j in gt_joints)
+    T = np.asarray(body["pose"]["matrix"])
+    assert np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9) and np.allclose(body["pose"]["position"], T[:3, 3])
+    assert len(body["pose"]["orientation"]) == 4 and np.linalg.norm(body["pose"]["orientation"]) == pytest.approx(1)
+    assert set(body["joints"]) == set(scene.joints)
+    assert all(j.lower <= body["joints"][j.name] <= j.upper for j in service_model.joints)
+    assert 1 <= body["iterations"] <= iterations and len(body["trace"]) == body["iterations"]  # every one finite
+    assert not body["recovered_non_finite"] and all(loss is not None for loss, _ in body["trace"])
+    assert body["status"] in ("converged", "max_iterations")
+    assert body["wall_seconds"] >= body["seconds"] > 0
+    metrics = body["metrics"]
+    assert set(metrics) >= {"add"} | {f"joint_error/{j}" for j in scene.joints}
+    if toy:
+        assert metrics["add"] == pytest.approx(np.hypot(0.01, 0.01)) and body["uncertainty"] is None
+        return
+    mid = {j.name: (j.lower + j.upper) / 2 for j in service_model.joints}
+    assert metrics["add"] == pytest.approx(add_of(service_model, T, body["joints"], scene.T_cam_obj, scene.joints), rel=1e-4)
+    assert metrics["add"] < add_of(service_model, start, mid, scene.T_cam_obj, scene.joints) / 2
+    uncertainty = body["uncertainty"]
+    covariance = np.asarray(uncertainty["covariance"])
+    k = len(service_model.joints)
+    assert covariance.shape == (6 + k, 6 + k) and np.isfinite(covariance).all()
+    assert np.allclose(covariance, covariance.T) and (np.linalg.eigvalsh(covariance) > 0).all()
+    sigmas = uncertainty["position_sigma_m"] + uncertainty["rotation_sigma_rad"] + list(uncertainty["joint_sigma"].values())
+    assert set(uncertainty["joint_sigma"]) == set(scene.joints) and all(0 < s < 1 for s in sigmas)
 
 
 def test_estimate_without_ground_truth_has_no_metrics(client, observation) -> None:
@@ -333,14 +410,27 @@ def test_estimate_with_zero_iterations_scores_the_initial_pose(client, observati
     assert np.allclose(r.json()["pose"]["matrix"], pose_json(0.41)["matrix"])
 
 
-def test_estimate_accepts_jpeg_image_and_depth_as_png_or_npy(client, observation) -> None:
+def test_estimate_accepts_jpeg_image_and_depth_as_png_or_npy(service_settings, toy_engine, toy_model, observation) -> None:
+    """The refiner gets the JPEG's pixels and the depth in metres, from millimetres (PNG) or metres (.npy)."""
+    seen = []
+
+    def refine(model, image, mask, camera, T_init, **kwargs):
+        seen.append((image, kwargs["depth"]))
+        return toy_engine.refine(model, image, mask, camera, T_init, **kwargs)
+
+    engine = Engine(toy_engine.load_bundle, refine, toy_engine.options, toy_engine.input_error)
     jpeg = io.BytesIO()
-    Image.fromarray(observation["rgb"]).save(jpeg, format="JPEG")
+    Image.fromarray(observation["rgb"]).save(jpeg, format="JPEG", quality=95)
     npy = io.BytesIO()
     np.save(npy, observation["depth_mm"].astype(np.float32) / 1000)
-    for depth in (("d.png", png(observation["depth_mm"]), "image/png"), ("d.npy", npy.getvalue(), "application/octet-stream")):
-        files = estimate_parts(observation, image=("i.jpg", jpeg.getvalue(), "image/jpeg"), depth=depth)
-        assert client.post("/v1/estimate", files=files).status_code == 200
+    with make_client(service_settings, engine, toy_model) as c:
+        for depth in (("d.png", png(observation["depth_mm"]), "image/png"), ("d.npy", npy.getvalue(), "application/octet-stream")):
+            files = estimate_parts(observation, image=("i.jpg", jpeg.getvalue(), "image/jpeg"), depth=depth)
+            assert c.post("/v1/estimate", files=files).status_code == 200
+    assert len(seen) == 2
+    for image, depth in seen:
+        assert image.shape == observation["rgb"].shape and np.abs(image.astype(int) - observation["rgb"]).mean() < 3
+        assert depth.dtype == np.float32 and np.allclose(depth, observation["depth_mm"] / 1000, atol=1e-6)
 
 
 def test_estimate_missing_parts(client, observation) -> None:
@@ -396,19 +486,19 @@ def test_estimate_bad_request_part(client, observation, service_model) -> None:
         assert_error(r, status, field, word)
     nan_pose = json.dumps(estimate_request(initial_pose={"position": [0, 0, float("nan")], "orientation": [0, 0, 0, 1]}))
     r = client.post("/v1/estimate", files=estimate_parts(observation, request=(None, nan_pose, "application/json")))
-    assert r.status_code in (400, 422) and r.json()["error"]["field"].startswith("request")
+    assert_error(r, 422, "request.initial_pose.position[2]", "finite")
 
 
 def test_estimate_refiner_input_errors_are_422(client, observation) -> None:
     one_pixel = np.zeros_like(observation["mask"])
     one_pixel[5, 5] = True
     files = estimate_parts(observation, mask=("m.png", png(one_pixel.astype(np.uint8) * 255), "image/png"))
-    assert_error(client.post("/v1/estimate", files=files), 422, None, "mask")
+    assert_error(client.post("/v1/estimate", files=files), 422, "mask", "1 object pixel")
 
 
 def test_estimate_sent_as_json_is_422_naming_the_parts(client) -> None:
     r = client.post("/v1/estimate", json=estimate_request())
-    assert_error(r, 422, None, "required")
+    assert_error(r, 422, "request", "required")
 
 
 # --- the work queue -------------------------------------------------------------------------------

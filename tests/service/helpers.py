@@ -1,25 +1,18 @@
-"""Fixtures for the service and client tests (used through ``pytest_plugins`` in those modules).
+"""What the service and client tests import by name: the toy model and refiner, request builders and scenes.
 
-Two fixtures decide what the service computes with:
-  ``service_model``   the model served under the name ``toy``;
-  ``service_engine``  how estimates are computed (``narf_service.engine.Engine``).
-Until a tiny trained bundle is part of the test assets they are test doubles, defined here and
-only here: :class:`ToyModel` follows ``narf_core.bundle.NarfModel``'s API (it ray-casts its box, so
-the images are exact and cheap) and :func:`toy_refine` follows ``narf_core.estimate.refine``'s.
-The tests use only that API and read joint names and limits from the model, so pointing the two
-fixtures at ``load_bundle(...)`` and ``Engine.narf_core()`` runs them on the real library.
-
-This module also makes ``narf_service`` and ``narf_client`` importable from a plain checkout
-(``scripts/install.sh`` installs both; running ``python -m pytest`` without it should work too).
+The fixtures built from these live in ``tests/service/conftest.py``. :class:`ToyModel` follows
+``narf_core.bundle.NarfModel``'s API (it ray-casts its box, so its images are exact and cheap) and
+:func:`toy_refine` follows ``narf_core.estimate.refine``'s; options, input errors and the result
+type are the core's own. The tests read joint names and limits from the model they are given, so
+the ones marked :data:`ON_BOTH_MODELS` run unchanged on the bundled ``models/clamp.narf``.
 """
 
 from __future__ import annotations
 
-import importlib.util
-import sys
+import math
 import threading
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,30 +20,20 @@ import numpy as np
 import pytest
 import torch
 
-ROOT = Path(__file__).resolve().parent.parent
+from narf_core.estimate import EstimateInputError, EstimateResult
+from narf_core.geometry import Pinhole, invert_pose, pose_to_position_quaternion
+from narf_service.app import create_app
+from narf_service.engine import Engine
+from narf_service.registry import ModelRegistry
+from narf_service.settings import Settings
 
+ROOT = Path(__file__).resolve().parents[2]
+BUNDLED = ROOT / "models" / "clamp.narf"
 
-def import_from_checkout() -> None:
-    """Register ``service/`` as ``narf_service`` and put ``clients/python`` on the path, if not installed."""
-    if importlib.util.find_spec("narf_client") is None:
-        sys.path.insert(0, str(ROOT / "clients" / "python"))
-    if "narf_service" not in sys.modules and importlib.util.find_spec("narf_service") is None:
-        spec = importlib.util.spec_from_file_location(
-            "narf_service", ROOT / "service" / "__init__.py", submodule_search_locations=[str(ROOT / "service")]
-        )
-        assert spec is not None and spec.loader is not None
-        module = importlib.util.module_from_spec(spec)
-        sys.modules["narf_service"] = module
-        spec.loader.exec_module(module)
-
-
-import_from_checkout()
-
-from narf_core.geometry import Pinhole, invert_pose  # noqa: E402
-from narf_service.app import create_app  # noqa: E402
-from narf_service.engine import Engine  # noqa: E402
-from narf_service.registry import ModelRegistry  # noqa: E402
-from narf_service.settings import Settings  # noqa: E402
+ON_BOTH_MODELS = pytest.mark.parametrize(
+    "service_model", ["toy", pytest.param("clamp", marks=pytest.mark.slow)], indirect=True
+)
+"""Run a test on the toy model and (slow) on the bundled clamp, each with its engine (see conftest)."""
 
 
 @dataclass(frozen=True)
@@ -92,6 +75,12 @@ class ToyModel:
     def joint_dict(self, theta: torch.Tensor) -> dict[str, float]:
         return {j.name: float(v) for j, v in zip(self.joints, theta.tolist())}
 
+    def describe(self) -> dict:
+        """Like ``NarfModel.describe`` (the service's /v1/models answers are built from it)."""
+        return {"name": self.name, "links": list(self.links), "joints": [vars(j) for j in self.joints],
+                "bounds": self.aabb.tolist(), "modes": ["narf", "parts"] if self.has_parts else ["narf"],
+                "metrics": self.metadata["metrics"]}
+
     def render(
         self,
         T_cam_obj: torch.Tensor,
@@ -120,48 +109,6 @@ class ToyModel:
         return {k: images[k] for k in outputs}
 
 
-class ToyInputError(ValueError):
-    """Stands for ``narf_core.estimate.EstimateInputError``."""
-
-
-@dataclass
-class ToyOptions:
-    """Stands for ``narf_core.estimate.EstimateOptions`` (same fields and defaults where given)."""
-
-    preset: str = "paper"
-    iterations: int = 150
-    lr_pose: float = 0.01
-    lr_theta: float = 0.05
-    lr_decay: float = 0.1
-    rays_per_iteration: int = 1024
-    mode: str = "narf"
-    silhouette_weight: float = 0.0
-    depth_weight: float = 0.0
-    theta_starts: int = 1
-    coarse_to_fine: int = 1
-    box_margin: float = 0.15
-    early_stop: bool = True
-    tolerance: float = 3e-4
-    loss_tolerance: float = 0.02
-    patience: int = 15
-    seed: int = 0
-
-
-@dataclass
-class ToyResult:
-    T_cam_obj: np.ndarray
-    joints: dict[str, float]
-    loss: float | None
-    iterations: int
-    seconds: float
-    trace: list[tuple[float, float]]
-    status: str
-    recovered_non_finite: bool
-    metrics: dict[str, float] | None
-    uncertainty: None = None  # the toy refiner has no covariance
-    warnings: list[str] = field(default_factory=list)
-
-
 def toy_refine(
     model: ToyModel,
     image: np.ndarray,
@@ -171,19 +118,19 @@ def toy_refine(
     *,
     joints_init: dict[str, float] | None = None,
     depth: np.ndarray | None = None,
-    options: ToyOptions | None = None,
+    options=None,
     ground_truth: tuple[np.ndarray, dict[str, float]] | None = None,
     should_stop=None,
-) -> ToyResult:
-    """Stands for ``refine``: checks its inputs like it, then "converges" to the ground truth if given;
-    ``should_stop()`` is polled once per iteration and ends the loop with the status it returns."""
+) -> EstimateResult:
+    """Stands for ``refine``: checks its inputs like it, then stays at the start (so its ADD is the
+    start's translation error, known exactly); ``should_stop()`` is polled once per iteration and
+    ends the loop with the status it returns."""
     started = time.perf_counter()
-    options = options or ToyOptions()
     assert image.dtype == np.uint8 and image.shape == (camera.height, camera.width, 3)
     assert mask.dtype == bool and mask.shape == image.shape[:2]
     assert depth is None or (depth.dtype == np.float32 and depth.shape == mask.shape)
     if mask.sum() < 2:
-        raise ToyInputError(f"mask: {int(mask.sum())} object pixel(s); need at least 2")
+        raise EstimateInputError(f"mask: {int(mask.sum())} object pixel(s); need at least 2")
     joints = model.joint_dict(model.joint_vector(joints_init))
     T = np.asarray(T_init, dtype=np.float64)
     metrics = None
@@ -197,16 +144,33 @@ def toy_refine(
             status = reason
             break
         trace.append((1.0 / (i + 1), 0.001 * i))
-    loss = trace[-1][0] if trace else None
-    seconds = time.perf_counter() - started  # measured, so that it never exceeds the server's wall time
-    return ToyResult(T, joints, loss, len(trace), seconds, trace, status, False, metrics)
+    position, quaternion = pose_to_position_quaternion(torch.from_numpy(T))
+    return EstimateResult(
+        T_cam_obj=T,
+        position=position.numpy(),
+        quaternion=quaternion.numpy(),
+        joints=joints,
+        loss=trace[-1][0] if trace else None,
+        iterations=len(trace),
+        seconds=time.perf_counter() - started,  # measured, so that it never exceeds the server's wall time
+        trace=trace,
+        status=status,
+        recovered_non_finite=False,
+        metrics=metrics,
+    )
 
 
 def toy_load_bundle(path: Path, device: str = "cpu") -> ToyModel:
     """Stands for ``load_bundle``: a file holding ``toy`` is a model, anything else is refused."""
     if path.read_bytes() != b"toy":
-        raise ToyInputError(f"{path}: not a NARF model bundle")
+        raise ValueError(f"{path}: not a NARF model bundle")
     return ToyModel(path.stem)
+
+
+def toy_engine(load_bundle=toy_load_bundle, refine=toy_refine) -> Engine:
+    """The real engine's options and input error, with the toy's loader and refiner (or the given ones)."""
+    real = Engine.narf_core()
+    return Engine(load_bundle, refine, real.options, real.input_error)
 
 
 @dataclass
@@ -227,33 +191,12 @@ class GatedEngine:
         return Engine(self.inner.load_bundle, refine, self.inner.options, self.inner.input_error)
 
 
-@pytest.fixture(scope="session")
-def service_model() -> ToyModel:
-    return ToyModel("toy")
-
-
-@pytest.fixture(scope="session")
-def service_engine() -> Engine:
-    return Engine(load_bundle=toy_load_bundle, refine=toy_refine, options=ToyOptions, input_error=ToyInputError)
-
-
-@pytest.fixture
-def service_settings(tmp_path: Path) -> Settings:
-    return Settings(models_dir=tmp_path, workers=2, queue_size=4, torch_threads=1, max_body_bytes=2**20)
-
-
 def make_client(settings: Settings, engine: Engine, model, **registry_models):
+    """A TestClient (lifespan not yet run) on the app serving ``model`` under its name, and ``registry_models``."""
     from fastapi.testclient import TestClient
 
-    registry = ModelRegistry(models={"toy": model, **registry_models})
+    registry = ModelRegistry(models={model.name: model, **registry_models})
     return TestClient(create_app(settings, engine=engine, registry=registry))
-
-
-@pytest.fixture
-def client(service_settings: Settings, service_engine: Engine, service_model) -> Iterator:
-    """A TestClient on the app serving ``toy``, lifespan run."""
-    with make_client(service_settings, service_engine, service_model) as c:
-        yield c
 
 
 def camera_json(width: int = 32, height: int = 24, f: float = 30.0) -> dict:
@@ -271,3 +214,52 @@ def wait_until(predicate, timeout: float = 5.0) -> None:
         if time.monotonic() > deadline:
             raise TimeoutError("condition not met in time")
         time.sleep(0.005)
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A view of a model with its truth: ``T_cam_obj`` and ``joints``, through ``K`` at ``width x height``."""
+
+    model: str
+    K: np.ndarray  # [3, 3]
+    width: int
+    height: int
+    T_cam_obj: np.ndarray  # [4, 4]
+    joints: dict[str, float]
+    aabb: np.ndarray  # [2, 3] the model's box, object frame
+
+    def camera_json(self) -> dict:
+        return {"K": self.K.tolist(), "width": self.width, "height": self.height}
+
+    def pose_json(self, T: np.ndarray | None = None) -> dict:
+        return {"matrix": (self.T_cam_obj if T is None else T).tolist()}
+
+    def pinhole(self) -> Pinhole:
+        return Pinhole(torch.tensor(self.K, dtype=torch.float32), self.width, self.height)
+
+    def moved(self, metres: tuple[float, float, float]) -> np.ndarray:
+        """The true pose moved by ``metres`` along the camera's axes: an estimate's start."""
+        T = self.T_cam_obj.copy()
+        T[:3, 3] += metres
+        return T
+
+    def depth_range(self) -> tuple[float, float]:
+        """The camera z range (metres) of the model's box at the true pose: where its depth must lie."""
+        corners = np.array([[self.aabb[i, 0], self.aabb[j, 1], self.aabb[k, 2]] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        z = corners @ self.T_cam_obj[2, :3] + self.T_cam_obj[2, 3]
+        return float(z.min()), float(z.max())
+
+
+def scene_for(model, width: int = 128, height: int = 96) -> Scene:
+    """``model`` seen from above at about 30 degrees, its box's diagonal over 80% of the image
+    width, centred; the joints at 40% of their ranges (so that mid-range starts off the truth)."""
+    f = float(width)
+    K = np.array([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]])
+    aabb = model.aabb.double().cpu().numpy()
+    centre, diameter = aabb.mean(0), float(np.linalg.norm(aabb[1] - aabb[0]))
+    c, s = math.cos(-0.5), math.sin(-0.5)
+    T = np.eye(4)
+    T[:3, :3] = [[1, 0, 0], [0, c, -s], [0, s, c]]
+    T[:3, 3] = np.array([0, 0, f * diameter / (0.8 * width)]) - T[:3, :3] @ centre
+    joints = {j.name: j.lower + 0.4 * (j.upper - j.lower) for j in model.joints}
+    return Scene(model.name, K, width, height, T, joints, aabb)
