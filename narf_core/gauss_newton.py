@@ -18,8 +18,8 @@ Jacobian. The residuals of a ray depend on the parameters ``p [6 + k]`` only thr
 object-frame origin and direction and its configuration ``θ``. The renderer is asked for one
 differentiable composite with those as leaves (``θ`` per ray), and reverse mode gives
 ``dP_i / d(o_i, d_i, θ_i)`` for every ray at once, one backward pass per predicted channel (5 at
-most, batched with ``is_grads_batched``); the chain to ``p`` is a ``[6 + k]``-column product with
-the small Jacobian of the pose, computed by forward mode. So the cost is one composite and five
+most, the graph kept between them); the chain to ``p`` is a ``[6 + k]``-column product with
+the small Jacobian of the pose (12 vector-Jacobian products of a 4x4 product). So the cost is one composite and five
 vector-Jacobian products whatever ``k`` is, where finite differences need ``6 + k`` extra renders
 (and are no more exact), and forward mode through the field is not available (PyTorch has no
 forward-mode rule for ``grid_sample``, the field's K-planes lookup); ``narf bench estimate``
@@ -35,18 +35,21 @@ last iterations are a deterministic LM that can converge.
 
 Covariance. At the estimate, the parameters are re-centred there (position of the box centre in
 metres, rotation in radians about it, both on camera axes, and ``θ`` in joint units) and
-``Σ = (JᵀWJ / σ² + Σ₀⁻¹)⁻¹``, ``σ²`` the weighted residual variance, on the box's rays.
+``Σ = (JᵀWJ / σ² + Σ₀⁻¹)⁻¹``, ``σ²`` the weighted residual variance, over the box's rays.
 ``Σ₀`` is a weak prior (one object radius, one radian, the joint's half range), so a direction the
 view does not constrain (a hidden jaw) gets a large, finite σ instead of a singular matrix.
-Neighbouring pixels' residuals are correlated (the same model error spans many pixels), so ``JᵀWJ``
-is summed over ``uncertainty_patch``-pixel squares (cluster-robust "sandwich" form) rather than
-over independent rays.
+Neighbouring pixels' residuals are correlated, so the scores ``JᵀWr`` are summed over
+``uncertainty_patch``-pixel squares before they are squared (cluster-robust "sandwich" form)
+rather than over independent rays. Every quantity is a sum over the box's rays; where the box has
+more than ``uncertainty_rays``, whole squares are drawn (weighted to the image's edges) and each
+sum is estimated without bias by weighting the drawn terms (:func:`cluster_sample`). This is the
+statistical part only: the model's own error, which these residuals cannot see, is added by
+:func:`narf_core.estimate._uncertainty`.
 """
 
 from __future__ import annotations
 
 import math
-import threading
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -54,6 +57,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from narf_core.band import ray_band
 from narf_core.geometry import Rays, invert_pose, se3_exp
 
 if TYPE_CHECKING:
@@ -68,7 +72,6 @@ _FD_THETA = 1e-3  # forward-difference step for θ in parts mode, as a fraction 
 _MAX_FAILURES = 8
 _STEP_FACTORS = (1.0, 2.0, 4.0)  # multiples of the LM step tried, in order, while the cost keeps falling
 _GROUP = 4  # jittered rays averaged per pixel at a coarse pyramid level
-_FORWARD_AD = threading.Lock()  # forward-mode AD levels are process-wide: one jacfwd at a time (service workers)
 
 
 # --------------------------------------------------------------------------------------------
@@ -115,15 +118,15 @@ class Chain:
 
     def object_from_camera_jacobian(self, p: Tensor) -> tuple[Tensor, Tensor]:
         """``T_obj_cam`` of every row ``[S, 4, 4]`` and the derivative of its top 3x4 block, ``[S, 3, 4, 6]``
-        in the pose columns (forward mode: 6 tangents through a 4x4 product)."""
-
-        def top(pose_row: Tensor) -> Tensor:
-            full = torch.cat([pose_row, p.new_zeros(p.shape[1] - 6)])
-            return invert_pose(self.poses(full[None]))[0, :3, :]
-
-        with _FORWARD_AD:
-            jac = torch.vmap(torch.func.jacfwd(top))(p[:, :6])
-        return invert_pose(self.poses(p)), jac
+        in the pose columns: 12 vector-Jacobian products of a tiny graph (rows are independent, so one
+        product serves every row). Not ``torch.func.jacfwd``: its first call imports torch._dynamo, about
+        1.5 s and 66 MiB of resident memory in every process that estimates."""
+        with torch.enable_grad():
+            pose = p[:, :6].detach().requires_grad_(True)
+            T_obj_cam = invert_pose(self.poses(torch.cat([pose, p[:, 6:].detach()], dim=1)))
+            top = T_obj_cam[:, :3, :].reshape(-1, 12)
+            rows = [torch.autograd.grad(top[:, i].sum(), pose, retain_graph=i < 11)[0] for i in range(12)]
+        return T_obj_cam.detach(), torch.stack(rows, 1).reshape(-1, 3, 4, 6)
 
 
 # --------------------------------------------------------------------------------------------
@@ -142,12 +145,14 @@ class Residuals:
 
 @dataclass
 class Problem:
-    """Everything fixed about the residuals of one run."""
+    """Everything fixed about the residuals of one run; ``camera``: where ``options.band_m`` marches only
+    the band around the surface (narf_core/band.py)."""
 
     model: NarfModel
     options: EstimateOptions
     radius: float
     uses_depth: bool
+    camera: Pinhole | None = None
 
     def predictions(
         self, rays_cam: Rays, T_obj_cam: Tensor, theta: Tensor, grad: bool
@@ -162,39 +167,46 @@ class Problem:
         th = theta.to(dtype)[:, None, :].expand(S, n, k).reshape(S * n, k)
         outputs = ("rgb", "opacity", "depth")
         parts = self.options.mode == "parts" and k > 0
+        band = None
+        if self.options.band_m > 0 and self.camera is not None:
+            band = ray_band(self.model, self.camera, rays_cam, invert_pose(T_obj_cam), theta, self.options.band_m)
         with torch.enable_grad() if grad else torch.no_grad():
             if grad:
                 o, d = o.detach().requires_grad_(True), d.detach().requires_grad_(True)
                 if not parts and k > 0:
                     th = th.detach().requires_grad_(True)
-            P = self._render(Rays(o, d, rays_cam.z_per_t.repeat(S)), th, S, n, outputs)  # [S*n, 5]
+            P = self._render(Rays(o, d, rays_cam.z_per_t.repeat(S)), th, S, n, outputs, band)  # [S*n, 5]
             if not grad:
                 return P.reshape(S, n, _CHANNELS).double(), None
             leaves = (o, d) if (parts or k == 0) else (o, d, th)
-            eye = torch.eye(_CHANNELS, dtype=P.dtype)[:, None, :].expand(_CHANNELS, S * n, _CHANNELS)
-            grads = torch.autograd.grad(P, leaves, grad_outputs=eye, is_grads_batched=True, allow_unused=True)
+            grads = _channel_gradients(P, leaves)
         grads = [torch.zeros(_CHANNELS, S * n, x.shape[1]) if g is None else g for g, x in zip(grads, leaves)]
         dP = [g.permute(1, 0, 2).reshape(S, n, _CHANNELS, -1).double() for g in grads]  # [S, n, 5, ·]
         if k == 0:
             dP.append(P.new_zeros(S, n, _CHANNELS, 0).double())
         elif parts:
-            dP.append(self._theta_differences(rays_cam, o.detach(), d.detach(), theta, P.detach(), S, n))
+            dP.append(self._theta_differences(rays_cam, o.detach(), d.detach(), theta, P.detach(), S, n, band))
         return P.detach().reshape(S, n, _CHANNELS).double(), tuple(dP)
 
-    def _render(self, rays: Rays, theta: Tensor, S: int, n: int, outputs: tuple[str, ...]) -> Tensor:
+    def _render(
+        self, rays: Rays, theta: Tensor, S: int, n: int, outputs: tuple[str, ...], band: tuple[Tensor, Tensor] | None
+    ) -> Tensor:
         kw = dict(mode=self.options.mode, outputs=outputs, background=0.0)
         render = self.model.render_rays
         if self.options.mode == "parts" and theta.shape[1] > 0:
-            outs = [render(rays[s * n : (s + 1) * n], theta[s * n], **kw) for s in range(S)]
+            rows = [slice(s * n, (s + 1) * n) for s in range(S)]
+            outs = [render(rays[r], theta[s * n], t_range=None if band is None else (band[0][r], band[1][r]), **kw)
+                    for s, r in enumerate(rows)]
         elif theta.shape[1] == 0:
-            outs = [render(rays, theta[0], **kw)]
+            outs = [render(rays, theta[0], t_range=band, **kw)]
         else:
-            outs = [render(rays, theta, **kw)]
+            outs = [render(rays, theta, t_range=band, **kw)]
         return torch.cat([torch.cat([o.rgb, o.opacity[:, None], o.depth[:, None]], -1) for o in outs])
 
     @torch.no_grad()
     def _theta_differences(
-        self, rays_cam: Rays, o: Tensor, d: Tensor, theta: Tensor, P: Tensor, S: int, n: int
+        self, rays_cam: Rays, o: Tensor, d: Tensor, theta: Tensor, P: Tensor, S: int, n: int,
+        band: tuple[Tensor, Tensor] | None = None,
     ) -> Tensor:
         """``dP/dθ [S, n, 5, k]`` by forward differences (``parts`` mode)."""
         k = theta.shape[1]
@@ -206,7 +218,7 @@ class Problem:
             sign = torch.where(shifted[:, j] + step[j] > upper, -1.0, 1.0).to(theta)
             shifted[:, j] = shifted[:, j] + sign * step[j]
             th = shifted.to(o.dtype)[:, None, :].expand(S, n, k).reshape(-1, k)
-            Q = self._render(Rays(o, d, rays_cam.z_per_t.repeat(S)), th, S, n, ("rgb", "opacity", "depth"))
+            Q = self._render(Rays(o, d, rays_cam.z_per_t.repeat(S)), th, S, n, ("rgb", "opacity", "depth"), band)
             diff = (Q - P).reshape(S, n, _CHANNELS).double() / (sign.double() * step[j])[:, None, None]
             cols.append(diff)
         return torch.stack(cols, -1)
@@ -286,24 +298,32 @@ class Problem:
         return M, y, used & keep[..., None]
 
     def _compensation(self, P: Tensor, rgb_t: Tensor, mask_t: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
-        """Per-start gain and bias ``[S, 3]`` fitting ``a rgb + b opacity`` to the observed colour on
-        the mask's rays (closed-form least squares, bounded); ones and zeros when off."""
-        S = P.shape[0]
-        gain, bias = P.new_ones(S, 3), P.new_zeros(S, 3)
+        """Per-start gain and bias ``[S, 3]`` fitting ``gain * rgb + bias * opacity`` of ``P [S, n, 5]`` to
+        the observed colour (:func:`narf_core.estimate._gain_bias`); ones and zeros when off."""
         if not self.options.photometric_compensation:
-            return gain, bias
-        w = ((mask_t > 0.5)[None] & (P[..., 3] > 0.5) & keep).double()  # [S, n]
-        count = w.sum(-1).clamp_min(1)  # [S]
-        if float(count.min()) < 16:
-            return gain, bias
-        x, a = P[..., :3] / P[..., 3:4].clamp_min(1e-6), rgb_t[None] / mask_t[None, :, None].clamp_min(1e-6)
-        mx = (w[..., None] * x).sum(1) / count[:, None]
-        ma = (w[..., None] * a).sum(1) / count[:, None]
-        cov = (w[..., None] * (x - mx[:, None]) * (a - ma[:, None])).sum(1)
-        var = (w[..., None] * (x - mx[:, None]) ** 2).sum(1)
-        gain = torch.where(var > 1e-8, cov / var.clamp_min(1e-8), torch.ones_like(var)).clamp(0.5, 2.0)
-        bias = (ma - gain * mx).clamp(-0.3, 0.3)
-        return gain, bias
+            S = P.shape[0]
+            return P.new_ones(S, 3), P.new_zeros(S, 3)
+        from narf_core.estimate import _gain_bias
+
+        return _gain_bias(P[..., :3], P[..., 3], rgb_t, mask_t, keep)
+
+
+def _channel_gradients(P: Tensor, leaves: tuple[Tensor, ...]) -> list[Tensor | None]:
+    """``dP[:, c] / d leaf`` for every channel ``c`` of ``P [m, 5]``, ``[5, m, ·]`` per leaf (``None`` for
+    a leaf ``P`` does not reach): one backward pass per channel on the kept graph. Every leaf row
+    belongs to one ray, so the gradient of the channel's sum is the per-ray derivative. Neither
+    ``is_grads_batched`` nor a tensor ``grad_outputs``: their first use imports sympy (about 0.5 s
+    and 33 MiB of resident memory in every process that estimates)."""
+    rows = []
+    for c in range(_CHANNELS):
+        rows.append(torch.autograd.grad(P[:, c].sum(), leaves, retain_graph=c < _CHANNELS - 1, allow_unused=True))
+    out = []
+    for i, leaf in enumerate(leaves):
+        if all(row[i] is None for row in rows):
+            out.append(None)
+        else:
+            out.append(torch.stack([torch.zeros_like(leaf) if row[i] is None else row[i] for row in rows]))
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -490,6 +510,124 @@ class GaussNewtonRun:
 # Covariance at the estimate
 
 
+@dataclass
+class Information:
+    """What the residuals of every ray of the box say about the parameters ``[d]`` at the estimate.
+
+    Each field is a sum over clusters (``patch``-pixel squares); when only some clusters were drawn
+    (:func:`cluster_sample`), the drawn clusters' terms are weighted by the inverse of their expected
+    draw count (Horvitz-Thompson), which keeps every sum unbiased:
+
+    - ``H = Σ Jᵀ W J [d, d]``, the Gauss-Newton information;
+    - ``B = Σ_c g_c g_cᵀ [d, d]``, the spread of the cluster scores ``g_c = Σ_{i ∈ c} Jᵢᵀ Wᵢ rᵢ``
+      (the sandwich's "meat": residuals correlated inside a cluster add up before they are squared);
+    - ``rss = Σ W r²`` and ``count``, the residuals that carry information;
+    - ``colour_ss = Σ r²`` and ``colour_count`` over the colour residuals alone, unweighted: how well
+      the render explains the image, comparable between option sets (every one has colour residuals).
+    """
+
+    H: Tensor
+    B: Tensor
+    rss: float
+    count: float
+    colour_ss: float
+    colour_count: float
+
+    def variance(self) -> float:
+        """The weighted residual variance ``σ² = rss / (count - d)``."""
+        v = self.rss / max(self.count - self.H.shape[0], 1.0)
+        return max(v, 1e-12) if math.isfinite(v) else 1.0
+
+    def colour_variance(self) -> float:
+        """The mean squared colour residual (colour in [0, 1])."""
+        return self.colour_ss / max(self.colour_count, 1.0)
+
+
+@dataclass
+class Covariance:
+    """The statistical covariance at an estimate: ``sigma [d, d]``, the weighted residual variance
+    ``variance`` with ``dof`` degrees of freedom, and the mean squared colour residual ``colour_variance``."""
+
+    sigma: Tensor
+    variance: float
+    dof: int
+    colour_variance: float
+
+
+def cluster_sample(
+    pixels: Tensor, importance: Tensor | None, patch: int, max_rays: int, rng: torch.Generator
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Whole ``patch x patch`` squares of the box's ``pixels [N, 2]``, about ``max_rays`` pixels in all
+    (every pixel when they fit): their ``index [n]`` into ``pixels``, each one's cluster ``[n]``
+    (``0 .. m-1``) and the clusters' weights ``[m]`` (1 / expected draws).
+
+    Clusters are drawn with replacement in proportion to half their share of ``importance [N]`` (the
+    observation's edges and texture, where a pose error changes the residuals most) and half their
+    share of pixels: a uniform draw misses the few edge rays that hold most of the information (its
+    σ is off by 30 % in median at a third of the rays on the clamp), the uniform half keeps the
+    weights bounded where the importance is wrong."""
+    key = (pixels[:, 1] // patch) * 1_000_003 + pixels[:, 0] // patch
+    _, cluster = torch.unique(key, return_inverse=True)
+    clusters = int(cluster.max()) + 1
+    if len(pixels) <= max_rays:
+        return torch.arange(len(pixels)), cluster, torch.ones(clusters, dtype=torch.float64)
+    share = torch.zeros(clusters, dtype=torch.float64).index_add_(0, cluster, torch.ones(len(pixels), dtype=torch.float64))
+    q = share / len(pixels)
+    if importance is not None:
+        imp = importance.double().cpu()
+        q = (q + torch.zeros_like(q).index_add_(0, cluster, imp / imp.sum())) / 2
+    draws = max(1, round(clusters * max_rays / len(pixels)))
+    counts = torch.bincount(torch.multinomial(q, draws, replacement=True, generator=rng), minlength=clusters)
+    chosen = counts > 0
+    index = torch.nonzero(chosen[cluster])[:, 0]
+    _, local = torch.unique(cluster[index], return_inverse=True)
+    return index, local, (counts[chosen] / (draws * q[chosen])).double()
+
+
+def information(
+    problem: Problem, obs: _Observation, camera: Pinhole, chain: Chain, p: Tensor, index: Tensor, cluster: Tensor,
+    weight: Tensor,
+) -> Information | None:
+    """:class:`Information` at ``p [1, d]`` from the box pixels ``index [n]`` in clusters ``cluster [n]``
+    of weights ``weight [m]``; ``None`` when the render is not finite."""
+    res = problem.residuals(chain, p, camera.rays(obs.pixels[index].to(torch.float32)), obs.levels[-1], index, True)
+    J, r = res.J[0], res.r[0]  # [n, 5, d], [n, 5]
+    if not (bool(torch.isfinite(J).all()) and bool(torch.isfinite(r).all())):
+        return None
+    # Residuals that are exactly zero with a zero Jacobian row (empty background on both sides) carry
+    # no information and would only dilute σ².
+    informative = res.used[0] & ((J.abs().sum(-1) > 0) | (r != 0))
+    opts = problem.options
+    w = robust_weights(r, opts.robust_loss, opts.robust_scale) * informative  # [n, 5]
+    ray_weight = weight[cluster][:, None]  # [n, 1]
+    H = torch.einsum("nci,nc,ncj->ij", J, w * ray_weight, J)
+    score = torch.einsum("nci,nc->ni", J, w * r)  # [n, d]
+    G = score.new_zeros(len(weight), score.shape[1]).index_add(0, cluster, score)  # [m, d] cluster scores
+    B = (G * weight[:, None]).T @ G
+    colour = informative[:, :3] * ray_weight
+    return Information(H, B, float((ray_weight * w * r**2).sum()), float((ray_weight * informative).sum()),
+                       float((colour * r[:, :3] ** 2).sum()), float(colour.sum()))
+
+
+def prior_precision(param: _Parameterisation) -> Tensor:
+    """``Σ₀⁻¹ [6 + k]`` (a diagonal): one object radius, one radian, the joint's half range."""
+    return torch.cat([
+        torch.full((3,), param.radius ** -2, dtype=torch.float64),
+        torch.ones(3, dtype=torch.float64),
+        param.half.double().cpu().clamp_min(1e-6) ** -2,
+    ])
+
+
+def sandwich(info: Information, prior: Tensor, variance: float) -> Tensor:
+    """The cluster-robust covariance ``A⁻¹ (B / σ⁴) A⁻¹`` with ``A = H / σ² + Σ₀⁻¹`` ``[d, d]``, its
+    diagonal never below ``A⁻¹``'s (the independent-ray covariance; the prior keeps directions the
+    view does not constrain bounded)."""
+    inv = _spd_inverse(_symmetric(info.H / variance + torch.diag(prior)))
+    robust = inv @ (info.B / variance**2) @ inv
+    sigma = torch.maximum(robust.diagonal(), inv.diagonal()).sqrt()
+    return _correlation(robust) * sigma[:, None] * sigma[None, :]
+
+
 def covariance(
     problem: Problem,
     obs: _Observation,
@@ -501,60 +639,31 @@ def covariance(
     max_rays: int,
     patch: int,
     rng: torch.Generator,
-) -> tuple[Tensor, float, int]:
-    """``(Σ [6+k, 6+k], residual variance, dof)`` at the estimate ``T [4,4]``, ``θ [k]`` in the local
-    parameterisation of :class:`~narf_core.estimate.Uncertainty` (see the module docstring)."""
+) -> Covariance:
+    """``Σ [6+k, 6+k]`` and the residuals' statistics at the estimate ``T [4,4]``, ``θ [k]`` in the local
+    parameterisation of :class:`~narf_core.estimate.Uncertainty` (see the module docstring), from
+    about ``max_rays`` rays of the box in whole ``patch``-pixel clusters, scaled to the whole box.
+    ``patch = 1``: independent rays, ``Σ = (H / σ² + Σ₀⁻¹)⁻¹``; else the cluster sandwich."""
     chain = Chain.local(T, param, centre_obj)
-    k = theta.shape[0]
+    d = 6 + theta.shape[0]
     p = torch.cat([torch.zeros(6, dtype=torch.float64), theta.double()])[None]
-    n_pixels = obs.pixels.shape[0]
-    index = torch.arange(n_pixels) if n_pixels <= max_rays else torch.randperm(n_pixels, generator=rng)[:max_rays].sort().values
-    target = obs.levels[-1]
-    res = problem.residuals(chain, p, camera.rays(obs.pixels[index].to(torch.float32)), target, index, jacobian=True)
-    d = 6 + k
-    opts = problem.options
-    w = (robust_weights(res.r, opts.robust_loss, opts.robust_scale) * res.used)[0]  # [n, 5]
-    J, r = res.J[0], res.r[0]  # [n, 5, d], [n, 5]
-    # Residuals that are exactly zero with a zero Jacobian row (empty background on both sides) carry
-    # no information and would only dilute σ².
-    informative = res.used[0] & ((J.abs().sum(-1) > 0) | (r != 0))
-    w = w * informative
-    dof = max(int(informative.sum()) - d, 1)
-    variance = float((w * r**2).sum()) / dof
-    variance = max(variance, 1e-12) if math.isfinite(variance) else 1.0
-    H = torch.einsum("nci,nc,ncj->ij", J, w, J)
-    if not (bool(torch.isfinite(H).all()) and bool(torch.isfinite(r).all())):  # a non-finite render: no Σ
-        return torch.full((d, d), math.nan, dtype=torch.float64), math.nan, dof
-    # Cluster-robust ("sandwich") information: residuals are correlated within a patch of pixels.
+    index, cluster, weight = cluster_sample(obs.pixels.cpu(), obs.importance, patch, max_rays, rng)
+    info = information(problem, obs, camera, chain, p, index, cluster, weight)
+    if info is None:  # a non-finite render: no Σ
+        return Covariance(torch.full((d, d), math.nan, dtype=torch.float64), math.nan, 1, math.nan)
+    variance, prior = info.variance(), prior_precision(param)
     if patch > 1:
-        pix = obs.pixels[index].cpu()
-        cluster = (pix[:, 1] // patch) * 1_000_003 + pix[:, 0] // patch
-        _, cluster = torch.unique(cluster, return_inverse=True)
-        score = torch.einsum("nci,nc->ni", J, w * r)  # [n, d]
-        G = score.new_zeros(int(cluster.max()) + 1, d).index_add(0, cluster, score)
-        B = G.T @ G
+        Sigma = sandwich(info, prior, variance)
     else:
-        B = variance * H
-    prior = torch.cat([
-        torch.full((3,), param.radius ** -2),
-        torch.ones(3),
-        (param.half.clamp_min(1e-6)) ** -2,
-    ]).double()
-    H_reg = H / variance + torch.diag(prior)
-    H_reg = (H_reg + H_reg.T) / 2
-    inv = _spd_inverse(H_reg)
-    if patch > 1:
-        sigma = inv @ (B / variance**2) @ inv  # sandwich, with the prior's inverse as the bread
-        # Never tighter than the independent-ray covariance (Σ₀ keeps unobserved directions bounded).
-        sigma = torch.maximum(sigma.diagonal(), inv.diagonal()).sqrt()
-        corr = _correlation(inv @ (B / variance**2) @ inv)
-        Sigma = corr * sigma[:, None] * sigma[None, :]
-    else:
-        Sigma = inv
-    Sigma = (Sigma + Sigma.T) / 2
+        Sigma = _spd_inverse(_symmetric(info.H / variance + torch.diag(prior)))
+    Sigma = _symmetric(Sigma)
     if not bool(torch.isfinite(Sigma).all()):
         Sigma = torch.diag(1 / prior)
-    return Sigma, variance, dof
+    return Covariance(Sigma, variance, max(round(info.count) - d, 1), info.colour_variance())
+
+
+def _symmetric(A: Tensor) -> Tensor:
+    return (A + A.T) / 2
 
 
 def _spd_inverse(A: Tensor) -> Tensor:

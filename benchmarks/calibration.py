@@ -1,0 +1,168 @@
+"""Fit the model-error constants of an estimate's uncertainty (:data:`narf_core.estimate.MODEL_ERROR`)
+on scenes the benchmarks do not use, and print the NEES coverage they give there.
+
+    python -m narf_benchmarks.calibration --work runs/calibration [--write-bundle models/clamp.narf]
+
+Data: ``narf bench estimate``'s protocol (10 deg / 2 cm perturbation, θ at mid-range) on a 160x120
+dataset of seed 1 (its ``test`` and ``novel`` splits, every preset), and ``narf bench track``'s
+tracker on a 60-frame sequence of seed 1; the benchmarks use seed 0. Per scene or frame it keeps
+the true local error ``e`` (:func:`~narf_core.estimate.local_error`), the statistical covariance at
+the estimate (no model error), the mean squared colour residual ``v`` and the pixel footprint at
+the object. The model error's σ is ``pixels · footprint · v / reference_variance`` (``exponent``
+1), ``reference_variance`` the median ``v`` of the ``shape`` class, and ``pixels`` per class of
+:func:`~narf_core.estimate._error_class` the smallest whose 95 % regions hold 95 % of the class's
+errors. ``--write-bundle`` stores the result in a bundle's ``metadata["uncertainty"]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from narf_core import estimate as E
+from narf_core.bundle import NarfModel, load_bundle, save_bundle
+from narf_core.data.dataset import Dataset
+from narf_core.geometry import Pinhole
+
+COVERAGE = 0.95
+PIXELS_GRID = np.geomspace(0.05, 5.0, 200)
+
+
+def statistics(
+    model: NarfModel, image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, camera: Pinhole,
+    T: np.ndarray, joints: dict, options: E.EstimateOptions,
+) -> dict:
+    """What the uncertainty is made of at the estimate ``(T, joints)``: the statistical ``sigma``, the
+    mean squared colour residual, the pixel footprint (m), the object's radius and the error class."""
+    from narf_core.gauss_newton import Problem, covariance
+
+    uses_depth = depth is not None and options.depth_weight > 0
+    obs = E._observation(image, mask, depth if uses_depth else None, E._mask_box(mask, options.box_margin), 1,
+                         model.aabb.device)
+    T = torch.as_tensor(np.asarray(T, np.float64))
+    param = E._Parameterisation.around(T, model)
+    aabb = model.aabb.detach().double().cpu()
+    centre = (aabb[0] + aabb[1]) / 2
+    stat = covariance(Problem(model, options, param.radius, uses_depth), obs, camera, param, T,
+                      model.kinematics.joint_vector(joints), centre, options.uncertainty_rays,
+                      options.uncertainty_patch, torch.Generator().manual_seed(options.seed + 1))
+    return {"sigma": stat.sigma.numpy(), "colour_variance": stat.colour_variance,
+            "pixel_m": float(T[2, :3] @ centre + T[2, 3]) / float(camera.K[0, 0]), "radius": param.radius,
+            "class": E._error_class(options, uses_depth)}
+
+
+def scene_rows(model: NarfModel, dataset: Dataset, scenes: int) -> list[dict]:
+    """Every preset on ``scenes`` frames of each of the dataset's ``test`` and ``novel`` splits."""
+    from narf_benchmarks.estimate import _preset_options, perturb_pose, pick_frames
+
+    aabb = model.aabb.double()
+    centre = ((aabb[0] + aabb[1]) / 2).numpy()
+    rows = []
+    for split in ("test", "novel"):
+        for frame in pick_frames(dataset, split, scenes, 0):
+            images = dataset.load(frame)
+            mask = images.labels > 0
+            for preset in E.PRESETS:
+                options = _preset_options(preset, 150, uncertainty=False)
+                T_init = perturb_pose(frame.T_cam_obj, centre, 10.0, 0.02, np.random.default_rng([0, frame.id]))
+                result = E.refine(model, images.rgb, mask, dataset.camera, T_init, depth=images.depth, options=options)
+                rows.append({"preset": preset, "split": split, "frame": frame.id,
+                             "e": E.local_error(result.T_cam_obj, result.joints, frame.T_cam_obj, frame.joints, model),
+                             **statistics(model, images.rgb, mask, images.depth, dataset.camera, result.T_cam_obj,
+                                          result.joints, options)})
+    return rows
+
+
+def track_rows(model: NarfModel, dataset: Dataset) -> list[dict]:
+    """The default tracker (RGB-D) over a sequence; one row per frame it did not lose."""
+    from narf_core.track import TrackOptions, track
+    from narf_core.track_io import load_frames, sequence_frames
+
+    options = TrackOptions(uncertainty_rays=0)
+    frames = sequence_frames(dataset)
+    rows = []
+    results = track(model, load_frames(dataset, frames), dataset.camera, frames[0].T_cam_obj, frames[0].joints, options)
+    for i, (frame, result) in enumerate(zip(frames, results)):
+        if result.status == "lost":
+            continue
+        images = dataset.load(frame)
+        step = options.reinit_options() if i == 0 or result.status == "reinitialised" else options.step_options(True)
+        step = replace(step, uncertainty=True, uncertainty_rays=TrackOptions().uncertainty_rays)
+        rows.append({"preset": "track", "split": "sequence", "frame": frame.id,
+                     "e": E.local_error(result.T_cam_obj, result.joints, frame.T_cam_obj, frame.joints, model),
+                     **statistics(model, images.rgb, images.labels > 0, images.depth, dataset.camera,
+                                  result.T_cam_obj, result.joints, step)})
+    return rows
+
+
+def model_sigma(row: dict, calibration: dict) -> np.ndarray:
+    """The model error's σ ``[6 + k]`` of one row under ``calibration`` (joints taken as prismatic)."""
+    fit = (row["colour_variance"] / calibration["reference_variance"]) ** calibration["exponent"]
+    position = calibration["pixels"][row["class"]] * row["pixel_m"] * fit
+    k = len(row["e"]) - 6
+    return np.array([position] * 3 + [position / row["radius"]] * 3 + [position] * k)
+
+
+def inside(row: dict, calibration: dict) -> bool:
+    """Whether the row's true error lies inside the 95 % region of its calibrated covariance."""
+    S = row["sigma"] + np.diag(model_sigma(row, calibration) ** 2)
+    e = np.asarray(row["e"])
+    return float(e @ np.linalg.pinv(S, hermitian=True) @ e) <= E.chi2_quantile(COVERAGE, len(e))
+
+
+def fit(rows: list[dict]) -> dict:
+    """``MODEL_ERROR``'s constants from ``rows`` (see the module docstring)."""
+    reference = float(np.median([r["colour_variance"] for r in rows if r["class"] == "shape"]))
+    calibration = {"reference_variance": reference, "exponent": 1.0, "pixels": dict(E.MODEL_ERROR["pixels"])}
+    for kind in calibration["pixels"]:
+        group = [r for r in rows if r["class"] == kind]
+        for pixels in PIXELS_GRID if group else ():
+            trial = {**calibration, "pixels": {**calibration["pixels"], kind: float(pixels)}}
+            if np.mean([inside(r, trial) for r in group]) >= COVERAGE:
+                calibration = trial
+                break
+    return calibration
+
+
+def coverage(rows: list[dict], calibration: dict) -> dict[str, float]:
+    """The share of rows inside their 95 % region, per preset (and the tracker)."""
+    return {p: float(np.mean([inside(r, calibration) for r in rows if r["preset"] == p]))
+            for p in sorted({r["preset"] for r in rows})}
+
+
+def main(argv: list[str] | None = None) -> int:
+    from narf_benchmarks.track import sequence
+    from narf_core.data.synth.generate import synthesize
+
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--work", type=Path, default=Path("runs/calibration"))
+    parser.add_argument("--model", type=Path, default=Path("models/clamp.narf"))
+    parser.add_argument("--tool", default="clamp")
+    parser.add_argument("--scenes", type=int, default=17, help="per split")
+    parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument("--seed", type=int, default=1, help="of the data (the benchmarks use 0)")
+    parser.add_argument("--write-bundle", type=Path, help="store the constants in this bundle's metadata")
+    args = parser.parse_args(argv)
+    model = load_bundle(args.model)
+    root = args.work / f"{args.tool}-160x120-seed{args.seed}"
+    if not (root / "scene.json").exists():
+        synthesize(args.tool, root, size=(160, 120), views=24, seed=args.seed)
+    rows = scene_rows(model, Dataset.open(root), args.scenes)
+    rows += track_rows(model, Dataset.open(sequence(args.work, args.tool, (160, 120), args.frames, False, seed=args.seed)))
+    calibration = fit(rows)
+    print(json.dumps({"calibration": calibration, "coverage_95_on_fit_data": coverage(rows, calibration),
+                      "rows": len(rows)}, indent=1))
+    if args.write_bundle:
+        target = load_bundle(args.write_bundle)
+        target.metadata["uncertainty"] = calibration
+        save_bundle(args.write_bundle, target)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
