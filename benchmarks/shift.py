@@ -13,15 +13,18 @@ Per tool, condition, split, input (``rgb``: no depth given; ``rgbd``), preset an
 scale, the scenes are refined with :func:`narf_benchmarks.estimate.run_scenes` (the protocol of
 ``narf bench estimate``: starts perturbed by ±10 deg and ≤ 2 cm times the scale, θ at mid-range)
 and scored against the ground truth: ADD mean/std, share under 1 cm, per-joint error (m or deg),
-seconds per scene, and how many frames drew each observation warning
-(:func:`narf_core.observation.check_observation`). The issue's targets are checked in the table.
+where the error lies (the mean displacement of the surface points along the line of sight, and
+across it: an RGB-only view constrains the distance least), seconds per scene, and how many frames
+drew each observation warning (:func:`narf_core.observation.check_observation`). ``--set
+OPTION=JSON`` changes one refiner option in every preset (A/B runs of a single option). The
+issue's targets are checked in the table.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import asdict
+from dataclasses import asdict, fields
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +32,7 @@ import numpy as np
 from narf_benchmarks.estimate import _preset_options, _pyplot, pick_frames, run_scenes, summarise
 from narf_core.bundle import NarfModel
 from narf_core.data.dataset import Dataset, FrameImages
-from narf_core.estimate import PRESETS
+from narf_core.estimate import PRESETS, EstimateOptions
 from narf_core.observation import check_observation
 
 INPUTS = ("rgb", "rgbd")
@@ -107,19 +110,23 @@ def run(
     spp: int = 16,
     iterations: int = 150,
     seed: int = 0,
+    overrides: dict | None = None,
     progress: bool = True,
 ) -> dict:
     """Run the shifted protocol; writes ``shift.json``, ``shift.md`` and ``shift.png`` into ``out_dir``.
 
     ``models`` and ``sources`` (the tool's pybullet dataset) are keyed by tool. The shifted sets are
-    cached under ``out_dir/data/<tool>-<W>x<H>-spp<N>-seed<S>/``.
+    cached under ``out_dir/data/<tool>-<W>x<H>-spp<N>-seed<S>/``. ``overrides``: refiner options set
+    in every preset (:class:`~narf_core.estimate.EstimateOptions` fields).
     """
+    overrides = dict(overrides or {})
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     config = {"conditions": list(conditions), "inputs": list(inputs), "splits": list(splits), "scenes": scenes,
               "scales": list(scales), "presets": list(presets), "size": list(size), "spp": spp,
               "iterations": iterations, "seed": seed,
-              "options": {p: asdict(_preset_options(p, iterations)) for p in presets}}
+              "overrides": overrides,
+              "options": {p: asdict(_preset_options(p, iterations, **overrides)) for p in presets}}
     table, warnings = [], []
     for tool, model in models.items():
         source = sources[tool]
@@ -136,7 +143,7 @@ def run(
                     view = dataset if kind == "rgbd" else _WithoutDepth(dataset)
                     for preset in presets:
                         for scale in scales:
-                            options = _preset_options(preset, iterations, seed=seed)
+                            options = _preset_options(preset, iterations, **{"seed": seed, **overrides})
                             rows = run_scenes(model, view, frames, options, scale=scale, seed=seed, progress=progress)
                             table.append({"tool": tool, "condition": condition, "split": split, "input": kind,
                                           "preset": preset, "scale": scale, **summarise(model, rows),
@@ -159,6 +166,13 @@ def _target(row: dict) -> str:
     return f"{text}: {'met' if ok else 'NOT met'}"
 
 
+def _view(row: dict) -> str:
+    """Mean |displacement along the line of sight| / mean displacement across it, in cm, or ``-``."""
+    if "along_view_abs_mean_m" not in row:
+        return "-"
+    return f"{100 * row['along_view_abs_mean_m']:.2f} / {100 * row['across_view_mean_m']:.2f}"
+
+
 def _joints(row: dict) -> str:
     parts = []
     for name, j in row["joints"].items():
@@ -176,15 +190,15 @@ def markdown(result: dict) -> str:
         f"mid-range, {c['iterations']} iterations (a Gauss-Newton preset keeps its own count). `rgb`: no depth "
         "given; `rgbd`: the (faulty) depth too.",
         "",
-        "| tool | condition | split | input | preset | scale | N | ADD (cm) | ADD < 1 cm | per joint | s/scene "
-        "| target |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| tool | condition | split | input | preset | scale | N | ADD (cm) | ADD < 1 cm | per joint "
+        "| along / across view (cm) | s/scene | target |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result["table"]:
         lines.append(
             f"| {r['tool']} | {r['condition']} | {r['split']} | {r['input']} | {r['preset']} | {r['scale']:g}x "
             f"| {r['scenes']} | {100 * r['add_mean_m']:.2f} ± {100 * r['add_std_m']:.2f} | {100 * r['add<1cm']:.0f}% "
-            f"| {_joints(r)} | {r['seconds_mean']:.2f} | {_target(r)} |"
+            f"| {_joints(r)} | {_view(r)} | {r['seconds_mean']:.2f} | {_target(r)} |"
         )
     lines += ["", "Observation warnings (frames of each set that draw them):", "",
               "| tool | condition | frames | warnings |", "|---|---|---|---|"]
@@ -223,6 +237,22 @@ def plot(result: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def parse_overrides(items: list[str]) -> dict:
+    """``["name=JSON", ...]`` (``--set``) as ``{name: value}``; a ``ValueError`` naming the bad item."""
+    names = {f.name for f in fields(EstimateOptions)}
+    out = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or name not in names:
+            raise ValueError(f"--set {item!r}: expected OPTION=JSON with OPTION one of the refiner's options")
+        try:
+            out[name] = json.loads(text)
+        except json.JSONDecodeError:
+            raise ValueError(f"--set {item!r}: the value is not JSON (strings need quotes: {name}='\"...\"')") from None
+    EstimateOptions(**out)  # a bad value is an EstimateInputError (a ValueError) naming the option
+    return out
+
+
 def main(args: argparse.Namespace) -> int:
     """``narf bench shift``: ``args`` has ``work``, ``tools``, ``models``, ``quick``, ``conditions``,
     ``inputs``, ``splits``, ``scenes``, ``scales``, ``presets``, ``size``, ``spp``, ``json``."""
@@ -235,6 +265,7 @@ def main(args: argparse.Namespace) -> int:
     mitsuba()  # a clear error before any work when the realism extra is missing
     drjit.set_thread_count(torch.get_num_threads())  # Mitsuba renders with as many threads as torch
     presets = tuple(args.presets or PRESETS)
+    overrides = parse_overrides(getattr(args, "set", []) or [])
     unknown = [p for p in presets if p not in PRESETS]
     if unknown:
         raise ValueError(f"--presets: unknown {unknown}; the refiner's presets are {', '.join(PRESETS)}")
@@ -254,6 +285,6 @@ def main(args: argparse.Namespace) -> int:
         models[tool], sources[tool] = pair
     result = run(models, sources, out_dir=args.work / "shift", conditions=tuple(args.conditions),
                  inputs=tuple(args.inputs), splits=splits, scenes=scenes, scales=scales, presets=presets,
-                 size=tuple(args.size), spp=args.spp)
+                 size=tuple(args.size), spp=args.spp, overrides=overrides)
     print(json.dumps(result, indent=1) if args.json else markdown(result))
     return 0

@@ -33,7 +33,7 @@ weights for 30 iterations: about two thirds of the robust preset's CPU time, but
 ends in a worse local minimum more often (``narf bench estimate`` has both), so it is not the default.
 
 Every estimate carries an :class:`Uncertainty` (``options.uncertainty``): one Gauss-Newton
-linearisation at the optimum, whatever the solver, plus the model-error floor ``sigma_floor_*``.
+linearisation at the optimum, whatever the solver, plus the model's own error (:func:`model_error`).
 
 Loss, averaged over the rays of one iteration: the paper's masked photometric MSE
 ``|render - image * mask|^2`` (rendered on a black background), plus ``silhouette_weight * (opacity
@@ -43,6 +43,19 @@ the first quarter of the iterations goes through L - 1 coarse levels whose targe
 over ``2^l + 1`` pixels (l = L-1 .. 1), with rays jittered over the same square, so the loss seen
 is the fine loss smoothed over small image shifts; the rest uses the paper's plain loss at pixel
 centres. (A 5-pixel level, or half the run spent coarse, cost accuracy on the thin clamp.)
+
+Pixels at the camera's own resolution. ``ray_sampling`` chooses an iteration's rays in the box:
+independent draws, one per cell of a grid (``stratified``), half on the mask's edges and the
+image's texture (``edges``), or ``auto`` (uniform in a box up to ``reference_box_px``, edges in a
+larger one). The silhouette's edges carry the distance in an RGB-only view (a distance error is a
+change of scale), and in a large box (a fine camera) few uniform rays land on them: the gradient
+along the line of sight is then mostly noise and Adam random-walks the distance by centimetres.
+``reference_box_px`` keeps the rays per unit of silhouette as they are at that box size: a box k
+times larger draws k times the rays (``narf bench shift`` has the measurements).
+``photometric_compensation`` (gain and bias per channel, closed form on the rays at every
+iteration, held fixed in the gradient), ``robust_loss`` (Huber or Cauchy per residual, scale
+``robust_scale``) and ``occlusion_margin`` (no residual for a ray whose observed depth lies that
+far in front of the render) apply to both solvers.
 
 ``theta_starts = S`` runs S configurations (the given one and S-1 spread over the joint box) as
 ONE batch of ``S * rays_per_iteration / 2`` rays for the first third of the iterations (in
@@ -67,6 +80,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from narf_core.band import ray_band
+from narf_core.checks import InputError, check_pose
 from narf_core.geometry import (
     Pinhole,
     Rays,
@@ -84,22 +99,26 @@ if TYPE_CHECKING:
     from narf_core.bundle import NarfModel
 
 PRESETS = ("paper", "robust", "gauss-newton")
+MODES = ("narf", "parts")
 SOLVERS = ("adam", "gauss-newton")
 ROBUST_LOSSES = ("none", "huber", "cauchy")
-RAY_SAMPLINGS = ("uniform", "edges")
+RAY_SAMPLINGS = ("uniform", "stratified", "edges", "auto")
 MIN_MASK_PIXELS = 4
 _U_LIMIT = 0.2  # a start keeps u this far inside ±π/2 (where dθ/du = 0): 2% of the half-range from a limit
 _MAX_RECOVERIES = 8  # consecutive non-finite iterations before giving up
 _COARSE_SHARE = 0.25  # of the iterations go to the coarse pyramid levels
 _PRUNE_SHARE = 1 / 3  # of the iterations run every θ start (half the rays each); then the best goes on alone
+_MAX_BOX_SCALE = 4  # reference_box_px multiplies the rays per iteration by at most this
 _EVAL_RAYS = 4096  # starts are compared, and the final loss measured, on at most this many rays of the box
 _ADAM_BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
-_ROTATION_ATOL = 1e-3  # tolerance on R^T R = I and det R = 1 for an input pose
 GN_ITERATIONS = 30  # the gauss-newton preset's Levenberg-Marquardt iterations
+# The robust preset's reference_box_px: the largest mask box (grown by box_margin) of the bundled
+# clamp's test and novel views at 160x120, its training size; boxes up to it keep the plain sampling.
+ROBUST_BOX_PX = 144
 
 
-class EstimateInputError(ValueError):
+class EstimateInputError(InputError):
     """Unusable input to :func:`refine`; the message names the argument and what is wrong."""
 
 
@@ -136,21 +155,32 @@ class EstimateOptions:
     photometric_compensation: bool = False  # per-channel gain and bias, closed form each iteration
     occlusion_margin: float = 0.0  # metres; observed depth this far in front of the render = occluder (0 = off)
     depth_sigma: float = 0.0  # sensor depth noise at 1 m (σ = depth_sigma z²); 0: depth residuals in object radii
-    ray_sampling: str = "uniform"  # "uniform" over the box, or "edges": half on silhouette edges and texture
+    # Rays of an iteration: "uniform" (independent draws over the box), "stratified" (one per cell of a
+    # grid over the box), "edges" (half drawn on silhouette edges and texture, half uniform) or
+    # "auto" (uniform in a box up to reference_box_px, edges in a larger one).
+    ray_sampling: str = "uniform"
+    # > 0: the box side (pixels) that rays_per_iteration is meant for. A box k = side / this > 1 times
+    # larger (a finer camera, a nearer object) draws k times the rays (k at most _MAX_BOX_SCALE): the
+    # same density of rays along the silhouette, whose edges carry the distance in RGB.
+    reference_box_px: int = 0
     adam_iterations: int = 0  # gauss-newton: Adam iterations (the rates above) first, to find the basin
+    # March each ray only within this many metres of the model's surface points at the iterate, and not
+    # at all where none projects near its pixel (narf_core/band.py); 0 = the whole box.
+    band_m: float = 0.0
+    eval_rays: int = _EVAL_RAYS  # starts are compared, and the final loss measured, on at most this many box rays
     uncertainty: bool = True  # a covariance of the estimate (one linearisation at the optimum)
     uncertainty_rays: int = 4096  # rays of the box used for it
     uncertainty_patch: int = 4  # pixels per side of the squares whose residuals count as correlated
-    # Model error, added to the covariance (σ² on the diagonal): what residual statistics cannot see.
-    # Defaults: the RMS error of `robust` on the bundled clamp's novel split (8 views, 160x120).
-    sigma_floor_position: float = 0.002  # metres
-    sigma_floor_rotation: float = 0.018  # radians
-    sigma_floor_joint: float = 0.02  # fraction of the joint's range
+    # Extra σ added to the covariance's diagonal on top of the model's error (see `model_error`).
+    sigma_floor_position: float = 0.0  # metres
+    sigma_floor_rotation: float = 0.0  # radians
+    sigma_floor_joint: float = 0.0  # fraction of the joint's range
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, what: str) -> None:
             if not ok:
-                raise EstimateInputError(f"options.{name} {what}, got {getattr(self, name)!r}")
+                reason = f"{what}, got {getattr(self, name)!r}"
+                raise EstimateInputError(f"options.{name} {reason}", f"options.{name}", reason)
 
         for f in fields(self):
             value = getattr(self, f.name)
@@ -166,7 +196,7 @@ class EstimateOptions:
         need(self.lr_theta > 0, "lr_theta", "must be > 0")
         need(0 < self.lr_decay <= 1, "lr_decay", "must be in (0, 1]")
         need(self.rays_per_iteration >= 1, "rays_per_iteration", "must be >= 1")
-        need(self.mode in ("narf", "parts"), "mode", "must be 'narf' or 'parts'")
+        need(self.mode in MODES, "mode", "must be 'narf' or 'parts'")
         need(self.silhouette_weight >= 0, "silhouette_weight", "must be >= 0")
         need(self.depth_weight >= 0, "depth_weight", "must be >= 0")
         need(1 <= self.theta_starts <= 64, "theta_starts", "must be in [1, 64]")
@@ -182,9 +212,12 @@ class EstimateOptions:
         need(0 <= self.damping <= 1e6, "damping", "must be in [0, 1e6]")
         need(self.occlusion_margin >= 0, "occlusion_margin", "must be >= 0")
         need(self.depth_sigma >= 0, "depth_sigma", "must be >= 0")
+        need(self.reference_box_px >= 0, "reference_box_px", "must be >= 0 (0 = off)")
         need(self.ray_sampling in RAY_SAMPLINGS, "ray_sampling", f"must be one of {', '.join(RAY_SAMPLINGS)}")
         need(self.uncertainty_rays >= 16, "uncertainty_rays", "must be >= 16")
         need(self.adam_iterations >= 0, "adam_iterations", "must be >= 0")
+        need(self.band_m == 0 or 0.001 <= self.band_m <= 1, "band_m", "must be 0 (off) or in [0.001, 1] metres")
+        need(self.eval_rays >= 16, "eval_rays", "must be >= 16")
         need(1 <= self.uncertainty_patch <= 64, "uncertainty_patch", "must be in [1, 64]")
         for name in ("sigma_floor_position", "sigma_floor_rotation", "sigma_floor_joint"):
             need(getattr(self, name) >= 0, name, "must be >= 0")
@@ -193,10 +226,13 @@ class EstimateOptions:
     def robust(cls, **overrides) -> EstimateOptions:
         """The defaults plus a silhouette term, a depth term (used when a depth image is given), 4
         configuration starts, 2 pyramid levels and twice the pose rate: a wider basin and a
-        well-determined distance (see the module docstring for measurements)."""
+        well-determined distance (see the module docstring for measurements). A mask box larger
+        than ``ROBUST_BOX_PX`` (a camera finer than the model was trained at, a near object) draws
+        proportionally more rays, half of them on the silhouette's edges (``reference_box_px``,
+        ``ray_sampling = "auto"``); up to that size nothing changes."""
         return cls(**{
             "silhouette_weight": 1.0, "depth_weight": 1.0, "theta_starts": 4, "coarse_to_fine": 2, "lr_pose": 0.02,
-            **overrides,
+            "reference_box_px": ROBUST_BOX_PX, "ray_sampling": "auto", **overrides,
         })
 
     @classmethod
@@ -210,6 +246,12 @@ class EstimateOptions:
             **overrides,
         })
 
+    def max_rays(self) -> int:
+        """An upper bound on the rays a refinement traces, known before any work: every iteration
+        (Adam's first with ``adam_iterations``) at the largest box scale, for every start."""
+        scale = _MAX_BOX_SCALE if self.reference_box_px else 1
+        return (self.iterations + self.adam_iterations) * self.rays_per_iteration * scale * self.theta_starts
+
     @classmethod
     def preset(cls, name: str = "paper", **overrides) -> EstimateOptions:
         """The options of a named preset (``paper``: the defaults; ``robust``: :meth:`robust`;
@@ -220,7 +262,8 @@ class EstimateOptions:
             return cls.robust(**overrides)
         if name == "gauss-newton":
             return cls.gauss_newton(**overrides)
-        raise EstimateInputError(f"options.preset must be one of {', '.join(PRESETS)}, got {name!r}")
+        reason = f"must be one of {', '.join(PRESETS)}, got {name!r}"
+        raise EstimateInputError(f"options.preset {reason}", "options.preset", reason)
 
 
 @dataclass
@@ -242,9 +285,10 @@ class Uncertainty:
     camera axes), the rotation about that centre (radians, camera axes, left-multiplied:
     ``R_true = exp(δω) R_est``), then θ (joint units, model order). The statistical part comes from
     the normal equations at the estimate, scaled by the weighted residual variance
-    ``residual_variance`` with ``dof`` degrees of freedom (see narf_core/gauss_newton.py); the
-    options' ``sigma_floor_*`` add the model's error, which residual statistics cannot see (on the
-    bundled clamp the statistical σ alone is 10-30x smaller than the true error).
+    ``residual_variance`` with ``dof`` degrees of freedom (see narf_core/gauss_newton.py). The
+    model's error, which residual statistics cannot see, is added on the diagonal
+    (:func:`model_error`; on the bundled clamp the statistical σ alone is 20-100x smaller than the
+    true error), and the options' ``sigma_floor_*`` on top of it.
     """
 
     covariance: np.ndarray  # [6 + k, 6 + k]
@@ -325,7 +369,7 @@ class EstimateResult:
     mask's box meets the object's box under ``T_init``: the initial pose comes back unchanged) or
     ``non_finite`` (the loss stayed non-finite for several iterations in a row despite recovery:
     the best finite iterate comes back, or the initial pose if there was none). ``loss`` is the
-    final loss on a fixed set of up to 4096 rays of the box, or ``None`` (JSON ``null``) when none
+    final loss on a fixed set of up to ``options.eval_rays`` rays of the box, or ``None`` (JSON ``null``) when none
     could be computed. ``trace`` holds ``(loss, seconds since the start)`` of every finite
     iteration; ``history`` the estimate every ``options.record_every`` iterations. ``metrics``
     (with ``ground_truth``): ``rotation_error_deg`` and ``translation_error_m`` of the root link,
@@ -376,22 +420,6 @@ class EstimateResult:
 # Input checks
 
 
-def _check_pose(T: np.ndarray, name: str) -> np.ndarray:
-    """A finite rigid 4x4 pose as float64, or :class:`EstimateInputError` saying what is wrong."""
-    T = np.asarray(T)
-    if T.shape != (4, 4):
-        raise EstimateInputError(f"{name} must be a 4x4 pose matrix, got shape {T.shape}")
-    if not np.issubdtype(T.dtype, np.number) or not np.isfinite(T).all():
-        raise EstimateInputError(f"{name} must be finite numbers, got {T.tolist()}")
-    T = T.astype(np.float64)
-    R = T[:3, :3]
-    if not np.allclose(T[3], [0, 0, 0, 1], atol=1e-6):
-        raise EstimateInputError(f"{name} must have the last row [0, 0, 0, 1], got {T[3].tolist()}")
-    if not np.allclose(R.T @ R, np.eye(3), atol=_ROTATION_ATOL) or np.linalg.det(R) < 0:
-        raise EstimateInputError(f"{name} has a rotation block that is not a proper orthonormal matrix")
-    return T
-
-
 def _check_observation(
     image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, camera: Pinhole
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -438,20 +466,6 @@ def _check_observation(
     return image, mask, depth
 
 
-def _check_joints(model: NarfModel, joints: Mapping[str, float] | None, name: str, *, complete: bool) -> Tensor:
-    """θ ``[k]`` float64 from ``{name: value}`` (missing -> mid-range unless ``complete``)."""
-    if joints is not None and not isinstance(joints, Mapping):
-        raise EstimateInputError(f"{name} must be a mapping {{joint name: value}}, got {type(joints).__name__}")
-    if complete:
-        missing = [j.name for j in model.joints if j.name not in (joints or {})]
-        if missing:
-            raise EstimateInputError(f"{name} lacks joint(s) {', '.join(missing)}")
-    try:
-        return model.kinematics.joint_vector(joints)
-    except ValueError as e:
-        raise EstimateInputError(f"{name}: {e}") from None
-
-
 # --------------------------------------------------------------------------------------------
 # The observation, cropped to the rays' box
 
@@ -473,6 +487,8 @@ class _Observation:
     pixels: Tensor  # [P, 2] integer (u, v) of the box
     levels: list[_Target]  # coarse to fine
     importance: Tensor | None = None  # [P] sums to 1: silhouette edges and image gradient (ray_sampling "edges")
+    shape: tuple[int, int] = (0, 0)  # (h, w) of the box: P = h * w, row-major
+    scale: float = 1.0  # the box's size over options.reference_box_px (_box_scale)
 
 
 def _mask_box(mask: np.ndarray, margin: float) -> tuple[int, int, int, int]:
@@ -482,6 +498,15 @@ def _mask_box(mask: np.ndarray, margin: float) -> tuple[int, int, int, int]:
     grow = max(2, round(margin * max(u1 - u0, v1 - v0)))
     height, width = mask.shape
     return max(0, u0 - grow), max(0, v0 - grow), min(width, u1 + grow), min(height, v1 + grow)
+
+
+def _box_scale(box: tuple[int, int, int, int], opts: EstimateOptions) -> float:
+    """``k``: the box's longer side over ``opts.reference_box_px``, in [1, _MAX_BOX_SCALE] (1 when
+    that option is 0). An iteration draws ``k`` times the rays, so that as many land on the
+    silhouette's edges per unit of its length as in a box of the reference size."""
+    if not opts.reference_box_px:
+        return 1.0
+    return min(float(_MAX_BOX_SCALE), max(1.0, max(box[2] - box[0], box[3] - box[1]) / opts.reference_box_px))
 
 
 def _box_filter(image: Tensor, width: int) -> Tensor:
@@ -512,7 +537,7 @@ def _observation(
         _Target(t.rgb.to(device), t.mask.to(device), None if t.depth is None else t.depth.to(device), t.width)
         for t in targets
     ]
-    return _Observation(pixels.to(device), targets, _importance(masked))
+    return _Observation(pixels.to(device), targets, _importance(masked), (v1 - v0, u1 - u0))
 
 
 def _importance(masked: Tensor) -> Tensor:
@@ -614,12 +639,14 @@ def _object_rays(rays_cam: Rays, T_cam_obj: Tensor) -> Rays:
 
 @dataclass
 class _Loss:
-    """Everything fixed about the loss of one run."""
+    """Everything fixed about the loss of one run; ``camera``: where ``options.band_m`` marches only
+    the band around the surface (narf_core/band.py)."""
 
     model: NarfModel
     options: EstimateOptions
     radius: float
     uses_depth: bool
+    camera: Pinhole | None = None
 
     def __call__(self, rays_cam: Rays, target: _Target, index: Tensor, T: Tensor, theta: Tensor) -> Tensor:
         """Loss ``[S]`` of every start (``T [S,4,4]``, ``θ [S,k]``) on the rays ``rays_cam [n]``
@@ -627,25 +654,43 @@ class _Loss:
         opts = self.options
         n_starts, n = T.shape[0], len(rays_cam)
         depth = target.depth[index] if (self.uses_depth and target.depth is not None) else None
-        outputs = ("rgb",) + (("opacity",) if opts.silhouette_weight > 0 or depth is not None else ())
+        mask, observed = target.mask[index], target.rgb[index]
+        needs_opacity = opts.silhouette_weight > 0 or depth is not None or opts.photometric_compensation
+        outputs = ("rgb",) + (("opacity",) if needs_opacity else ())
         outputs += ("depth",) if depth is not None else ()
-        rgb, opacity, rendered_depth = self._render(_object_rays(rays_cam, T), theta, outputs)
+        band = None
+        if opts.band_m > 0 and self.camera is not None:
+            band = ray_band(self.model, self.camera, rays_cam, T, theta, opts.band_m)
+        rgb, opacity, rendered_depth = self._render(_object_rays(rays_cam, T), theta, outputs, band)
         rgb = rgb.reshape(n_starts, n, 3)
-        loss = ((rgb - target.rgb[index]) ** 2).mean(dim=(1, 2))
+        opacity = None if opacity is None else opacity.reshape(n_starts, n)
+        rendered_depth = None if rendered_depth is None else rendered_depth.reshape(n_starts, n)
+        keep = torch.ones(n_starts, n, dtype=torch.bool, device=rgb.device)
+        if depth is not None and opts.occlusion_margin > 0:
+            keep = ~_occluded(depth, rendered_depth, opacity, opts.occlusion_margin)
+        if opts.photometric_compensation:
+            gain, bias = _gain_bias(rgb.detach(), opacity.detach(), observed, mask, keep)
+            rgb = gain[:, None] * rgb + bias[:, None] * opacity[..., None]
+        used = keep.to(rgb.dtype)
+        count = used.sum(-1).clamp_min(1)
+        colour = _robust((rgb - observed) ** 2, opts.robust_loss, opts.robust_scale).mean(-1)
+        loss = (colour * used).sum(-1) / count
         if opts.silhouette_weight > 0:
-            loss = loss + opts.silhouette_weight * ((opacity.reshape(n_starts, n) - target.mask[index]) ** 2).mean(-1)
+            silhouette = _robust((opacity - mask) ** 2, opts.robust_loss, opts.robust_scale)
+            loss = loss + opts.silhouette_weight * (silhouette * used).sum(-1) / count
         if depth is not None:
-            valid = (depth > 0) & (target.mask[index] > 0.5)
+            valid = (depth > 0) & (mask > 0.5) & keep
             if bool(valid.any()):
                 # Rendered depth is opacity-weighted; compare like with like (no division by opacity).
-                err = (rendered_depth.reshape(n_starts, n) - opacity.reshape(n_starts, n) * depth) / self.radius
-                loss = loss + opts.depth_weight * (err**2 * valid).sum(-1) / valid.sum()
+                err = (rendered_depth - opacity * depth) / self.radius
+                loss = loss + opts.depth_weight * (err**2 * valid).sum(-1) / valid.sum(-1).clamp_min(1)
         return loss
 
     def _render(
-        self, rays_obj: Rays, theta: Tensor, outputs: tuple[str, ...]
+        self, rays_obj: Rays, theta: Tensor, outputs: tuple[str, ...], band: tuple[Tensor, Tensor] | None = None
     ) -> tuple[Tensor, Tensor | None, Tensor | None]:
-        """``(rgb, opacity, depth)`` of the rays ``[S*n]``, start ``s`` at ``θ [S,k]`` row ``s``.
+        """``(rgb, opacity, depth)`` of the rays ``[S*n]``, start ``s`` at ``θ [S,k]`` row ``s``, each
+        marched only inside its ``band`` (``(near, far) [S*n]``) when given.
 
         One configuration: one call with ``θ [k]``. Several: one batched call with ``θ`` per ray in
         ``narf`` mode (the configuration field takes it), one call per start in ``parts`` mode
@@ -656,17 +701,59 @@ class _Loss:
         render = self.model.render_rays
         kw = dict(mode=self.options.mode, outputs=outputs, background=0.0)
         if n_starts == 1 or k == 0:
-            out = render(rays_obj, theta[0], **kw)
+            out = render(rays_obj, theta[0], t_range=band, **kw)
             return out.rgb, out.opacity, out.depth
         n = len(rays_obj) // n_starts
         if self.options.mode == "narf":
-            out = render(rays_obj, theta[:, None, :].expand(n_starts, n, k).reshape(n_starts * n, k), **kw)
+            per_ray = theta[:, None, :].expand(n_starts, n, k).reshape(n_starts * n, k)
+            out = render(rays_obj, per_ray, t_range=band, **kw)
             return out.rgb, out.opacity, out.depth
-        outs = [render(rays_obj[s * n : (s + 1) * n], theta[s], **kw) for s in range(n_starts)]
+        rows = [slice(s * n, (s + 1) * n) for s in range(n_starts)]
+        outs = [render(rays_obj[r], theta[s], t_range=None if band is None else (band[0][r], band[1][r]), **kw)
+                for s, r in enumerate(rows)]
         rgb = torch.cat([o.rgb for o in outs])
         opacity = torch.cat([o.opacity for o in outs]) if "opacity" in outputs else None
         depth = torch.cat([o.depth for o in outs]) if "depth" in outputs else None
         return rgb, opacity, depth
+
+
+def _robust(squared: Tensor, kind: str, scale: float) -> Tensor:
+    """Per-residual cost of squared residuals ``r²`` (any shape): ``r²`` itself (``none``), or twice
+    the Huber / Cauchy ρ at ``scale`` (so that small residuals cost ``r²`` either way)."""
+    if kind == "none":
+        return squared
+    if kind == "huber":
+        a = squared.clamp_min(1e-12).sqrt()
+        return torch.where(a <= scale, squared, scale * (2 * a - scale))
+    return scale**2 * torch.log1p(squared / scale**2)
+
+
+def _occluded(depth: Tensor, rendered_depth: Tensor, opacity: Tensor, margin: float) -> Tensor:
+    """``[S, n]``: rays whose observed depth ``[n]`` lies more than ``margin`` metres in front of the
+    rendered surface (opacity-weighted ``rendered_depth [S, n]`` over ``opacity [S, n]``): something
+    else is in front of the object there, so the ray is no evidence about it."""
+    surface = rendered_depth.detach() / opacity.detach().clamp_min(1e-6)
+    return (depth > 0) & (opacity.detach() > 0.5) & (depth < surface - margin)
+
+
+def _gain_bias(rgb: Tensor, opacity: Tensor, observed: Tensor, mask: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
+    """Per-start gain and bias ``[S, 3]`` that fit ``gain * colour + bias`` of the render (``rgb [S, n, 3]``
+    premultiplied by ``opacity [S, n]``) to the observed colour (``observed [n, 3]`` premultiplied by
+    ``mask [n]``) on the rays inside both (and ``keep [S, n]``): least squares per channel, bounded
+    (gain in [0.5, 2], bias in [-0.3, 0.3]); ones and zeros where fewer than 16 rays qualify.
+    Another light or exposure changes the object's colour, not its shape."""
+    w = ((mask > 0.5)[None] & (opacity > 0.5) & keep).to(rgb.dtype)  # [S, n]
+    count = w.sum(-1)
+    x = rgb / opacity[..., None].clamp_min(1e-6)
+    a = (observed / mask[:, None].clamp_min(1e-6))[None]
+    n = count.clamp_min(1)[:, None]
+    mx, ma = (w[..., None] * x).sum(1) / n, (w[..., None] * a).sum(1) / n
+    cov = (w[..., None] * (x - mx[:, None]) * (a - ma[:, None])).sum(1)
+    var = (w[..., None] * (x - mx[:, None]) ** 2).sum(1)
+    gain = torch.where(var > 1e-8, cov / var.clamp_min(1e-8), torch.ones_like(var)).clamp(0.5, 2.0)
+    bias = (ma - gain * mx).clamp(-0.3, 0.3)
+    enough = (count >= 16)[:, None]
+    return torch.where(enough, gain, torch.ones_like(gain)), torch.where(enough, bias, torch.zeros_like(bias))
 
 
 # --------------------------------------------------------------------------------------------
@@ -742,24 +829,29 @@ def refine(
     if not isinstance(camera, Pinhole):
         raise EstimateInputError(f"camera must be a narf_core.geometry.Pinhole, got {type(camera).__name__}")
     image, mask, depth = _check_observation(image, mask, depth, camera)
-    T0 = torch.from_numpy(_check_pose(T_init, "T_init"))
+    T0 = torch.from_numpy(check_pose(T_init, "T_init", error=EstimateInputError))
     warnings = check_observation(image, mask, depth, camera, expected_depth_m=float(T0[2, 3]))
     depth = usable_depth(depth, warnings)  # a depth in the wrong unit or off the mask is dropped, and said so
-    theta0 = _check_joints(model, joints_init, "joints_init", complete=False)
+    theta0 = model.kinematics.joint_vector(joints_init, field="joints_init", error=EstimateInputError)
     truth = None
     if ground_truth is not None:
         if not isinstance(ground_truth, (tuple, list)) or len(ground_truth) != 2:
             raise EstimateInputError("ground_truth must be a pair (T_cam_obj [4, 4], {joint: value})")
         truth = (
-            torch.from_numpy(_check_pose(ground_truth[0], "ground_truth pose")),
-            _check_joints(model, ground_truth[1], "ground_truth joints", complete=True),
+            torch.from_numpy(check_pose(ground_truth[0], "ground_truth.pose", error=EstimateInputError)),
+            model.kinematics.joint_vector(ground_truth[1], fill_mid=False, field="ground_truth.joints",
+                                          error=EstimateInputError),
         )
     if opts.mode == "parts" and not model.has_parts:
         raise EstimateInputError(f"options.mode 'parts' needs part fields, which model {model.name!r} lacks")
 
     device = model.aabb.device  # rays and targets live with the model; the pose parameters on the CPU
     camera = Pinhole(camera.K.detach().to(device, torch.float32), camera.width, camera.height)
-    obs = _observation(image, mask, depth, _mask_box(mask, opts.box_margin), opts.coarse_to_fine, device)
+    box = _mask_box(mask, opts.box_margin)
+    scale = _box_scale(box, opts)
+    opts = replace(opts, rays_per_iteration=round(scale * opts.rays_per_iteration)) if scale > 1 else opts
+    obs = _observation(image, mask, depth, box, opts.coarse_to_fine, device)
+    obs.scale = scale
     param = _Parameterisation.around(T0, model)
 
     uses_depth = depth is not None and opts.depth_weight > 0
@@ -793,7 +885,7 @@ def refine(
 
     if not _overlaps(camera, obs.pixels, T0, model.aabb):
         return result("no_overlap", None, None)
-    loss_fn = _Loss(model, opts, param.radius, uses_depth)
+    loss_fn = _Loss(model, opts, param.radius, uses_depth, camera)
     starts = _theta_starts(theta0, param, opts.theta_starts)
     if opts.solver == "gauss-newton":
         from narf_core.gauss_newton import GaussNewtonRun, Problem
@@ -808,7 +900,7 @@ def refine(
             choice = _final_choice(loss_fn, obs, camera, param, warm.adam.params, warm.best_params, warm.rng)
             if choice is not None:
                 params0 = choice[0]
-        run = GaussNewtonRun(Problem(model, opts, param.radius, uses_depth), obs, camera, param, params0, start_time,
+        run = GaussNewtonRun(Problem(model, opts, param.radius, uses_depth, camera), obs, camera, param, params0, start_time,
                              opts.seed)
 
         def snapshot(params: Tensor, losses: Tensor, iteration: int, elapsed: float) -> Snapshot:
@@ -850,40 +942,103 @@ def _uncertainty(
     theta: Tensor,
     uses_depth: bool,
 ) -> Uncertainty | None:
-    """The covariance at ``(T [4,4], θ [k])`` from one Gauss-Newton linearisation on the box's rays
-    (narf_core/gauss_newton.py); ``None`` if it cannot be computed (a non-finite render)."""
+    """The covariance at ``(T [4,4], θ [k])``: one Gauss-Newton linearisation on the box's rays
+    (narf_core/gauss_newton.py) plus the model's error and the options' floors on the diagonal;
+    ``None`` if it cannot be computed (a non-finite render)."""
     from narf_core.gauss_newton import Problem, covariance
 
     aabb = model.aabb.detach().double().cpu()
+    centre = (aabb[0] + aabb[1]) / 2
     problem = Problem(model, opts, param.radius, uses_depth)
     rng = torch.Generator().manual_seed(opts.seed + 1)
-    Sigma, variance, dof = covariance(
-        problem, obs, camera, param, T, theta, (aabb[0] + aabb[1]) / 2, opts.uncertainty_rays, opts.uncertainty_patch, rng
-    )
-    if not bool(torch.isfinite(Sigma).all()):
+    stat = covariance(problem, obs, camera, param, T, theta, centre, opts.uncertainty_rays, opts.uncertainty_patch, rng)
+    if not bool(torch.isfinite(stat.sigma).all()):
         return None
+    depth = float(T[2, :3].double() @ centre + T[2, 3])
+    pixel = depth / float(camera.K[0, 0])
     span = (2 * param.half).cpu()
     floor = torch.cat([
         torch.full((3,), opts.sigma_floor_position), torch.full((3,), opts.sigma_floor_rotation), opts.sigma_floor_joint * span
     ]).double()
-    Sigma = Sigma + torch.diag(floor**2)
-    return Uncertainty.from_covariance(Sigma.numpy().copy(), [j.name for j in model.joints], variance, dof)
+    sd = model_error(model, _error_class(opts, uses_depth), pixel, param.radius, stat.colour_variance)
+    Sigma = stat.sigma + torch.diag(sd**2 + floor**2)
+    return Uncertainty.from_covariance(Sigma.numpy().copy(), [j.name for j in model.joints], stat.variance, stat.dof)
+
+
+# The model's error, which the residuals cannot see: the field renders the object a little
+# differently from the camera (a bias, not noise), and the refiner may stop in a wrong basin. Its σ
+# is ``pixels`` footprints of a pixel at the object, times ``(v / reference_variance) ^ exponent``
+# with ``v`` the estimate's mean squared colour residual: an estimate that explains the image worse
+# than the model usually does is less trustworthy. ``pixels`` depends on the loss and the solver
+# (:func:`_error_class`), which set how often the refiner ends in a wrong basin: a colour-only loss
+# hardly sees the distance or a jaw it does not overlap. A bundle may carry its own in
+# ``metadata["uncertainty"]``. These were fitted on the bundled clamp (160x120 synthetic views and a
+# 60-frame sequence of seed 1, none of the benchmarks' scenes; benchmarks/calibration.py repeats the
+# fit and can store it in a bundle): per class the smallest ``pixels`` whose 95 % regions hold 95 %
+# of the errors; ``narf bench estimate`` and ``narf bench track`` report the coverage on their scenes.
+MODEL_ERROR = {
+    "pixels": {"colour": 1.4, "shape": 0.57, "shape-gauss-newton": 0.94},
+    "reference_variance": 0.0065,
+    "exponent": 1.0,
+}
+
+
+def _error_class(opts: EstimateOptions, uses_depth: bool) -> str:
+    """The key of :data:`MODEL_ERROR`'s ``pixels``: ``colour`` without silhouette and depth terms, else
+    ``shape`` (Adam) or ``shape-gauss-newton``."""
+    if opts.silhouette_weight == 0 and not uses_depth:
+        return "colour"
+    return "shape-gauss-newton" if opts.solver == "gauss-newton" else "shape"
+
+
+def model_error(model: NarfModel, kind: str, pixel_m: float, radius: float, colour_variance: float) -> Tensor:
+    """σ ``[6 + k]`` of the model's error (see :data:`MODEL_ERROR`; ``kind`` from :func:`_error_class`)
+    at an estimate where a pixel spans ``pixel_m`` metres at the object's centre: in position that
+    times ``pixels``, in rotation that over the object's ``radius``, per joint a position
+    (prismatic, metres) or a rotation (revolute)."""
+    own = model.metadata.get("uncertainty") or {}
+    calibration = {**MODEL_ERROR, **own, "pixels": {**MODEL_ERROR["pixels"], **own.get("pixels", {})}}
+    fit = (max(colour_variance, 0.0) / calibration["reference_variance"]) ** calibration["exponent"]
+    position = calibration["pixels"][kind] * pixel_m * fit
+    joints = [position if j.type == "prismatic" else position / radius for j in model.joints]
+    return torch.tensor([position] * 3 + [position / radius] * 3 + joints, dtype=torch.float64)
 
 
 def _ray_index(obs: _Observation, opts: EstimateOptions, n_rays: int, rng: torch.Generator, allow_all: bool) -> Tensor:
     """``n_rays`` box pixels ``[n]`` for one iteration: all of them when they fit (and ``allow_all``),
-    else uniform draws, or with ``ray_sampling = "edges"`` half of them drawn in proportion to the
-    mask's edges and the image's gradient (where a pose or θ error changes the residual most)."""
+    else uniform draws, one per cell of a grid (``ray_sampling = "stratified"``), or (``"edges"``)
+    half of them drawn in proportion to the mask's edges and the image's gradient (where a pose or
+    θ error changes the residual most) and half uniform; ``"auto"``: uniform in a box of the
+    reference size, edges in a larger one (where uniform rays rarely meet the silhouette)."""
     n_pixels = obs.pixels.shape[0]
     device = obs.pixels.device
     if n_rays == n_pixels and allow_all:
         return torch.arange(n_pixels, device=device)
-    if opts.ray_sampling == "uniform":
+    sampling = opts.ray_sampling
+    if sampling == "auto":
+        sampling = "edges" if obs.scale > 1 else "uniform"
+    if sampling == "uniform":
         return torch.randint(n_pixels, (n_rays,), generator=rng).to(device)
+    if sampling == "stratified":
+        return _stratified(obs.shape, n_rays, rng).to(device)
     n_edge = n_rays // 2
     edges = torch.multinomial(obs.importance.cpu(), n_edge, replacement=True, generator=rng)
     rest = torch.randint(n_pixels, (n_rays - n_edge,), generator=rng)
     return torch.cat([edges, rest]).to(device)
+
+
+def _stratified(shape: tuple[int, int], n: int, rng: torch.Generator) -> Tensor:
+    """``n`` pixel indices ``[n]`` of an ``(h, w)`` box, row-major, one per cell of a grid of about
+    ``n`` equal cells (a random pixel in each; a random ``n`` of the cells when the grid has more):
+    every part of the box gets its share of rays at every iteration, unlike independent draws."""
+    h, w = shape
+    side = max(1.0, math.sqrt(h * w / max(n, 1)))
+    gy, gx = max(1, math.ceil(h / side)), max(1, math.ceil(w / side))
+    cells = torch.randperm(gy * gx, generator=rng)[:n] if gy * gx >= n else torch.randint(gy * gx, (n,), generator=rng)
+    cy, cx = (cells // gx).double(), (cells % gx).double()
+    v = ((cy + torch.rand(len(cells), generator=rng, dtype=torch.float64)) * h / gy).floor().long().clamp(0, h - 1)
+    u = ((cx + torch.rand(len(cells), generator=rng, dtype=torch.float64)) * w / gx).floor().long().clamp(0, w - 1)
+    return v * w + u
 
 
 class _Run:
@@ -1041,10 +1196,10 @@ def _final_choice(
 def _fixed_rays_loss(
     loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, params: Tensor, rng: torch.Generator
 ) -> Tensor:
-    """Loss ``[S]`` of every row of ``params [S, d]`` on the same up to ``_EVAL_RAYS`` pixels of the
-    box, at the finest level."""
-    n_pixels = obs.pixels.shape[0]
-    index = torch.arange(n_pixels) if n_pixels <= _EVAL_RAYS else torch.randperm(n_pixels, generator=rng)[:_EVAL_RAYS]
+    """Loss ``[S]`` of every row of ``params [S, d]`` on the same up to ``options.eval_rays`` pixels of
+    the box, at the finest level."""
+    n_pixels, n = obs.pixels.shape[0], loss_fn.options.eval_rays
+    index = torch.arange(n_pixels) if n_pixels <= n else torch.randperm(n_pixels, generator=rng)[:n]
     index = index.to(obs.pixels.device)
     return loss_fn(camera.rays(obs.pixels[index]), obs.levels[-1], index, param.poses(params), param.thetas(params))
 

@@ -40,6 +40,44 @@ def test_targets_of_the_issue_are_checked() -> None:
                            "warnings": [{"tool": "clamp", "condition": "lighting", "frames": 3, "warnings": {"clipped": 1}}]})
     assert "| clamp | lighting | test | rgb | robust | 1x | 3 | 0.50 ± 0.10 | 100% | jaw_opening 2.0 ± 1.0 mm |" in text
     assert "| clamp | lighting | 3 | clipped 1 |" in text
+    located = {**_row("lighting", "rgb", 0.005, 1.0), "along_view_abs_mean_m": 0.003, "across_view_mean_m": 0.0005}
+    text = shift.markdown({"config": {"size": [640, 480], "spp": 16, "scenes": 3, "iterations": 150},
+                           "table": [located], "warnings": []})
+    assert "| jaw_opening 2.0 ± 1.0 mm | 0.30 / 0.05 | 2.00 |" in text
+
+
+@pytest.mark.skipif(not MODEL.exists(), reason="no bundled demo model")
+def test_the_error_is_split_along_and_across_the_line_of_sight() -> None:
+    """A pose moved 1 cm away from the camera along the line of sight to the object's points is all
+    ``along`` (+1 cm); one moved 1 cm sideways is all ``across``; a wrong jaw moves the points too."""
+    from narf_benchmarks.estimate import view_errors
+    from narf_core.bundle import load_bundle
+    from narf_core.data.dataset import Frame
+
+    model = load_bundle(MODEL)
+    T = np.eye(4)
+    T[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]
+    T[:3, 3] = [0.05, -0.02, 0.6]
+    joints = {"jaw_opening": 0.08}
+    truth = Frame(id=0, rgb="", depth=None, labels="", T_cam_obj=T, joints=joints, split="test")
+    pts = view_errors(model, T, joints, truth)
+    assert abs(pts["along_view_m"]) < 1e-9 and pts["across_view_m"] < 1e-9
+    kin = model.kinematics
+    from narf_core.metrics import _camera_points
+
+    centroid = _camera_points(model.sample_points, kin.link_poses(kin.joint_vector(joints)).numpy(), T, model.links,
+                              "true").mean(0)
+    sight = centroid / np.linalg.norm(centroid)
+    away = T.copy()
+    away[:3, 3] += 0.01 * sight
+    e = view_errors(model, away, joints, truth)
+    assert abs(e["along_view_m"] - 0.01) < 1e-9 and e["across_view_m"] < 1e-9
+    side = T.copy()
+    side[:3, 3] += 0.01 * np.cross(sight, [0.0, 1.0, 0.0]) / np.linalg.norm(np.cross(sight, [0.0, 1.0, 0.0]))
+    e = view_errors(model, side, joints, truth)
+    assert abs(e["along_view_m"]) < 1e-9 and abs(e["across_view_m"] - 0.01) < 1e-9
+    jaw = view_errors(model, T, {"jaw_opening": 0.12}, truth)
+    assert np.hypot(jaw["along_view_m"], jaw["across_view_m"]) > 0.001
 
 
 @pytest.mark.slow
@@ -51,8 +89,10 @@ def test_a_tiny_shifted_run(tmp_path: Path) -> None:
     source = Dataset.open(synthesize("clamp", tmp_path / "src", size=(96, 72), views=4, seed=0))
     result = shift.run({"clamp": load_bundle(MODEL)}, {"clamp": source}, out_dir=tmp_path / "out",
                        conditions=("lighting", "depth"), splits=("test",), scenes=2, scales=(1.0,),
-                       presets=("robust",), size=(96, 72), spp=2, iterations=3, progress=False)
+                       presets=("robust",), size=(96, 72), spp=2, iterations=3,
+                       overrides={"ray_sampling": "stratified"}, progress=False)
     rows = result["table"]
+    assert result["config"]["options"]["robust"]["ray_sampling"] == "stratified"
     assert [(r["condition"], r["input"]) for r in rows] == [("lighting", "rgb"), ("lighting", "rgbd"),
                                                            ("depth", "rgb"), ("depth", "rgbd")]
     for r in rows:
@@ -74,6 +114,14 @@ def test_bench_shift_errors(tmp_path: Path, monkeypatch, capsys: pytest.CaptureF
     assert main(["bench", "shift", "--presets", "fastest", "--work", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--presets: unknown ['fastest']" in err
+    for bad, says in (("nope=1", "--set 'nope=1': expected OPTION=JSON"),
+                      ("ray_sampling=edges", "the value is not JSON"),
+                      ("rays_per_iteration=0", "options.rays_per_iteration must be >= 1")):
+        assert main(["bench", "shift", "--set", bad, "--work", str(tmp_path)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and says in err, err
+    assert shift.parse_overrides(['ray_sampling="edges"', "rays_per_iteration=2048"]) == {
+        "ray_sampling": "edges", "rays_per_iteration": 2048}
     monkeypatch.setitem(sys.modules, "mitsuba", None)
     assert main(["bench", "shift", "--work", str(tmp_path)]) == 2
     assert "install the extra: pip install 'narf[realism]'" in capsys.readouterr().err

@@ -1,0 +1,150 @@
+"""Which pixels the refiner looks at, and how it compares them (issue #15): stratified and edge rays,
+more rays for a larger box, gain/bias compensation, robust costs and
+occlusion gating in the Adam refiner's loss; on the analytic toy clamp of tests/test_estimate.py."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from narf_core.estimate import (
+    EstimateInputError,
+    EstimateOptions,
+    _gain_bias,
+    _mask_box,
+    _observation,
+    _occluded,
+    _box_scale,
+    _ray_index,
+    _robust,
+    _stratified,
+    refine,
+)
+from tests.test_estimate import ASSETS, CAMERA, TRUTH, SliderField, make_model, observe, perturbed, view
+
+FAST = dict(iterations=80, rays_per_iteration=512, lr_pose=0.02, theta_starts=1, uncertainty=False)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return make_model(SliderField(), ASSETS)
+
+
+def _disc(h: int, w: int, radius: float) -> np.ndarray:
+    v, u = np.mgrid[:h, :w]
+    return (u - w / 2) ** 2 + (v - h / 2) ** 2 <= radius**2
+
+
+def test_stratified_rays_put_one_ray_in_every_cell():
+    """A 40x40 box and 100 rays: a 10x10 grid of 4x4-pixel cells, one ray in each (independent draws
+    would leave about a third of the cells empty)."""
+    index = _stratified((40, 40), 100, torch.Generator().manual_seed(0))
+    v, u = index // 40, index % 40
+    cells = (v // 4) * 10 + u // 4
+    assert sorted(cells.tolist()) == list(range(100))
+    more = _stratified((30, 50), 4000, torch.Generator().manual_seed(1))  # more rays than pixels: all in the box
+    assert len(more) == 4000 and 0 <= int(more.min()) and int(more.max()) < 1500
+
+
+def test_edge_rays_lie_on_the_mask_edge():
+    """``ray_sampling = "edges"``: half the rays drawn on the mask's edge band (a small share of the
+    box), so most of those land in it; ``"auto"`` switches to it in a box above the reference size."""
+    mask = _disc(240, 320, 60)
+    image = np.zeros((240, 320, 3), np.uint8)
+    obs = _observation(image, mask, None, _mask_box(mask, 0.15), 1, "cpu")
+    u, v = obs.pixels[:, 0].numpy(), obs.pixels[:, 1].numpy()
+    distance = np.abs(np.hypot(u + 0.5 - 160, v + 0.5 - 120) - 60)
+    band = distance <= 2.5
+    assert band.mean() < 0.15
+    index = _ray_index(obs, EstimateOptions(ray_sampling="edges"), 1024, torch.Generator().manual_seed(0), False)
+    assert band[index.numpy()].mean() > 0.4
+    uniform = _ray_index(obs, EstimateOptions(), 1024, torch.Generator().manual_seed(0), False)
+    assert band[uniform.numpy()].mean() < 0.2
+    auto = EstimateOptions(ray_sampling="auto")  # uniform in a box of the reference size, edges in a larger one
+    assert torch.equal(_ray_index(obs, auto, 1024, torch.Generator().manual_seed(0), False), uniform)
+    obs.scale = 2
+    assert torch.equal(_ray_index(obs, auto, 1024, torch.Generator().manual_seed(0), False), index)
+
+
+def test_a_larger_box_draws_more_rays(model, monkeypatch):
+    """``reference_box_px``: a box k times that side (at least 1, at most 4) draws k times the rays
+    per iteration; 0 = off."""
+    big, small = (100, 50, 400, 250), (10, 10, 90, 60)  # (u0, v0, u1, v1): 300 and 80 pixels wide
+    opts = EstimateOptions(reference_box_px=120)
+    assert _box_scale(big, opts) == 2.5 and _box_scale(small, opts) == 1
+    assert _box_scale(big, EstimateOptions()) == 1
+    assert _box_scale(big, EstimateOptions(reference_box_px=10)) == 4  # capped
+    with pytest.raises(EstimateInputError, match="options.reference_box_px"):
+        EstimateOptions(reference_box_px=-1)
+
+    import narf_core.estimate as estimate
+
+    drawn = []
+    real = estimate._ray_index
+    monkeypatch.setattr(estimate, "_ray_index", lambda obs, o, n, *a: drawn.append(n) or real(obs, o, n, *a))
+    T = view()
+    image, mask, _ = observe(model, T, TRUTH)
+    run = dict(iterations=3, rays_per_iteration=64, theta_starts=1, uncertainty=False, early_stop=False)
+    refine(model, image, mask, CAMERA, T, joints_init=TRUTH, options=EstimateOptions(**run))
+    refine(model, image, mask, CAMERA, T, joints_init=TRUTH, options=EstimateOptions(reference_box_px=8, **run))
+    assert drawn == [64] * 3 + [256] * 3
+
+
+def test_gain_and_bias_are_recovered_in_closed_form():
+    """An observation 0.7x as bright plus 0.1 (per channel), premultiplied by the mask; rays off the
+    mask or off the render do not count."""
+    g = torch.Generator().manual_seed(0)
+    n = 200
+    colour = torch.rand(1, n, 3, generator=g) * 0.8 + 0.1
+    opacity = torch.ones(1, n)
+    opacity[0, :20] = 0.0  # not rendered: ignored
+    mask = torch.ones(n)
+    mask[20:40] = 0.0  # not the object: ignored
+    observed = (0.7 * colour[0] + torch.tensor([0.1, 0.05, 0.0])) * mask[:, None]
+    observed[:20] = 0.9
+    gain, bias = _gain_bias(colour * opacity[..., None], opacity, observed, mask, torch.ones(1, n, dtype=torch.bool))
+    assert torch.allclose(gain, torch.full((1, 3), 0.7), atol=1e-4)
+    assert torch.allclose(bias, torch.tensor([[0.1, 0.05, 0.0]]), atol=1e-4)
+    few = torch.zeros(1, n, dtype=torch.bool)
+    gain, bias = _gain_bias(colour, opacity, observed, mask, few)  # too few rays: identity
+    assert torch.equal(gain, torch.ones(1, 3)) and torch.equal(bias, torch.zeros(1, 3))
+
+
+def test_robust_costs_match_the_square_for_small_residuals_and_grow_slower():
+    r2 = torch.tensor([1e-4, 0.01, 1.0])
+    for kind in ("huber", "cauchy"):
+        cost = _robust(r2, kind, 0.1)
+        assert torch.allclose(cost[0], r2[0], rtol=0.01)
+        assert float(cost[2]) < 0.25 * float(r2[2])
+    assert torch.equal(_robust(r2, "none", 0.1), r2)
+
+
+def test_rays_behind_an_occluder_are_flagged():
+    """Observed depth well in front of the rendered surface: an occluder; within the margin, behind,
+    without a return or off the render: not."""
+    depth = torch.tensor([0.30, 0.49, 0.60, 0.0, 0.30])
+    opacity = torch.tensor([[1.0, 1.0, 1.0, 1.0, 0.1]])
+    rendered = 0.5 * opacity  # opacity-weighted surface depth 0.5 m
+    assert _occluded(depth, rendered, opacity, 0.02).tolist() == [[True, False, False, False, False]]
+
+
+def test_compensation_recovers_a_darker_view_with_adam(model):
+    """The Adam refiner with ``photometric_compensation`` under a global gain and offset, and with
+    occlusion gating and robust costs against a near occluder in the depth."""
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    dark = (image.astype(np.float64) * 0.6 + 12).clip(0, 255).astype(np.uint8)
+    T0 = perturbed(T, 5, 0.01, seed=2)
+    start = refine(model, dark, mask, CAMERA, T0, options=EstimateOptions(iterations=0, uncertainty=False),
+                   ground_truth=(T, TRUTH))
+    comp = refine(model, dark, mask, CAMERA, T0, ground_truth=(T, TRUTH),
+                  options=EstimateOptions.robust(photometric_compensation=True, **FAST))
+    assert comp.metrics["add"] < min(0.006, start.metrics["add"] / 2), (start.metrics, comp.metrics)
+    occluded = depth.copy()
+    rows = depth.shape[0] // 3
+    occluded[:rows] = np.where(depth[:rows] > 0, 0.05, 0)  # a near occluder over the top third
+    gated = refine(model, image, mask, CAMERA, T0, depth=occluded, ground_truth=(T, TRUTH),
+                   options=EstimateOptions.robust(occlusion_margin=0.01, robust_loss="cauchy", robust_scale=0.3,
+                                                  ray_sampling="stratified", **FAST))
+    assert gated.metrics["add"] < 0.006, gated.metrics
