@@ -33,11 +33,13 @@ import math
 import time as _time
 from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field, fields
+from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
+from narf_core.checks import check_number, check_pose
 from narf_core.estimate import MIN_MASK_PIXELS, EstimateInputError, EstimateOptions, EstimateResult, refine
 from narf_core.geometry import Pinhole, so3_exp, so3_log
 
@@ -56,14 +58,15 @@ class TrackInputError(EstimateInputError):
 class TrackOptions:
     """Tracker settings (plain JSON-able fields).
 
-    ``iterations``/``rays_per_iteration``: the refiner's budget per frame from the prediction;
+    ``iterations``/``rays_per_iteration``: the refiner's budget per frame from the prediction (few
+    iterations on many rays: an iteration's cost is mostly per render call, little per ray);
     ``reinit_iterations``/``reinit_theta_starts``: that of a re-initialisation (multi-start,
     coarse-to-fine). ``solver``: the refiner's solver preset where :mod:`narf_core.estimate` has
     several ("adam" is the robust preset with one start).
     """
 
-    iterations: int = 10
-    rays_per_iteration: int = 256
+    iterations: int = 6
+    rays_per_iteration: int = 768
     lr_pose: float = 0.003  # Adam moves every parameter by about its rate per step: small, from a close start
     lr_theta: float = 0.01
     lr_decay: float = 0.5
@@ -75,6 +78,8 @@ class TrackOptions:
     ray_sampling_rgb: str = "edges"
     solver: str = "adam"
     mode: str = "narf"
+    band_m: float = 0.0  # march only this far around the model's surface (EstimateOptions.band_m); 0 = off
+    eval_rays: int = 512  # rays of the final loss (only reported: one start, nothing to choose between)
     uncertainty_rays: int = 256  # rays for Σ per frame; 0 = no Σ
     reinit_solver: str = "robust"
     reinit_iterations: int = 100
@@ -83,8 +88,9 @@ class TrackOptions:
     max_gap_s: float = 0.25  # longer since the last estimate: no prediction, re-initialise
     lost_overlap: float = 0.35
     uncertain_overlap: float = 0.6
-    max_position_sigma_m: float = 0.01
-    max_rotation_sigma_deg: float = 5.0
+    # Σ includes the model's error (estimate.model_error): a good 160x120 frame at 0.6 m has σ 5-10 mm.
+    max_position_sigma_m: float = 0.02
+    max_rotation_sigma_deg: float = 10.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -115,11 +121,14 @@ class TrackOptions:
         for name in ("ray_sampling", "ray_sampling_rgb"):
             need(getattr(self, name) in ("uniform", "edges"), name, "must be 'uniform' or 'edges'")
         need(self.mode in ("narf", "parts"), "mode", "must be 'narf' or 'parts'")
+        need(self.band_m == 0 or 0.001 <= self.band_m <= 1, "band_m", "must be 0 (off) or in [0.001, 1] metres")
+        need(self.eval_rays >= 16, "eval_rays", "must be >= 16")
 
     def step_options(self, depth: bool) -> EstimateOptions:
         """The refiner's options for a warm-started frame."""
         common = {"iterations": self.iterations, "rays_per_iteration": self.rays_per_iteration, "mode": self.mode,
                   "theta_starts": 1, "coarse_to_fine": 1, "early_stop": False, "seed": self.seed,
+                  "band_m": self.band_m, "eval_rays": self.eval_rays,
                   "ray_sampling": self.ray_sampling if depth else self.ray_sampling_rgb,
                   "uncertainty": self.uncertainty_rays > 0, "uncertainty_rays": max(self.uncertainty_rays, 16)}
         if self.solver != "adam":
@@ -131,7 +140,7 @@ class TrackOptions:
     def reinit_options(self) -> EstimateOptions:
         """The multi-start refiner's options for a re-initialisation."""
         return EstimateOptions.preset(self.reinit_solver, iterations=self.reinit_iterations, mode=self.mode,
-                                      theta_starts=self.reinit_theta_starts, seed=self.seed,
+                                      theta_starts=self.reinit_theta_starts, seed=self.seed, band_m=self.band_m,
                                       uncertainty=self.uncertainty_rays > 0, uncertainty_rays=max(self.uncertainty_rays, 16))
 
 
@@ -236,31 +245,13 @@ class TrackResult:
 # checks
 
 
-def _finite(value, name: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)) or not math.isfinite(value):
-        raise TrackInputError(f"{name} must be a finite number, got {value!r}")
-    return float(value)
-
-
-def _pose(T, name: str) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64) if np.asarray(T).dtype != object else np.asarray(T)
-    if T.shape != (4, 4) or not np.issubdtype(T.dtype, np.number) or not np.isfinite(T).all():
-        raise TrackInputError(f"{name} must be a finite 4x4 pose")
-    R = T[:3, :3]
-    if np.abs(R.T @ R - np.eye(3)).max() > 1e-3 or np.linalg.det(R) < 0 or not np.allclose(T[3], [0, 0, 0, 1]):
-        raise TrackInputError(f"{name} is not a rigid pose (orthonormal rotation, last row [0, 0, 0, 1])")
-    return T.copy()
+# The core's rules (narf_core/checks.py), raising TrackInputError.
+_finite = partial(check_number, error=TrackInputError)
+_pose = partial(check_pose, error=TrackInputError)
 
 
 def _joints(model: NarfModel, joints: Mapping[str, float] | None, name: str) -> dict[str, float]:
-    if joints is not None and not isinstance(joints, Mapping):
-        raise TrackInputError(f"{name} must be a mapping {{joint name: value}}")
-    for key, value in (joints or {}).items():
-        _finite(value, f"{name}.{key}")
-    try:
-        return model.joint_dict(model.kinematics.joint_vector(joints))
-    except ValueError as e:
-        raise TrackInputError(f"{name}: {e}") from None
+    return model.joint_dict(model.kinematics.joint_vector(joints, field=name, error=TrackInputError))
 
 
 # --------------------------------------------------------------------------------------------
@@ -347,12 +338,19 @@ def overlap(model: NarfModel, camera: Pinhole, mask: np.ndarray, T_cam_obj: np.n
     px = np.floor(uv).astype(np.int64)
     in_image = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
     spacing = max(1, int(math.ceil(math.sqrt(n_mask / max(1, int(in_image.sum()))))))
-    grown = _box_dilate(mask, max(1, spacing // 2))
     if not in_image.any():
         return 0.0
-    inside = float(grown[px[in_image, 1], px[in_image, 0]].sum()) / int(in_image.sum())  # the image shows no more
+    px = px[in_image]
+    # The same sums on the crop around the mask and the points, grown by the widest dilation (nothing
+    # outside it is set or reached), instead of the whole image.
+    v, u = np.nonzero(mask)
+    u0, v0 = max(0, min(u.min(), px[:, 0].min()) - spacing - 1), max(0, min(v.min(), px[:, 1].min()) - spacing - 1)
+    u1, v1 = min(w, max(u.max(), px[:, 0].max()) + spacing + 2), min(h, max(v.max(), px[:, 1].max()) + spacing + 2)
+    mask, px = mask[v0:v1, u0:u1], px - np.array([u0, v0])
+    grown = _box_dilate(mask, max(1, spacing // 2))
+    inside = float(grown[px[:, 1], px[:, 0]].sum()) / len(px)  # the image shows no more
     splat = np.zeros_like(mask)
-    splat[px[in_image, 1], px[in_image, 0]] = True
+    splat[px[:, 1], px[:, 0]] = True
     covered = float((_box_dilate(splat, spacing) & mask).sum()) / n_mask
     return min(inside, covered)
 

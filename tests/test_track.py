@@ -133,7 +133,7 @@ def test_track_follows_the_clamp(clamp, clamp_sequence: Path, rgb_only: bool) ->
     jaw = [abs(r.joints["jaw_opening"] - f.joints["jaw_opening"]) for f, r in zip(frames, results)]
     assert max(jaw) < 0.02
     assert all(r.uncertainty is not None and np.isfinite(r.covariance).all() for r in results)
-    assert all(r.iterations == 10 for r in results[1:])  # a few iterations per frame
+    assert all(r.iterations == TrackOptions().iterations for r in results[1:])  # a few iterations per frame
 
 
 def test_track_bad_input_and_faults(clamp, clamp_sequence: Path) -> None:
@@ -175,6 +175,95 @@ def test_track_bad_input_and_faults(clamp, clamp_sequence: Path) -> None:
     # depth missing in the middle: RGB only for that frame, still tracked
     rgb_only, _ = step(clamp, camera, TrackFrame(images.rgb, images.labels > 0, 0.033), after, options)
     assert rgb_only.status in ("tracking", "uncertain") and all(math.isfinite(v) for v in rgb_only.joints.values())
+
+
+def test_band_and_frame_options_are_validated() -> None:
+    from narf_core.estimate import EstimateInputError, EstimateOptions
+    from narf_core.track import TrackInputError, TrackOptions
+
+    for bad in (-0.01, 0.0005, 2.0, math.nan):
+        with pytest.raises(EstimateInputError, match=r"options\.band_m"):
+            EstimateOptions(band_m=bad)
+        with pytest.raises(TrackInputError, match=r"options\.band_m"):
+            TrackOptions(band_m=bad)
+    with pytest.raises(EstimateInputError, match=r"options\.eval_rays must be >= 16"):
+        EstimateOptions(eval_rays=8)
+    with pytest.raises(TrackInputError, match=r"options\.eval_rays must be >= 16"):
+        TrackOptions(eval_rays=0)
+    assert EstimateOptions.preset("paper").band_m == 0  # off in the paper's protocol
+    step = TrackOptions(band_m=0.02, eval_rays=512).step_options(True)
+    assert step.band_m == 0.02 and step.eval_rays == 512
+
+
+def test_band_renders_what_the_whole_box_renders(clamp, clamp_sequence: Path) -> None:
+    """Marching only the band around the surface points (and no ray that none projects near) gives the
+    full march's image of the clamp's box, from fewer live rays; a pose half behind the camera gets no band."""
+    import torch
+
+    from narf_core.band import ray_band
+    from narf_core.data.dataset import Dataset
+    from narf_core.estimate import _object_rays
+    from narf_core.geometry import se3_exp
+    from narf_core.render import box_pixels
+
+    dataset = Dataset.open(clamp_sequence)
+    camera = dataset.camera
+    frame = dataset.frames()[3]
+    moved = se3_exp(torch.tensor([0.01, -0.01, 0.02, 0.1, -0.2, 0.1], dtype=torch.float64)) @ torch.tensor(frame.T_cam_obj)
+    for T, theta in ((torch.tensor(frame.T_cam_obj), clamp.kinematics.joint_vector(frame.joints)),
+                     (moved, clamp.kinematics.joint_vector({"jaw_opening": clamp.joints[0].upper}))):
+        rays_cam = camera.rays(box_pixels(camera, T.float(), clamp.aabb))
+        rays = _object_rays(rays_cam, T[None])
+        near, far = ray_band(clamp, camera, rays_cam, T[None], theta[None], 0.01)
+        outputs = ("rgb", "opacity", "depth")
+        with torch.no_grad():
+            full = clamp.render_rays(rays, theta.float(), outputs=outputs)
+            band = clamp.render_rays(rays, theta.float(), outputs=outputs, t_range=(near, far))
+        culled = far <= near
+        assert culled.float().mean() > 0.3  # most of the box's rays are never marched
+        assert float(full.opacity[culled].max()) < 0.5 and float(full.opacity[~culled].max()) > 0.99
+        assert float((band.opacity - full.opacity).abs().mean()) < 1e-3
+        assert float(((band.opacity - full.opacity).abs() > 0.05).float().mean()) < 2e-3
+        assert float((band.rgb - full.rgb).abs().mean()) < 1e-3
+    behind = torch.tensor(frame.T_cam_obj)
+    behind[2, 3] = 0.0  # the camera inside the object: no band can be trusted
+    assert ray_band(clamp, camera, camera.rays(torch.zeros(4, 2)), behind[None], theta[None], 0.01) is None
+
+
+@pytest.mark.parametrize("preset, mode", [("robust", "narf"), ("robust", "parts"), ("gauss-newton", "narf")])
+def test_refine_with_the_band_on_several_starts(clamp, clamp_sequence: Path, preset: str, mode: str) -> None:
+    """The band goes with every start's rays (one batch in narf mode, one call per start in parts
+    mode, the Gauss-Newton residuals): a short multi-start refine from the label stays near it."""
+    from narf_core.data.dataset import Dataset
+    from narf_core.estimate import EstimateOptions, refine
+    from narf_core.track_io import score
+
+    dataset = Dataset.open(clamp_sequence)
+    frame = dataset.frames()[2]
+    images = dataset.load(frame)
+    options = EstimateOptions.preset(preset, band_m=0.01, iterations=4, theta_starts=2, mode=mode,
+                                     rays_per_iteration=256, uncertainty=False)
+    result = refine(clamp, images.rgb, images.labels > 0, dataset.camera, frame.T_cam_obj,
+                    joints_init=frame.joints, depth=images.depth, options=options)
+    assert result.status in ("max_iterations", "converged") and result.loss is not None and np.isfinite(result.loss)
+    assert score(clamp, frame, result)["add_m"] < 0.01
+
+
+def test_track_with_the_band_follows_the_clamp(clamp, clamp_sequence: Path) -> None:
+    from narf_core.data.dataset import Dataset
+    from narf_core.track import TrackOptions, TrackState, step
+    from narf_core.track_io import score, sequence_frames
+
+    dataset = Dataset.open(clamp_sequence)
+    frames = sequence_frames(dataset)[:5]
+    options = TrackOptions(band_m=0.01, uncertainty_rays=0)
+    state = TrackState.initial(clamp, frames[0].T_cam_obj, frames[0].joints, frames[0].time, status="tracking")
+    errors = []
+    for frame, observed in zip(frames, _frames(dataset, frames)):
+        result, state = step(clamp, dataset.camera, observed, state, options)
+        assert result.status == "tracking"
+        errors.append(score(clamp, frame, result)["add_m"])
+    assert np.mean(errors) < 0.006 and max(errors) < 0.01
 
 
 def test_overlap_separates_right_from_wrong(clamp, clamp_sequence: Path) -> None:
