@@ -40,7 +40,7 @@ import numpy as np
 import torch
 
 from narf_core.checks import check_number, check_pose
-from narf_core.estimate import MIN_MASK_PIXELS, EstimateInputError, EstimateOptions, EstimateResult, refine
+from narf_core.estimate import MIN_MASK_PIXELS, SOLVERS, EstimateInputError, EstimateOptions, EstimateResult, refine
 from narf_core.geometry import Pinhole, so3_exp, so3_log
 
 if TYPE_CHECKING:
@@ -96,7 +96,8 @@ class TrackOptions:
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, what: str) -> None:
             if not ok:
-                raise TrackInputError(f"options.{name} {what}, got {getattr(self, name)!r}")
+                reason = f"{what}, got {getattr(self, name)!r}"
+                raise TrackInputError(f"options.{name} {reason}", f"options.{name}", reason)
 
         for f in fields(self):
             value = getattr(self, f.name)
@@ -113,8 +114,8 @@ class TrackOptions:
         need(self.max_gap_s > 0, "max_gap_s", "must be > 0")
         need(0 <= self.lost_overlap <= self.uncertain_overlap <= 1, "lost_overlap",
              "must satisfy 0 <= lost_overlap <= uncertain_overlap <= 1")
-        need(self.solver in solvers(), "solver", f"must be one of {', '.join(solvers())}")
-        need(self.reinit_solver in ("robust", *solvers()[1:]), "reinit_solver", "must be 'robust' or 'gauss-newton'")
+        need(self.solver in SOLVERS, "solver", f"must be one of {', '.join(SOLVERS)}")
+        need(self.reinit_solver in ("robust", "gauss-newton"), "reinit_solver", "must be 'robust' or 'gauss-newton'")
         need(self.uncertainty_rays >= 0, "uncertainty_rays", "must be >= 0")
         need(self.silhouette_weight >= 0, "silhouette_weight", "must be >= 0")
         need(self.silhouette_weight_rgb >= 0, "silhouette_weight_rgb", "must be >= 0")
@@ -142,15 +143,6 @@ class TrackOptions:
         return EstimateOptions.preset(self.reinit_solver, iterations=self.reinit_iterations, mode=self.mode,
                                       theta_starts=self.reinit_theta_starts, seed=self.seed, band_m=self.band_m,
                                       uncertainty=self.uncertainty_rays > 0, uncertainty_rays=max(self.uncertainty_rays, 16))
-
-
-def solvers() -> tuple[str, ...]:
-    """The refiner solvers this build has ("adam", and "gauss-newton" where estimate offers it)."""
-    try:
-        EstimateOptions.preset("gauss-newton")
-    except (EstimateInputError, TypeError, ValueError):
-        return ("adam",)
-    return ("adam", "gauss-newton")
 
 
 @dataclass

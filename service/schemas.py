@@ -20,6 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator
 from narf_core.checks import ROTATION_TOLERANCE, check_pose
 from narf_core.estimate import MODES, PRESETS, RAY_SAMPLINGS, ROBUST_LOSSES, SOLVERS, EstimateOptions
 from narf_core.geometry import pose_from_position_quaternion, pose_to_position_quaternion
+from narf_core.track import TrackOptions
 from narf_service.registry import MODEL_NAME_MAX, MODEL_NAME_PATTERN
 
 MAX_COORDINATE = 1e3  # metres: a pose farther than a kilometre is a unit mistake
@@ -238,30 +239,31 @@ _OPTION_CHOICES = {"mode": MODES, "solver": SOLVERS, "robust_loss": ROBUST_LOSSE
 _OPTION_TYPES = {"int": int, "float": float, "bool": bool}
 
 
-def _refine_options_model() -> type[StrictModel]:
-    """``RefineOptions``, built from ``EstimateOptions``' fields (types, choices, defaults) and
-    ``_REFINE_OPTIONS``; every field optional: one left out keeps the preset's value."""
-    core = {f.name: f for f in dataclasses.fields(EstimateOptions)}
-    fields: dict[str, Any] = {
-        "preset": (Optional[Literal[PRESETS]], Field(None, description="The starting set of options (default: paper)")),
-    }
-    for name, (meaning, caps) in _REFINE_OPTIONS.items():
-        spec = core[name]
-        kind = Literal[_OPTION_CHOICES[name]] if name in _OPTION_CHOICES else _OPTION_TYPES[spec.type]
-        extra = {"allow_inf_nan": False} if kind is float else {}
-        description = f"{meaning}. Left out: the preset's value (paper: {json.dumps(spec.default)})"
-        fields[name] = (Optional[kind], Field(None, description=description, **caps, **extra))
-    return create_model(
-        "RefineOptions",
-        __base__=StrictModel,
-        __doc__="Refiner settings (``narf_core.estimate.EstimateOptions``); a field left out keeps the value of "
-        "the preset (``paper``, the default, follows the paper; ``robust`` adds silhouette and depth terms, "
-        "several joint starts and coarse-to-fine; ``gauss-newton`` uses Levenberg-Marquardt steps).",
-        **fields,
-    )
+def _options_model(
+    name: str, core: type, exposed: dict[str, tuple[str, dict[str, float]]], default_of: str, doc: str,
+    **extra: Any,
+) -> type[StrictModel]:
+    """A request's options, built from the core dataclass ``core``'s fields (types, choices, defaults)
+    for the names in ``exposed`` (what each means, the caps on its cost); every field optional: one
+    left out keeps ``default_of``'s value. ``extra``: fields that are the request's own."""
+    specs = {f.name: f for f in dataclasses.fields(core)}
+    fields: dict[str, Any] = dict(extra)
+    for field, (meaning, caps) in exposed.items():
+        spec = specs[field]
+        kind = Literal[_OPTION_CHOICES[field]] if field in _OPTION_CHOICES else _OPTION_TYPES[spec.type]
+        allow = {"allow_inf_nan": False} if kind is float else {}
+        description = f"{meaning}. Left out: {default_of}'s value ({json.dumps(spec.default)})"
+        fields[field] = (Optional[kind], Field(None, description=description, **caps, **allow))
+    return create_model(name, __base__=StrictModel, __doc__=doc, **fields)
 
 
-RefineOptions = _refine_options_model()
+RefineOptions = _options_model(
+    "RefineOptions", EstimateOptions, _REFINE_OPTIONS, "the preset (paper)",
+    "Refiner settings (``narf_core.estimate.EstimateOptions``); a field left out keeps the value of "
+    "the preset (``paper``, the default, follows the paper; ``robust`` adds silhouette and depth terms, "
+    "several joint starts and coarse-to-fine; ``gauss-newton`` uses Levenberg-Marquardt steps).",
+    preset=(Optional[Literal[PRESETS]], Field(None, description="The starting set of options (default: paper)")),
+)
 
 
 class UncertaintyOut(BaseModel):
@@ -365,13 +367,19 @@ class ErrorResponse(BaseModel):
     error: ErrorDetail
 
 
-class TrackOptionsIn(StrictModel):
-    """Tracker settings a request may change (the rest are the server's, see narf_core.track.TrackOptions)."""
+_TRACK_OPTIONS: dict[str, tuple[str, dict[str, float]]] = {
+    # The fields of TrackOptions a request may set, with the caps on one frame's cost (the validity
+    # rules are TrackOptions', applied when the options are built: a 422 naming request.options.<field>).
+    "iterations": ("Refiner iterations per frame", {"le": 200}),
+    "rays_per_iteration": ("Rays rendered per iteration", {"ge": 16, "le": 8192}),
+    "solver": ("The per-frame solver", {}),
+}
 
-    iterations: int | None = Field(None, ge=1, le=200, description="Refiner iterations per frame (default 6)")
-    rays_per_iteration: int | None = Field(None, ge=16, le=8192)
-    solver: Literal["adam", "gauss-newton"] | None = None
-    uncertainty: bool | None = Field(None, description="Compute Σ per frame (default true)")
+TrackOptionsIn = _options_model(
+    "TrackOptionsIn", TrackOptions, _TRACK_OPTIONS, "the tracker",
+    "Tracker settings a request may change (``narf_core.track.TrackOptions``; the rest are the server's).",
+    uncertainty=(Optional[bool], Field(None, description="Compute Σ per frame (default true)")),
+)
 
 
 class TrackRequest(StrictModel):

@@ -171,8 +171,8 @@ async def track(
         overrides["uncertainty_rays"] = 0
     try:
         options = TrackOptions(**overrides)
-    except TrackInputError as e:
-        raise invalid("request.options", str(e)) from None
+    except TrackInputError as e:  # the core's rule, named as the request's field
+        raise invalid("request." + (e.field or "options"), e.reason) from None
     uploads = {"image": await image.read(), "mask": await mask.read() if mask is not None else None,
                "depth": await depth.read() if depth is not None else None}
     return await run_job(request, lambda stop: _track_frame(key, params, model, state, options, uploads,

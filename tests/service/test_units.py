@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import io
+import json
 import math
 import os
 import threading
@@ -293,3 +294,19 @@ def test_serve_process_reports_a_server_that_does_not_start(tmp_path) -> None:
     with pytest.raises(RuntimeError, match=r"narf serve exited with 2 .*models folder .*absent does not exist"):
         with serve_process(["--models", str(tmp_path / "absent")], startup_timeout_s=30):
             pass
+
+
+def test_track_options_come_from_the_core_tracker() -> None:
+    from narf_core.track import TrackInputError, TrackOptions
+    from narf_service.schemas import TrackOptionsIn
+
+    props = TrackOptionsIn.model_json_schema()["properties"]
+    core = TrackOptions()
+    for name in ("iterations", "rays_per_iteration", "solver"):
+        assert props[name]["description"].endswith(f"the tracker's value ({json.dumps(getattr(core, name))})"), name
+    assert TrackOptionsIn(solver="gauss-newton").solver == "gauss-newton"
+    with pytest.raises(ValueError, match="solver"):
+        TrackOptionsIn(solver="newton")
+    with pytest.raises(TrackInputError) as info:
+        TrackOptions(iterations=0)
+    assert info.value.field == "options.iterations" and info.value.reason == "must be >= 1, got 0"
