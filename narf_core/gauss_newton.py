@@ -72,6 +72,7 @@ _FD_THETA = 1e-3  # forward-difference step for θ in parts mode, as a fraction 
 _MAX_FAILURES = 8
 _STEP_FACTORS = (1.0, 2.0, 4.0)  # multiples of the LM step tried, in order, while the cost keeps falling
 _GROUP = 4  # jittered rays averaged per pixel at a coarse pyramid level
+_INFORMATION_CHUNK = 256  # rays linearised at once for the covariance (bounds its render graph's memory)
 
 
 # --------------------------------------------------------------------------------------------
@@ -586,27 +587,38 @@ def cluster_sample(
 
 def information(
     problem: Problem, obs: _Observation, camera: Pinhole, chain: Chain, p: Tensor, index: Tensor, cluster: Tensor,
-    weight: Tensor,
+    weight: Tensor, chunk: int = _INFORMATION_CHUNK,
 ) -> Information | None:
     """:class:`Information` at ``p [1, d]`` from the box pixels ``index [n]`` in clusters ``cluster [n]``
-    of weights ``weight [m]``; ``None`` when the render is not finite."""
-    res = problem.residuals(chain, p, camera.rays(obs.pixels[index].to(torch.float32)), obs.levels[-1], index, True)
-    J, r = res.J[0], res.r[0]  # [n, 5, d], [n, 5]
-    if not (bool(torch.isfinite(J).all()) and bool(torch.isfinite(r).all())):
-        return None
-    # Residuals that are exactly zero with a zero Jacobian row (empty background on both sides) carry
-    # no information and would only dilute σ².
-    informative = res.used[0] & ((J.abs().sum(-1) > 0) | (r != 0))
+    of weights ``weight [m]``; ``None`` when the render is not finite. Every field is a sum over rays
+    (``B`` over cluster scores, themselves sums over rays), so the rays go ``chunk`` at a time: one
+    chunk's render graph is alive at once, whatever ``n``."""
     opts = problem.options
-    w = robust_weights(r, opts.robust_loss, opts.robust_scale) * informative  # [n, 5]
-    ray_weight = weight[cluster][:, None]  # [n, 1]
-    H = torch.einsum("nci,nc,ncj->ij", J, w * ray_weight, J)
-    score = torch.einsum("nci,nc->ni", J, w * r)  # [n, d]
-    G = score.new_zeros(len(weight), score.shape[1]).index_add(0, cluster, score)  # [m, d] cluster scores
-    B = (G * weight[:, None]).T @ G
-    colour = informative[:, :3] * ray_weight
-    return Information(H, B, float((ray_weight * w * r**2).sum()), float((ray_weight * informative).sum()),
-                       float((colour * r[:, :3] ** 2).sum()), float(colour.sum()))
+    H = G = None
+    rss = count = colour_ss = colour_count = 0.0
+    for start in range(0, len(index), chunk):
+        part, part_cluster = index[start:start + chunk], cluster[start:start + chunk]
+        res = problem.residuals(chain, p, camera.rays(obs.pixels[part].to(torch.float32)), obs.levels[-1], part, True)
+        J, r = res.J[0], res.r[0]  # [c, 5, d], [c, 5]
+        if not (bool(torch.isfinite(J).all()) and bool(torch.isfinite(r).all())):
+            return None
+        # Residuals that are exactly zero with a zero Jacobian row (empty background on both sides)
+        # carry no information and would only dilute σ².
+        informative = res.used[0] & ((J.abs().sum(-1) > 0) | (r != 0))
+        w = robust_weights(r, opts.robust_loss, opts.robust_scale) * informative  # [c, 5]
+        ray_weight = weight[part_cluster][:, None]  # [c, 1]
+        h = torch.einsum("nci,nc,ncj->ij", J, w * ray_weight, J)
+        score = torch.einsum("nci,nc->ni", J, w * r)  # [c, d]
+        g = score.new_zeros(len(weight), score.shape[1]).index_add(0, part_cluster, score)  # [m, d] cluster scores
+        H, G = (h, g) if H is None else (H + h, G + g)
+        colour = informative[:, :3] * ray_weight
+        rss += float((ray_weight * w * r**2).sum())
+        count += float((ray_weight * informative).sum())
+        colour_ss += float((colour * r[:, :3] ** 2).sum())
+        colour_count += float(colour.sum())
+    if H is None:
+        return None
+    return Information(H, (G * weight[:, None]).T @ G, rss, count, colour_ss, colour_count)
 
 
 def prior_precision(param: _Parameterisation) -> Tensor:

@@ -351,6 +351,21 @@ def test_the_weighted_subsample_of_the_information_is_unbiased():
     assert torch.allclose(mean.diagonal(), H.diagonal(), rtol=0.05)
 
 
+def test_the_information_is_the_same_whatever_the_chunk_of_rays():
+    """The rays are linearised a chunk at a time (to bound memory); every field is a sum over rays
+    or over cluster scores, so the chunking must not change it, even with clusters split across chunks."""
+    A, y, obs, param = linear_case()
+    problem = LinearProblem(A, y)
+    index, cluster, weight = gauss_newton.cluster_sample(obs.pixels, obs.importance, 2, 300, torch.Generator().manual_seed(0))
+    whole = gauss_newton.information(problem, obs, Pinhole.primesense(64, 48), None, None, index, cluster, weight, chunk=len(index))
+    split = gauss_newton.information(problem, obs, Pinhole.primesense(64, 48), None, None, index, cluster, weight, chunk=7)
+    assert whole.B.abs().max() > 0 and whole.rss > 0
+    torch.testing.assert_close(split.H, whole.H)
+    torch.testing.assert_close(split.B, whole.B)
+    assert split.rss == pytest.approx(whole.rss) and split.count == pytest.approx(whole.count)
+    assert split.colour_ss == pytest.approx(whole.colour_ss) and split.colour_count == pytest.approx(whole.colour_count)
+
+
 def test_estimating_imports_neither_torch_dynamo_nor_sympy():
     """The Jacobians are plain reverse mode on scalar outputs: ``torch.func.jacfwd`` imported
     torch._dynamo (about 1.5 s and 66 MiB of resident memory in every process that estimates) and a
