@@ -240,25 +240,26 @@ _OPTION_TYPES = {"int": int, "float": float, "bool": bool}
 
 
 def _options_model(
-    name: str, core: type, exposed: dict[str, tuple[str, dict[str, float]]], default_of: str, doc: str,
+    name: str, core: type, exposed: dict[str, tuple[str, dict[str, float]]], left_out: str, doc: str,
     **extra: Any,
 ) -> type[StrictModel]:
     """A request's options, built from the core dataclass ``core``'s fields (types, choices, defaults)
-    for the names in ``exposed`` (what each means, the caps on its cost); every field optional: one
-    left out keeps ``default_of``'s value. ``extra``: fields that are the request's own."""
+    for the names in ``exposed`` (what each means, the caps on its cost); every field optional, and
+    what one left out means is ``left_out`` (formatted with the core's default). ``extra``: fields
+    that are the request's own."""
     specs = {f.name: f for f in dataclasses.fields(core)}
     fields: dict[str, Any] = dict(extra)
     for field, (meaning, caps) in exposed.items():
         spec = specs[field]
         kind = Literal[_OPTION_CHOICES[field]] if field in _OPTION_CHOICES else _OPTION_TYPES[spec.type]
         allow = {"allow_inf_nan": False} if kind is float else {}
-        description = f"{meaning}. Left out: {default_of}'s value ({json.dumps(spec.default)})"
+        description = f"{meaning}. Left out: {left_out.format(json.dumps(spec.default))}"
         fields[field] = (Optional[kind], Field(None, description=description, **caps, **allow))
     return create_model(name, __base__=StrictModel, __doc__=doc, **fields)
 
 
 RefineOptions = _options_model(
-    "RefineOptions", EstimateOptions, _REFINE_OPTIONS, "the preset (paper)",
+    "RefineOptions", EstimateOptions, _REFINE_OPTIONS, "the preset's value (paper: {})",
     "Refiner settings (``narf_core.estimate.EstimateOptions``); a field left out keeps the value of "
     "the preset (``paper``, the default, follows the paper; ``robust`` adds silhouette and depth terms, "
     "several joint starts and coarse-to-fine; ``gauss-newton`` uses Levenberg-Marquardt steps).",
@@ -376,7 +377,7 @@ _TRACK_OPTIONS: dict[str, tuple[str, dict[str, float]]] = {
 }
 
 TrackOptionsIn = _options_model(
-    "TrackOptionsIn", TrackOptions, _TRACK_OPTIONS, "the tracker",
+    "TrackOptionsIn", TrackOptions, _TRACK_OPTIONS, "the tracker's value ({})",
     "Tracker settings a request may change (``narf_core.track.TrackOptions``; the rest are the server's).",
     uncertainty=(Optional[bool], Field(None, description="Compute Σ per frame (default true)")),
 )
