@@ -12,12 +12,14 @@ import math
 import numpy as np
 import torch
 
-_PAIRWISE_BLOCK = 1 << 21  # distances computed at once (16 MiB of float64)
+PAIRWISE_BLOCK = 1 << 21
+"""Pairwise distances computed at once by brute-force searches (16 MiB of float64)."""
 _EXACT_DIAMETER_MAX = 4096  # up to this many points the diameter is computed over all pairs
 _DIAMETER_DIRECTIONS = 1024  # extreme points along this many directions stand in for larger sets
 
 
-def _points(x, name: str) -> np.ndarray:
+def as_points(x, name: str) -> np.ndarray:
+    """``x`` (array-like or tensor) as float64 ``[n, 3]``; a ValueError naming ``name`` otherwise."""
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().double().numpy()
     try:
@@ -37,7 +39,7 @@ def object_diameter(points) -> float:
     extreme points along 1024 evenly spread directions; the diameter's direction lies within 0.078
     rad of one of them, so the result is at least ``cos(0.078) = 0.997`` of the true value.
     """
-    p = _points(points, "points")
+    p = as_points(points, "points")
     if len(p) == 0:
         raise ValueError("points is empty")
     if len(p) > _EXACT_DIAMETER_MAX:
@@ -46,7 +48,7 @@ def object_diameter(points) -> float:
         p = _extreme_points(p, _sphere_directions(_DIAMETER_DIRECTIONS))
     p = p - p.mean(0)  # centred, |a - b|^2 = |a|^2 + |b|^2 - 2 a.b loses nothing that matters to the max
     sq = (p * p).sum(1)
-    block = max(1, _PAIRWISE_BLOCK // len(p))
+    block = max(1, PAIRWISE_BLOCK // len(p))
     best = 0.0
     for start in range(0, len(p), block):
         d2 = sq[start : start + block, None] + sq[None] - 2 * p[start : start + block] @ p.T
@@ -68,7 +70,7 @@ def _hull_vertices(points: np.ndarray) -> np.ndarray:
 
 def _extreme_points(points: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """The points ``[<= 2 d, 3]`` lowest and highest along each of ``directions [d, 3]``."""
-    block = max(1, _PAIRWISE_BLOCK // len(directions))
+    block = max(1, PAIRWISE_BLOCK // len(directions))
     low = np.full(len(directions), np.inf)
     high = np.full(len(directions), -np.inf)
     arg_low = np.zeros(len(directions), dtype=np.int64)

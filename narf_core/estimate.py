@@ -29,8 +29,8 @@ jaw from mid-range: its 18 cm travel is 7 jaw widths, and where the rendered and
 not overlap the photometric loss is flat in θ. The robust preset does, and the depth term fixes the
 distance that a 160x120 view hardly constrains. ``gauss-newton`` (``solver = "gauss-newton"``,
 narf_core/gauss_newton.py) uses the robust preset's terms with Levenberg-Marquardt steps and Huber
-weights for 30 iterations: about two thirds of the robust preset's CPU time, but on the clamp it
-ends in a worse local minimum more often (``narf bench estimate`` has both), so it is not the default.
+weights for 30 iterations: cheaper than the robust preset, but it ends in a worse local minimum
+more often (``narf bench estimate`` shows both), so it is not the default.
 
 Every estimate carries an :class:`Uncertainty` (``options.uncertainty``): one Gauss-Newton
 linearisation at the optimum, whatever the solver, plus the model's own error (:func:`model_error`).
@@ -60,9 +60,9 @@ far in front of the render) apply to both solvers.
 ``theta_starts = S`` runs S configurations (the given one and S-1 spread over the joint box) as
 ONE batch of ``S * rays_per_iteration / 2`` rays for the first third of the iterations (in
 ``parts`` mode, whose composition takes one configuration, one render call per start), then keeps
-the start with the lowest loss on one fixed set of up to 4096 fine rays. (Measured on the clamp's
-17 test views: the same error as every ray for each start, for about 0.7x the time; keeping the
-best after a quarter kept a wrong jaw start on 1 of the 17.) A non-finite loss or gradient
+the start with the lowest loss on one fixed set of up to 4096 fine rays: half the rays per start
+while the starts compete cost no accuracy, and a third of the iterations is long enough for the
+right jaw start to pull ahead (docs/benchmarks.md). A non-finite loss or gradient
 never reaches the parameters: the best finite iterate is restored, Adam's moments reset and its
 rates halved.
 """

@@ -564,9 +564,8 @@ def cluster_sample(
 
     Clusters are drawn with replacement in proportion to half their share of ``importance [N]`` (the
     observation's edges and texture, where a pose error changes the residuals most) and half their
-    share of pixels: a uniform draw misses the few edge rays that hold most of the information (its
-    σ is off by 30 % in median at a third of the rays on the clamp), the uniform half keeps the
-    weights bounded where the importance is wrong."""
+    share of pixels: a uniform draw misses the few edge rays that hold most of the information, and
+    the uniform half keeps the weights bounded where the importance is wrong (docs/benchmarks.md)."""
     key = (pixels[:, 1] // patch) * 1_000_003 + pixels[:, 0] // patch
     _, cluster = torch.unique(key, return_inverse=True)
     clusters = int(cluster.max()) + 1

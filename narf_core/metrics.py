@@ -15,10 +15,10 @@ import numpy as np
 import torch
 
 from narf_core.checks import check_pose
+from narf_core.diameter import PAIRWISE_BLOCK, as_points
 
 ArrayLike = np.ndarray | torch.Tensor | Sequence | float
 
-_PAIRWISE_BLOCK = 1 << 21  # distances computed at once by the brute-force searches (16 MiB of float64)
 _ANGULAR_JOINTS = ("revolute", "continuous")
 
 
@@ -29,13 +29,6 @@ def _array(x: ArrayLike, name: str) -> np.ndarray:
         return np.asarray(x, dtype=np.float64)
     except (TypeError, ValueError) as e:
         raise ValueError(f"{name} must be numeric, got {type(x).__name__}") from e
-
-
-def _points(x: ArrayLike, name: str) -> np.ndarray:
-    p = _array(x, name)
-    if p.ndim != 2 or p.shape[1] != 3:
-        raise ValueError(f"{name} must have shape [n, 3], got {list(p.shape)}")
-    return p
 
 
 # --- images ---------------------------------------------------------------------------------------
@@ -101,7 +94,7 @@ def _camera_points(
         if name not in index:
             raise ValueError(f"points_per_link has link {name!r}, which is not in links {list(links)}")
         T = T_cam_obj @ poses[index[name]]
-        moved.append(_points(points, f"points_per_link[{name!r}]") @ T[:3, :3].T + T[:3, 3])
+        moved.append(as_points(points, f"points_per_link[{name!r}]") @ T[:3, :3].T + T[:3, 3])
     out = np.concatenate(moved) if moved else np.zeros((0, 3))
     if len(out) == 0:
         raise ValueError("points_per_link holds no points")
@@ -157,7 +150,7 @@ def _nearest_distances(queries: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 def _nearest_distances_brute(queries: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Exact nearest-neighbour distances in blocks of queries that keep memory bounded."""
-    block = max(1, _PAIRWISE_BLOCK // len(points))
+    block = max(1, PAIRWISE_BLOCK // len(points))
     out = np.empty(len(queries))
     for start in range(0, len(queries), block):
         q = queries[start : start + block]

@@ -145,7 +145,7 @@ def test_nearest_distances_without_scipy(monkeypatch):
     expected = np.sqrt(((queries[:, None] - points[None]) ** 2).sum(-1)).min(1)
     np.testing.assert_allclose(_nearest_distances(queries, points), expected, atol=1e-12)
     monkeypatch.setitem(sys.modules, "scipy.spatial", None)  # import fails: the brute-force path
-    monkeypatch.setattr("narf_core.metrics._PAIRWISE_BLOCK", 1000)  # and several blocks of queries
+    monkeypatch.setattr("narf_core.metrics.PAIRWISE_BLOCK", 1000)  # and several blocks of queries
     np.testing.assert_allclose(_nearest_distances(queries, points), expected, atol=1e-12)
     assert _nearest_distances(points, points).max() == 0.0
 
