@@ -16,9 +16,10 @@ every value a finite number within ``[lower, upper]`` widened by :data:`LIMIT_TO
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import numbers
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -60,6 +61,33 @@ class JointSpec:
     type: str
     lower: float
     upper: float
+
+
+def option_rule(options: Any, error: type[InputError] = InputError) -> Callable[[bool, str, str], None]:
+    """``need(ok, name, what)`` for an options dataclass: unless ``ok``, raise ``error`` whose field is
+    ``options.<name>`` and whose reason is ``what`` and the value the option holds."""
+
+    def need(ok: bool, name: str, what: str) -> None:
+        if not ok:
+            reason = f"{what}, got {getattr(options, name)!r}"
+            raise error(f"options.{name} {reason}", f"options.{name}", reason)
+
+    return need
+
+
+def check_option_types(options: Any, error: type[InputError] = InputError) -> None:
+    """Every field of the options dataclass holds its declared type: ``bool`` a bool, ``int`` an
+    integer (not a bool), ``float`` a finite number (not a bool); other types are the caller's."""
+    need = option_rule(options, error)
+    for spec in dataclasses.fields(options):
+        value = getattr(options, spec.name)
+        if spec.type == "bool":
+            need(isinstance(value, bool), spec.name, "must be true or false")
+        elif spec.type == "int":
+            need(isinstance(value, int) and not isinstance(value, bool), spec.name, "must be an integer")
+        elif spec.type == "float":
+            need(isinstance(value, (int, float)) and not isinstance(value, bool), spec.name, "must be a number")
+            need(math.isfinite(value), spec.name, "must be finite")
 
 
 def check_number(value: Any, field: str, *, error: type[InputError] = InputError) -> float:

@@ -72,7 +72,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -81,7 +81,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from narf_core.band import ray_band
-from narf_core.checks import InputError, check_pose
+from narf_core.checks import InputError, check_option_types, check_pose, option_rule
 from narf_core.geometry import (
     Pinhole,
     Rays,
@@ -177,20 +177,8 @@ class EstimateOptions:
     sigma_floor_joint: float = 0.0  # fraction of the joint's range
 
     def __post_init__(self) -> None:
-        def need(ok: bool, name: str, what: str) -> None:
-            if not ok:
-                reason = f"{what}, got {getattr(self, name)!r}"
-                raise EstimateInputError(f"options.{name} {reason}", f"options.{name}", reason)
-
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.type == "bool":
-                need(isinstance(value, bool), f.name, "must be true or false")
-            elif f.type == "int":
-                need(isinstance(value, int) and not isinstance(value, bool), f.name, "must be an integer")
-            elif f.type == "float":
-                need(isinstance(value, (int, float)) and not isinstance(value, bool), f.name, "must be a number")
-                need(math.isfinite(value), f.name, "must be finite")
+        check_option_types(self, EstimateInputError)
+        need = option_rule(self, EstimateInputError)
         need(self.iterations >= 0, "iterations", "must be >= 0")
         need(self.lr_pose > 0, "lr_pose", "must be > 0")
         need(self.lr_theta > 0, "lr_theta", "must be > 0")

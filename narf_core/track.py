@@ -32,14 +32,14 @@ from __future__ import annotations
 import math
 import time as _time
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from narf_core.checks import check_number, check_pose
+from narf_core.checks import check_number, check_option_types, check_pose, option_rule
 from narf_core.estimate import MIN_MASK_PIXELS, SOLVERS, EstimateInputError, EstimateOptions, EstimateResult, refine
 from narf_core.geometry import Pinhole, so3_exp, so3_log
 
@@ -94,18 +94,8 @@ class TrackOptions:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        def need(ok: bool, name: str, what: str) -> None:
-            if not ok:
-                reason = f"{what}, got {getattr(self, name)!r}"
-                raise TrackInputError(f"options.{name} {reason}", f"options.{name}", reason)
-
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.type == "int":
-                need(isinstance(value, int) and not isinstance(value, bool), f.name, "must be an integer")
-            elif f.type == "float":
-                need(isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value),
-                     f.name, "must be a finite number")
+        check_option_types(self, TrackInputError)
+        need = option_rule(self, TrackInputError)
         need(self.iterations >= 1, "iterations", "must be >= 1")
         need(self.rays_per_iteration >= 1, "rays_per_iteration", "must be >= 1")
         need(self.reinit_iterations >= 1, "reinit_iterations", "must be >= 1")

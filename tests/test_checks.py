@@ -115,3 +115,19 @@ def test_the_service_request_options_are_the_core_options():
     assert info.value.message == "request.options.lr_decay: must be in (0, 1], got 2.0"
     ok = request.model_copy(update={"options": RefineOptions(preset="robust", lr_pose=0.05)})
     assert jobs.refine_options(Engine.narf_core(), ok, "request.options") == EstimateOptions.robust(lr_pose=0.05)
+
+
+def test_option_types_are_checked_one_way_for_every_options_class():
+    from narf_core.estimate import EstimateInputError, EstimateOptions
+    from narf_core.track import TrackInputError, TrackOptions
+
+    for options, error in ((EstimateOptions, EstimateInputError), (TrackOptions, TrackInputError)):
+        with pytest.raises(error) as info:
+            options(iterations=2.5)
+        assert info.value.field == "options.iterations" and info.value.reason == "must be an integer, got 2.5"
+        with pytest.raises(error) as info:
+            options(lr_pose=math.nan)
+        assert info.value.field == "options.lr_pose" and info.value.reason == "must be finite, got nan"
+        with pytest.raises(error) as info:
+            options(lr_theta=True)
+        assert info.value.reason == "must be a number, got True"
