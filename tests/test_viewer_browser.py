@@ -88,13 +88,24 @@ class Page:
         self.page.goto(f"{server}/viewer/")
 
     def wait_frames(self, count: int = 1, timeout_ms: float = FRAME_TIMEOUT_MS, **match) -> None:
-        """Wait until ``count`` logged frames match ``match`` (e.g. ``view="model", mode="narf"``)."""
-        self.page.wait_for_function(
-            """([count, match]) => window.narfViewer && window.narfViewer.frames
-                 .filter((f) => Object.entries(match).every(([k, v]) => f[k] === v)).length >= count""",
-            arg=[count, match],
-            timeout=timeout_ms,
-        )
+        """Wait until ``count`` logged frames match ``match`` (e.g. ``view="model", mode="narf"``); on a
+        timeout, fail with the frames drawn so far, the console errors and the panes' error texts."""
+        from playwright.sync_api import TimeoutError as PlaywrightTimeout
+
+        try:
+            self.page.wait_for_function(
+                """([count, match]) => window.narfViewer && window.narfViewer.frames
+                     .filter((f) => Object.entries(match).every(([k, v]) => f[k] === v)).length >= count""",
+                arg=[count, match],
+                timeout=timeout_ms,
+            )
+        except PlaywrightTimeout:
+            seen = self.page.evaluate(
+                """() => ({frames: (window.narfViewer?.frames ?? []).map(({view, mode, input, seq}) => ({view, mode, input, seq})),
+                          paneErrors: [...document.querySelectorAll('.pane .error')].map((e) => e.textContent)})"""
+            )
+            pytest.fail(f"no {count} frame(s) matching {match} in {timeout_ms / 1000:.0f} s; "
+                        f"seen {seen}; console errors {self.errors}")
 
     def pixels(self, selector: str) -> np.ndarray:
         data = self.page.evaluate(
@@ -340,9 +351,14 @@ def test_touch_orbits_with_one_finger_and_zooms_with_two(browser, server: str, s
     try:
         page = viewer.page
         viewer.wait_frames(view="model", mode="narf")
+        viewer.wait_frames(view="model", mode="parts")  # both panes sized: the layout no longer moves
         cdp = page.context.new_cdp_session(page)
-        box = page.locator(NARF_CANVAS).bounding_box()
+        canvas = page.locator(NARF_CANVAS)
+        canvas.scroll_into_view_if_needed()
+        box = canvas.bounding_box()
         x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+        hit = page.evaluate("([x, y]) => document.elementFromPoint(x, y)?.closest('.pane')?.dataset.mode ?? null", [x, y])
+        assert hit == "narf", f"the touch point ({x:.0f}, {y:.0f}) is on {hit!r}, not the narf canvas"
 
         def touch(kind: str, *points: tuple[float, float]) -> None:
             touches = [{"x": px, "y": py, "id": i} for i, (px, py) in enumerate(points)]
