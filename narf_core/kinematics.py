@@ -16,10 +16,14 @@ This is the one URDF reader of NARF (the dataset format and the generator use it
 set of rules:
   - joint types: revolute, continuous, prismatic, fixed; a revolute or prismatic joint needs
     finite limits with ``lower < upper`` (a joint that cannot move is a fixed joint);
+  - a continuous joint is a revolute joint with limits ``[-pi, pi]``: one full turn, so that fields
+    and refiners see a bounded range like any other joint's;
+  - fixed joints merge the links they join into one rigid part (a chain of them too);
   - mimic joints are supported: ``<mimic joint="src" multiplier="m" offset="o"/>`` makes the
     joint's value ``m * q_src + o``. The source must be a joint of ``theta`` (not itself a mimic
-    joint); a mimic joint is not part of ``theta``, and its own ``<limit>`` is not used: its range
-    is the source's range mapped through ``m``, ``o``;
+    joint) and ``m`` non-zero; a mimic joint is not part of ``theta``, and its own ``<limit>`` is
+    not used: its range is the source's range mapped through ``m``, ``o``;
+  - at most :data:`MAX_JOINTS` joints in ``theta`` (mimic and fixed joints do not count);
   - mesh filenames resolve by :func:`resolve_mesh` (relative, absolute, ``file://``, ``package://``).
 """
 
@@ -45,6 +49,7 @@ from narf_core.geometry import make_pose, skew
 
 MOVABLE_TYPES = ("revolute", "continuous", "prismatic")
 SUPPORTED_TYPES = (*MOVABLE_TYPES, "fixed")
+MAX_JOINTS = 8  # longest theta: training's occupancy keeps at least 2 configuration bins per joint (2^k grids)
 _AXIS_NORM_TOLERANCE = 1e-3  # axes written with 3-4 digits ("0.707 0 0.707") are normalised
 _BOUNDS_ANGLE_STEP = math.radians(10.0)
 _BOUNDS_MAX_CONFIGS = 4096
@@ -131,6 +136,14 @@ class KinematicTree:
         self.links = [self.root] + [j.child for j in self.joints]
         self.links_in_file = list(self._robot_links)
         self.movable = [j for j in joints_in_file if j.is_actuated]
+        if len(self.movable) > MAX_JOINTS:
+            first_extra, names = self.movable[MAX_JOINTS].name, ", ".join(repr(j.name) for j in self.movable)
+            raise _error(
+                source,
+                f"joint {first_extra!r} is movable joint number {MAX_JOINTS + 1}; NARF handles at most {MAX_JOINTS} "
+                f"(this URDF has {len(self.movable)}: {names}); make the joints you do not need fixed "
+                "(fixed and mimic joints do not count)",
+            )
         self.mimics = [j for j in joints_in_file if j.mimic is not None]
         self.joint_names = [j.name for j in self.movable]
         self.lower = torch.tensor([j.lower for j in self.movable], dtype=torch.float64)
@@ -187,12 +200,15 @@ class KinematicTree:
 
     # --- forward kinematics ---------------------------------------------------------------------
 
-    def link_poses(self, theta: Tensor) -> Tensor:
+    def link_poses(self, theta: Tensor | None) -> Tensor:
         """``T_obj_link [..., n_links, 4, 4]`` for ``theta [..., k]``, in ``links`` order.
 
         dtype and device follow ``theta``; differentiable in ``theta``; values outside the limits
-        are computed as given (the limits are enforced by :meth:`joint_vector`).
+        are computed as given (the limits are enforced by :meth:`joint_vector`). An object without
+        joints (only fixed ones) also takes ``theta=None``, the empty configuration (float64 poses).
         """
+        if theta is None and self.n_joints == 0:
+            theta = torch.zeros(0, dtype=torch.float64)
         if not isinstance(theta, Tensor) or not theta.is_floating_point():
             raise ValueError(f"theta must be a floating-point tensor, got {_describe(theta)}")
         if theta.ndim == 0 or theta.shape[-1] != self.n_joints:
@@ -223,7 +239,7 @@ class KinematicTree:
         multiplier, offset = self._mimic[i]
         return value if (multiplier, offset) == (1.0, 0.0) else value * multiplier + offset
 
-    def part_poses(self, theta: Tensor) -> Tensor:
+    def part_poses(self, theta: Tensor | None) -> Tensor:
         """``T_obj_part [..., n_parts, 4, 4]``: the pose of each part's top link."""
         return self.link_poses(theta)[..., self._part_link_index, :, :]
 
@@ -366,6 +382,9 @@ def _make_joint(j: yourdfpy.Joint, links: set[str], source: str) -> Joint:
         offset = 0.0 if j.mimic.offset is None else float(j.mimic.offset)
         if not (math.isfinite(multiplier) and math.isfinite(offset)):
             raise _error(source, f"{where} mimics {j.mimic.joint!r} with a non-finite multiplier or offset")
+        if multiplier == 0:
+            raise _error(source, f"{where} mimics {j.mimic.joint!r} with multiplier 0, so it cannot move; "
+                                 "make it a fixed joint")
         mimic = (str(j.mimic.joint), multiplier, offset)
     for role, link in (("parent", j.parent), ("child", j.child)):
         if link not in links:

@@ -137,5 +137,6 @@ def test_console_entry_point_subprocess(tmp_path):
     assert proc.returncode == 2
     assert proc.stdout == ""
     assert proc.stderr.strip().splitlines() == [
-        "narf synth: error: unknown tool 'hammer'; expected one of clamp, lineman-a, lineman-b, longnose or a path to a .urdf file"
+        "narf synth: error: unknown tool 'hammer'; expected one of clamp, lineman-a, lineman-b, longnose, lamp, gripper, "
+        "cabinet or a path to a .urdf file"
     ]

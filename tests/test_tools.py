@@ -1,24 +1,36 @@
-"""The procedural tools: specs, determinism, URDF structure, meshes, textures, pybullet loading."""
+"""The procedural tools and multi-joint objects: specs, determinism, URDF structure, kinematics,
+meshes, textures, collisions over the joint range, pybullet loading and rendering."""
 
 from __future__ import annotations
 
+import hashlib
+import itertools
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
+import shapely
+import torch
 import yourdfpy
 from PIL import Image
 from shapely.affinity import rotate
 from shapely.ops import unary_union
+from trimesh.transformations import euler_matrix
 
 from narf_core.data.synth.tools import _DESIGNS, TOOLS, ToolSpec, build_tool, tool_spec
+from narf_core.kinematics import KinematicTree
 
+ONE_JOINT = ("clamp", "lineman-a", "lineman-b", "longnose")
+MULTI_JOINT = ("lamp", "gripper", "cabinet")
 LINKS = {
     "clamp": ("bar", "moving_jaw"),
     "lineman-a": ("lower_half", "upper_half"),
     "lineman-b": ("lower_half", "upper_half"),
     "longnose": ("lower_half", "upper_half"),
+    "lamp": ("base", "lower_arm", "upper_arm", "head"),
+    "gripper": ("palm", "finger_left", "finger_right"),
+    "cabinet": ("body", "drawer_lower", "drawer_upper", "door"),
 }
 # joint name, type, axis, lower, upper
 JOINTS = {
@@ -52,7 +64,9 @@ def _obj_arrays(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 @pytest.mark.parametrize(
-    "name, n_train, n_novel", [("clamp", 4, 3), ("lineman-a", 1, 3), ("lineman-b", 1, 3), ("longnose", 1, 1)]
+    "name, n_train, n_novel",
+    [("clamp", 4, 3), ("lineman-a", 1, 3), ("lineman-b", 1, 3), ("longnose", 1, 1), ("lamp", 8, 4), ("gripper", 8, 4),
+     ("cabinet", 8, 4)],
 )
 def test_spec_counts_follow_the_paper(name, n_train, n_novel):
     spec = tool_spec(name)
@@ -83,7 +97,8 @@ def test_spec_configurations_lie_in_limits_and_novel_ones_are_new(name, loaded):
 
 
 def test_unknown_tool_is_refused_with_the_known_names(tmp_path):
-    with pytest.raises(ValueError, match="unknown tool 'hammer'; known tools: clamp, lineman-a, lineman-b, longnose"):
+    known = "clamp, lineman-a, lineman-b, longnose, lamp, gripper, cabinet"
+    with pytest.raises(ValueError, match=f"unknown tool 'hammer'; known tools: {known}$"):
         tool_spec("hammer")
     with pytest.raises(ValueError, match="known tools"):
         build_tool("hammer", tmp_path)
@@ -113,7 +128,29 @@ def test_same_seed_gives_identical_bytes_and_seed_changes_only_textures(tmp_path
         assert same == (rel.suffix != ".png"), rel
 
 
-@pytest.mark.parametrize("name", TOOLS)
+# SHA-256 (first 16 hex digits) of each tool's URDF, OBJ and MTL files (path, then bytes, in path order).
+GEOMETRY_DIGESTS = {
+    "clamp": "71f5a7395b5774d3",
+    "lineman-a": "ceb00cdd3dfbbcff",
+    "lineman-b": "adb9e8ef6d65a818",
+    "longnose": "617d7599a0dc4ba5",
+}
+
+
+@pytest.mark.parametrize("name", ONE_JOINT)
+def test_the_tools_geometry_is_unchanged(name, built):
+    """Trained models (the bundled clamp among them) and published figures rest on these files: new
+    objects and generator features must leave the tools' meshes and URDFs byte for byte as they were.
+    (Textures are left out: PNG bytes depend on the zlib build.)"""
+    root = built[name].parent
+    digest = hashlib.sha256()
+    for path in sorted(p for p in root.rglob("*") if p.is_file() and p.suffix != ".png"):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    assert digest.hexdigest()[:16] == GEOMETRY_DIGESTS[name]
+
+
+@pytest.mark.parametrize("name", ONE_JOINT)
 def test_urdf_structure_and_relative_mesh_paths(name, built, loaded):
     urdf = loaded[name]
     assert tuple(link.name for link in urdf.robot.links) == LINKS[name]
@@ -226,7 +263,7 @@ def test_clamp_jaw_stays_on_the_bar_in_the_joint_range(loaded):
 # --- textures -----------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", TOOLS)
+@pytest.mark.parametrize("name", ONE_JOINT)
 def test_textures_carry_detail(name, built):
     means = []
     for link in LINKS[name]:
@@ -315,3 +352,191 @@ def test_pybullet_texture_lands_where_the_mesh_says(built):
         assert bar.min() > 100 and bar.max() - bar.min() < 25  # light grey
     finally:
         p.disconnect(client)
+
+
+# --- objects with several joints ------------------------------------------------------------------
+
+# joint name, type, parent, child, axis (joint frame), lower, upper, origin xyz, origin rpy
+MULTI_JOINTS = {
+    "lamp": [
+        ("shoulder", "revolute", "base", "lower_arm", (0, 0, 1), -0.5, 0.5, (0, 0, 0.05), (math.pi / 2, 0, 0)),
+        ("elbow", "revolute", "lower_arm", "upper_arm", (0, 0, 1), -0.2, 0.8, (0, 0.18, 0), (0, 0, -math.pi / 2)),
+        ("head_tilt", "revolute", "upper_arm", "head", (0, 0, 1), -0.5, 0.9, (0, 0.15, 0), (0, 0, -math.pi / 2)),
+    ],
+    "gripper": [
+        ("finger_left", "prismatic", "palm", "finger_left", (0, 1, 0), 0.0, 0.04, (0.008, 0.002, 0), (0, 0, 0)),
+        ("finger_right", "prismatic", "palm", "finger_right", (0, -1, 0), 0.0, 0.04, (0.008, -0.002, 0), (0, 0, 0)),
+    ],
+    "cabinet": [
+        ("drawer_lower", "prismatic", "body", "drawer_lower", (1, 0, 0), 0.0, 0.16, (0.11, -0.0805, 0.0775), (0, 0, 0)),
+        ("drawer_upper", "prismatic", "body", "drawer_upper", (1, 0, 0), 0.0, 0.16, (0.11, -0.0805, 0.1925), (0, 0, 0)),
+        ("door", "revolute", "body", "door", (0, 0, 1), 0.0, 1.75, (0.11, 0.16, 0.135), (0, 0, 0)),
+    ],
+}
+
+
+@pytest.mark.parametrize("name", MULTI_JOINT)
+def test_multi_joint_splits_cover_the_joint_box(name):
+    """Train: each joint takes 8 distinct values over most of its range and the joints vary together
+    (no two move in lockstep); novel: values no train configuration has, away from every train one."""
+    limits = {j[0]: (j[5], j[6]) for j in MULTI_JOINTS[name]}
+    spec = tool_spec(name)
+    span = np.array([hi - lo for lo, hi in limits.values()])
+    low = np.array([lo for lo, _ in limits.values()])
+
+    def unit(configurations):  # [n, k] in [0, 1] per joint
+        return (np.array([[c[j] for j in limits] for c in configurations]) - low) / span
+
+    train, novel = unit(spec.train_configurations), unit(spec.novel_configurations)
+    for k in range(len(limits)):
+        assert len(np.unique(train[:, k])) == 8 and np.ptp(train[:, k]) >= 0.85
+        assert not set(novel[:, k].round(6)) & set(train[:, k].round(6))
+    correlation = np.corrcoef(train.T)
+    assert np.abs(correlation[~np.eye(len(limits), dtype=bool)]).max() < 0.5
+    distance = np.linalg.norm(novel[:, None] - train[None], axis=-1).min(1)
+    assert distance.min() >= 0.2 and np.all((novel > 0.1) & (novel < 0.9))
+
+
+def test_only_the_cabinet_is_seen_from_farther_than_the_rig():
+    assert {name: tool_spec(name).view_distance for name in TOOLS} == {
+        **{name: None for name in TOOLS}, "cabinet": (0.6, 1.3)
+    }
+
+
+@pytest.mark.parametrize("name", MULTI_JOINT)
+def test_multi_joint_objects_are_deterministic_from_the_seed(name, built, tmp_path):
+    first = built[name].parent
+    again = build_tool(name, tmp_path / "again", seed=0).parent
+    other = build_tool(name, tmp_path / "other", seed=1).parent
+    files = sorted(p.relative_to(first) for p in first.rglob("*") if p.is_file())
+    expected = [f"meshes/{link}.{ext}" for link in sorted(LINKS[name]) for ext in ("mtl", "obj", "png")]
+    assert [str(p) for p in files] == [*expected, "object.urdf"]
+    for rel in files:
+        assert (first / rel).read_bytes() == (again / rel).read_bytes(), rel
+        assert ((first / rel).read_bytes() == (other / rel).read_bytes()) == (rel.suffix != ".png"), rel
+
+
+@pytest.mark.parametrize("name", MULTI_JOINT)
+def test_multi_joint_kinematics(name, built):
+    """The one URDF reader sees the designed joints, one rigid part per link, and a size the camera rig frames."""
+    tree = KinematicTree.from_urdf(built[name])
+    assert tree.links_in_file == list(LINKS[name]) and tree.root == LINKS[name][0]
+    assert tree.parts == [[link] for link in tree.links]
+    assert tree.joint_names == [j[0] for j in MULTI_JOINTS[name]]
+    for joint, (_, kind, parent, child, axis, lower, upper, xyz, rpy) in zip(tree.movable, MULTI_JOINTS[name]):
+        assert (joint.type, joint.parent, joint.child) == (kind, parent, child)
+        assert (joint.lower, joint.upper) == pytest.approx((lower, upper))
+        np.testing.assert_allclose(joint.axis, axis, atol=1e-12)
+        np.testing.assert_allclose(joint.origin[:3, 3], xyz, atol=1e-12)
+        np.testing.assert_allclose(joint.origin[:3, :3], euler_matrix(*rpy, "sxyz")[:3, :3], atol=1e-6)  # Rz Ry Rx
+    extent = np.ptp(tree.bounds(), axis=0)
+    assert 0.15 <= extent.max() <= 0.5 and extent.min() >= 0.05, extent
+
+
+def test_lamp_is_a_chain_whose_head_moves_with_every_joint(built):
+    tree = KinematicTree.from_urdf(built["lamp"])
+    theta = tree.mid_configuration()
+    head = tree.links.index("head")
+    shade = torch.tensor([0.0, 0.05, 0.0, 1.0], dtype=torch.float64)  # the shade's middle, head frame
+    for k in range(3):
+        moved = theta.clone()
+        moved[k] += 0.1
+        shift = (tree.link_poses(moved)[head] - tree.link_poses(theta)[head]) @ shade
+        assert float(shift.norm()) > 0.004, tree.joint_names[k]
+        assert abs(float(shift[1])) < 1e-12  # the arm swings in the xz plane
+    rest = tree.link_poses(torch.zeros(3, dtype=torch.float64))
+    np.testing.assert_allclose(rest[head, :3, 3].numpy(), [0.15, -0.0, 0.05 + 0.18], atol=1e-12)  # up, then forward
+    np.testing.assert_allclose(rest[head, :3, 1].numpy(), [0.0, 0.0, -1.0], atol=1e-12)  # the shade hangs down
+
+
+def test_gripper_fingers_open_in_opposite_directions(built):
+    tree = KinematicTree.from_urdf(built["gripper"])
+    poses = tree.link_poses(torch.tensor([[0.0, 0.0], [0.03, 0.01]], dtype=torch.float64))
+    left, right = tree.links.index("finger_left"), tree.links.index("finger_right")
+    np.testing.assert_allclose((poses[1, left, :3, 3] - poses[0, left, :3, 3]).numpy(), [0, 0.03, 0], atol=1e-12)
+    np.testing.assert_allclose((poses[1, right, :3, 3] - poses[0, right, :3, 3]).numpy(), [0, -0.01, 0], atol=1e-12)
+
+
+def test_cabinet_drawers_slide_out_and_the_door_swings_open(built):
+    tree = KinematicTree.from_urdf(built["cabinet"])
+    poses = tree.link_poses(torch.tensor([[0.1, 0.05, math.pi / 2]], dtype=torch.float64))[0]
+    rest = tree.link_poses(torch.zeros(3, dtype=torch.float64))
+    for link, out in (("drawer_lower", 0.1), ("drawer_upper", 0.05)):
+        i = tree.links.index(link)
+        np.testing.assert_allclose((poses[i, :3, 3] - rest[i, :3, 3]).numpy(), [out, 0, 0], atol=1e-12)
+    door = tree.links.index("door")
+    np.testing.assert_allclose(poses[door, :3, 3].numpy(), rest[door, :3, 3].numpy(), atol=1e-12)  # on its hinge
+    np.testing.assert_allclose(poses[door, :3, 1].numpy(), [-1.0, 0.0, 0.0], atol=1e-12)  # +y (along the door) now points back
+
+
+def _inside_points(link, n: int, rng: np.random.Generator) -> np.ndarray:
+    """``[m, 3]`` points inside the link's prisms, about ``n`` in all, spread by volume."""
+    points = []
+    volumes = np.array([p.outline.area * (p.z[1] - p.z[0]) for p in link.prisms])
+    for prism, count in zip(link.prisms, np.maximum(20, (n * volumes / volumes.sum()).astype(int))):
+        x0, y0, x1, y1 = prism.outline.bounds
+        candidates = rng.uniform([x0, y0, prism.z[0]], [x1, y1, prism.z[1]], size=(count * 4, 3))
+        keep = shapely.contains_xy(prism.outline, candidates[:, 0], candidates[:, 1])
+        points.append(candidates[keep][:count])
+    return np.concatenate(points)
+
+
+def _inside_link(link, points: np.ndarray, margin: float) -> np.ndarray:
+    """``[m]`` whether each link-frame point lies deeper than ``margin`` inside one of the link's prisms."""
+    inside = np.zeros(len(points), dtype=bool)
+    for prism in link.prisms:
+        core = prism.outline.buffer(-margin)
+        in_z = (points[:, 2] > prism.z[0] + margin) & (points[:, 2] < prism.z[1] - margin)
+        inside |= in_z & shapely.contains_xy(core, points[:, 0], points[:, 1])
+    return inside
+
+
+@pytest.mark.parametrize("name", MULTI_JOINT)
+def test_links_never_overlap_in_the_joint_box(name, built):
+    """Solid points of each link never lie inside another link, at the corners of the joint box, the
+    spec's configurations and random ones (surfaces may touch: a finger's carriage rides on the rail)."""
+    design = _DESIGNS[name]()
+    tree = KinematicTree.from_urdf(built[name], load_meshes=False)
+    rng = np.random.default_rng(0)
+    spec = tool_spec(name)
+    corners = np.array(list(itertools.product(*zip(tree.lower.tolist(), tree.upper.tolist()))))
+    random = tree.lower.numpy() + (tree.upper - tree.lower).numpy() * rng.random((24, tree.n_joints))
+    named = [[c[j] for j in tree.joint_names] for c in spec.train_configurations + spec.novel_configurations]
+    theta = torch.as_tensor(np.concatenate([corners, random, np.array(named)]))
+    poses = tree.link_poses(theta).numpy()  # [n, links, 4, 4]
+    links = {link.name: link for link in design.links}
+    points = {name_: _inside_points(link, 1500, rng) for name_, link in links.items()}
+    for a, b in itertools.permutations(tree.links, 2):
+        i, j = tree.links.index(a), tree.links.index(b)
+        T_b_a = np.linalg.inv(poses[:, j]) @ poses[:, i]  # [n, 4, 4]
+        moved = points[a] @ T_b_a[:, :3, :3].transpose(0, 2, 1) + T_b_a[:, None, :3, 3]  # [n, m, 3]
+        hits = _inside_link(links[b], moved.reshape(-1, 3), margin=3e-4).reshape(len(theta), -1)
+        assert not hits.any(), (a, b, theta[hits.any(1)][:3].tolist())
+
+
+@pytest.mark.parametrize("name", MULTI_JOINT)
+def test_multi_joint_textures_vary_on_every_link(name, built):
+    for link in LINKS[name]:
+        image = np.asarray(Image.open(built[name].parent / "meshes" / f"{link}.png"))
+        painted = image[image.max(-1) > 0].astype(np.int64)
+        assert len(np.unique(painted @ [65536, 256, 1])) > 250, link
+        assert (painted / 255).std(0).mean() > 0.04, link
+
+
+@pytest.mark.parametrize("name", MULTI_JOINT)
+def test_small_synth_of_a_multi_joint_object_labels_every_link(name, tmp_path):
+    pytest.importorskip("pybullet")
+    from narf_core.data.dataset import Dataset
+    from narf_core.data.synth.generate import synthesize
+
+    spec = tool_spec(name)
+    ds = Dataset.open(synthesize(name, tmp_path / name, size=(64, 48), views=8, seed=0, supersample=1))
+    assert ds.links == list(LINKS[name]) and [j["name"] for j in ds.joints] == [j[0] for j in MULTI_JOINTS[name]]
+    assert [f.joints for f in ds.frames("train")] == spec.train_configurations
+    assert ds.generator["sampling"]["distance"] == list(spec.view_distance or (0.4, 1.0))  # the cabinet from farther
+    assert {tuple(f.joints.values()) for f in ds.frames("novel")} == {tuple(c.values()) for c in spec.novel_configurations}
+    for split in ("train", "test", "novel"):
+        seen = set()
+        for frame in ds.frames(split):
+            seen |= set(np.unique(ds.load(frame).labels).tolist())
+        assert seen == set(range(len(LINKS[name]) + 1)), (split, seen)  # the background and every link

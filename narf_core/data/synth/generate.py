@@ -205,6 +205,13 @@ def resolve_tool(
     raise ValueError(f"unknown tool '{name}'; expected one of {known} or a path to a .urdf file")
 
 
+def default_sampling(tool: str | Path) -> ViewSampling:
+    """The views of ``tool``: the rig's defaults, at the object's own camera distances if it has them."""
+    name = str(tool)
+    distance = tools.tool_spec(name).view_distance if name in tools.TOOLS else None
+    return ViewSampling() if distance is None else ViewSampling(distance=distance)
+
+
 def synthesize(
     tool: str | Path,
     out: str | Path,
@@ -215,15 +222,15 @@ def synthesize(
     background: bool = False,
     *,
     overwrite: bool = False,
-    sampling: ViewSampling = ViewSampling(),
+    sampling: ViewSampling | None = None,
     supersample: int = 3,
     progress: bool = False,
 ) -> Path:
     """Render a dataset of ``tool`` into ``out`` and return ``out``.
 
     Args:
-        tool: a procedural tool's name (``clamp``, ``lineman-a``, ``lineman-b``, ``longnose``) or a
-            path to a URDF.
+        tool: a procedural object's name (one of :data:`narf_core.data.synth.tools.TOOLS`: ``clamp``,
+            ``lineman-a``, ``lineman-b``, ``longnose``, ``lamp``, ``gripper``, ``cabinet``) or a path to a URDF.
         out: the dataset folder (new or empty; with ``overwrite``, a previous dataset is replaced).
         size: image ``(width, height)``; the camera is a Primesense-like pinhole scaled to it.
         views: number of ``train`` images; ``test`` and ``novel`` get ``max(17, views // 4)`` each.
@@ -233,6 +240,9 @@ def synthesize(
         background: render a textured table under the object (labelled background).
         supersample: colour samples per pixel along each axis (odd; labels and depth stay exact),
             like a camera's integration over its pixel area.
+        sampling: where cameras go; by default :class:`ViewSampling`'s rig, with the camera
+            distance of the object's :attr:`~narf_core.data.synth.tools.ToolSpec.view_distance`
+            where it has one (a cabinet is seen from farther away than a pair of pliers).
         progress: show a tqdm progress bar on stderr.
     """
     width, height = (int(v) for v in size)
@@ -252,6 +262,7 @@ def synthesize(
         urdf, train_configs, novel_configs = resolve_tool(tool, Path(workdir))
         if train_configs is None or novel_configs is None:
             train_configs, novel_configs = default_configurations(urdf.joints, config_rng)
+        sampling = sampling or default_sampling(tool)
         train_configs = train_configs[:views]  # test must only hold configurations train has
         n_eval = max(MIN_EVAL_VIEWS, views // 4)
         shots = (

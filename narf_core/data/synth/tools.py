@@ -1,4 +1,5 @@
-"""Procedural articulated hand tools modelled on the Progress Tools objects of NARF22.
+"""Procedural articulated objects: hand tools modelled on the Progress Tools objects of NARF22, and
+objects with several joints (a desk lamp, a parallel gripper, a cabinet).
 
 ``build_tool(name, out_dir, seed)`` writes a URDF and one textured mesh per link::
 
@@ -27,9 +28,21 @@ Tools (links root first):
 - ``lineman-b``: the same links and joint; 0.22 m, rounded nose, red grips with black dots.
 - ``longnose``: the same links, ``pivot`` 0 - 0.6 rad; 0.20 m, long thin jaws, yellow knurled grips.
 
-The two pliers halves differ in grip tone and printed marks. Inertial frames coincide with the link
-frames (mass and inertia about the link origin), so that pybullet's base pose *is* the URDF root
-pose. The seed changes the texture noise only; shapes, sizes and limits are fixed per tool.
+Objects with several joints (joint origins place each link's frame; see each design's docstring):
+
+- ``lamp``: ``base`` (round foot, +z up), ``lower_arm``, ``upper_arm``, ``head``; a chain of revolute
+  joints ``shoulder`` (-0.5 - 0.5 rad), ``elbow`` (-0.2 - 0.8), ``head_tilt`` (-0.5 - 0.9) about
+  parallel horizontal axes. Thin arms (16 x 12 mm), 0.45 m tall at most.
+- ``gripper``: ``palm``, ``finger_left``, ``finger_right``; prismatic ``finger_left`` along +y and
+  ``finger_right`` along -y, 0 - 0.04 m each. 0.19 x 0.18 m, lying flat like the tools.
+- ``cabinet``: ``body`` (+z up, fronts facing +x), ``drawer_lower``, ``drawer_upper``, ``door``;
+  prismatic drawers along +x (0 - 0.16 m) and a revolute ``door`` on a vertical hinge (0 - 1.75 rad).
+  0.22 x 0.32 x 0.25 m closed.
+
+The two pliers halves differ in grip tone and printed marks; the links of the other objects in
+colour and marks. Inertial frames coincide with the link frames (mass and inertia about the link
+origin), so that pybullet's base pose *is* the URDF root pose. The seed changes the texture noise
+only; shapes, sizes and limits are fixed per object.
 """
 
 from __future__ import annotations
@@ -47,8 +60,9 @@ import trimesh
 from numpy.typing import NDArray
 from PIL import Image, ImageDraw
 from shapely.affinity import scale as _scale_geometry
-from shapely.geometry import MultiPolygon, Point, Polygon, box
+from shapely.geometry import LineString, MultiPolygon, Point, Polygon, box
 from shapely.geometry.polygon import orient
+from shapely.ops import unary_union
 
 from narf_core.data.synth.textures import (
     Box,
@@ -67,7 +81,7 @@ from narf_core.data.synth.textures import (
     to_uint8,
 )
 
-TOOLS: tuple[str, ...] = ("clamp", "lineman-a", "lineman-b", "longnose")
+TOOLS: tuple[str, ...] = ("clamp", "lineman-a", "lineman-b", "longnose", "lamp", "gripper", "cabinet")
 
 _TEXELS_PER_M = 2500.0  # 0.4 mm texels: finer than a 640x480 pixel on a tool 0.3 m from the camera
 _PAD = 2  # texels of margin around every atlas island, so bilinear filtering never bleeds across
@@ -86,11 +100,14 @@ class ToolSpec:
 
     ``train_configurations`` are the few configurations seen in training (also used by the ``test``
     split); ``novel_configurations`` are absent from training. Each is ``{joint_name: value}``.
+    ``view_distance`` is the range of camera distances (metres) for an object too large for the
+    default rig's (``None``: the rig's), so that it stays in view like the tools do.
     """
 
     name: str
     train_configurations: list[dict[str, float]]
     novel_configurations: list[dict[str, float]]
+    view_distance: tuple[float, float] | None = None
 
 
 # joint name, train values, novel values (paper: 4 + 3 clamp, 1 + 3 lineman's, 1 + 1 longnose)
@@ -101,12 +118,45 @@ _SPECS: dict[str, tuple[str, tuple[float, ...], tuple[float, ...]]] = {
     "longnose": ("pivot", (0.02,), (0.35,)),
 }
 
+# Objects with several joints: configurations as fractions of each joint's range, in the order of
+# the design's joints. Train: a maximin Latin hypercube of 8 (each joint takes 8 distinct values
+# from 5% to 95% of its range, so that joints vary together); novel: 4 configurations in the gaps
+# between them, each joint at a value no train configuration has.
+_SPLITS_BY_JOINTS: dict[int, tuple[tuple[tuple[float, ...], ...], tuple[tuple[float, ...], ...]]] = {
+    2: (
+        ((0.05, 0.56), (0.18, 0.18), (0.31, 0.82), (0.44, 0.44), (0.56, 0.05), (0.69, 0.95), (0.82, 0.31), (0.95, 0.69)),
+        ((0.625, 0.625), (0.25, 0.625), (0.625, 0.25), (0.25, 0.375)),
+    ),
+    3: (
+        (
+            (0.05, 0.82, 0.44), (0.18, 0.31, 0.31), (0.31, 0.44, 0.82), (0.44, 0.95, 0.95),
+            (0.56, 0.69, 0.18), (0.69, 0.18, 0.05), (0.82, 0.05, 0.69), (0.95, 0.56, 0.56),
+        ),
+        ((0.5, 0.75, 0.625), (0.625, 0.375, 0.5), (0.25, 0.625, 0.25), (0.5, 0.25, 0.25)),
+    ),
+}
+
+# Objects that overflow the frame at the rig's nearest distance (0.4 m): the cabinet is 0.32 m wide,
+# 0.45 m with its door open, and is seen from farther away.
+_VIEW_DISTANCES: dict[str, tuple[float, float]] = {"cabinet": (0.6, 1.3)}
+
 
 def tool_spec(name: str) -> ToolSpec:
-    """The train and novel configurations of tool ``name`` (one of :data:`TOOLS`)."""
+    """The train and novel configurations of object ``name`` (one of :data:`TOOLS`), and its camera
+    distances if it has its own."""
     _check_name(name)
-    joint, train, novel = _SPECS[name]
-    return ToolSpec(name, [{joint: v} for v in train], [{joint: v} for v in novel])
+    if name in _SPECS:
+        joint, train, novel = _SPECS[name]
+        return ToolSpec(name, [{joint: v} for v in train], [{joint: v} for v in novel])
+    joints = _DESIGNS[name]().joints
+    train, novel = _SPLITS_BY_JOINTS[len(joints)]
+
+    def configuration(fractions: tuple[float, ...]) -> dict[str, float]:
+        return {j.name: round(j.lower + f * (j.upper - j.lower), 4) for j, f in zip(joints, fractions)}
+
+    return ToolSpec(
+        name, [configuration(f) for f in train], [configuration(f) for f in novel], _VIEW_DISTANCES.get(name)
+    )
 
 
 def build_tool(name: str, out_dir: Path, seed: int = 0) -> Path:
@@ -126,7 +176,7 @@ def build_tool(name: str, out_dir: Path, seed: int = 0) -> Path:
     mesh_dir.mkdir(parents=True, exist_ok=True)
     inertials = []
     for index, link in enumerate(design.links):
-        mesh, atlas = _link_mesh(link)
+        mesh, atlas = _link_mesh(link, design.texels_per_m)
         texture = _paint_atlas(link, atlas, ValueNoise((int(seed), index)))
         Image.fromarray(texture).save(mesh_dir / f"{link.name}.png", format="PNG", compress_level=6)
         (mesh_dir / f"{link.name}.mtl").write_text(_mtl_text(link.name))
@@ -165,6 +215,8 @@ class _Link:
 
 @dataclass(frozen=True)
 class _Joint:
+    """A URDF joint; ``xyz``/``rpy`` is its origin ``T_parent_joint`` and ``axis`` lies in the joint frame."""
+
     name: str
     kind: Literal["revolute", "prismatic"]
     parent: str
@@ -172,15 +224,20 @@ class _Joint:
     axis: tuple[float, float, float]
     lower: float
     upper: float
+    xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rpy: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
 class _Design:
-    links: tuple[_Link, ...]  # the root link first
+    """An object: its links (the root first) and joints; ``texels_per_m`` sets its textures' resolution."""
+
+    links: tuple[_Link, ...]
     joints: tuple[_Joint, ...]
+    texels_per_m: float = _TEXELS_PER_M
 
 
-_STEEL, _COATED_STEEL, _PLASTIC, _RUBBER = 7850.0, 5000.0, 1150.0, 1200.0
+_STEEL, _COATED_STEEL, _PLASTIC, _RUBBER, _WOOD, _PLYWOOD = 7850.0, 5000.0, 1150.0, 1200.0, 700.0, 600.0
 
 
 def _prisms(outline: shapely.Geometry, z: tuple[float, float], surface: Surface, density: float) -> tuple[_Prism, ...]:
@@ -467,11 +524,259 @@ def _clamp() -> _Design:
     return _Design((bar, moving_jaw), (joint,))
 
 
+# --- multi-joint objects ------------------------------------------------------------------------
+
+
+def _stadium(length: float, radius: float) -> Polygon:
+    """A bar of half-width ``radius`` with round ends, from the origin along +y for ``length``."""
+    return LineString([(0.0, 0.0), (0.0, length)]).buffer(radius, quad_segs=6)
+
+
+def _lamp() -> _Design:
+    """A desk lamp: a round foot, two thin arms and a shade on three parallel revolute joints.
+
+    The base frame sits on the floor under the foot's centre (+z up, arm swinging in the xz plane,
+    reaching towards +x). Each moving link lies in its own xy plane with the joint axis along its z,
+    so ``shoulder`` turns its frame by ``rpy = (pi/2, 0, 0)`` (axis along world -y). At zero the lower
+    arm stands up, the upper arm reaches forward and the shade hangs down; positive values tilt the
+    lower arm back, raise the upper arm and swing the shade forward. The upper arm runs beside the
+    lower arm (a lap at the elbow) and the shade's neck beside the upper arm, so no two links meet
+    anywhere in the joint box.
+    """
+    dark, brass, white = (0.13, 0.14, 0.17), (0.80, 0.63, 0.27), (0.95, 0.95, 0.93)
+    lower_len, upper_len, shoulder_z = 0.18, 0.15, 0.05
+    foot = Surface(
+        dark,
+        mottle=0.10,
+        speckle=0.06,
+        details=(
+            Ribs(0.003, (0.0, 0.0, 1.0), 0.5, 0.4, Box((-1.0, -1.0, 0.003), (1.0, 1.0, 0.013))),
+            Paint(brass, Disk((0.0, 0.0), 0.070)),
+            Paint(dark, Disk((0.0, 0.0), 0.064)),
+            Dots(0.008, 0.0012, (0.35, 0.36, 0.40), Box((-1.0, -1.0, 0.0155), (1.0, 1.0, 1.0))),
+        ),
+    )
+    brass_surface = Surface(brass, mottle=0.08, speckle=0.05, grain=0.2, grain_axis=(0.0, 0.0, 1.0))
+    steel = Surface((0.62, 0.63, 0.66), mottle=0.06, speckle=0.04, grain=0.25)
+    cheek = box(-0.014, 0.0085, 0.014, 0.0125)
+    base = _Link(
+        "base",
+        _prisms(Point(0.0, 0.0).buffer(0.075, quad_segs=12), (0.0, 0.016), foot, _STEEL)
+        + _prisms(Point(0.0, 0.0).buffer(0.022, quad_segs=8), (0.016, 0.030), brass_surface, _STEEL)
+        + _prisms(cheek.union(_scale_geometry(cheek, 1.0, -1.0, origin=(0.0, 0.0))), (0.030, 0.062), steel, _STEEL),
+        (
+            Mark("NARF", (0.045, 0.0), np.pi / 2, 0.010, white),
+            Mark("LAMP-3", (0.0, 0.040), 0.0, 0.008, white),
+            Mark("230V 40W", (0.0, 0.0), 0.0, 0.008, white, -1),
+        ),
+    )
+
+    def arm(name: str, length: float, z: tuple[float, float], colour: Rgb, stripe: Rgb, text: str) -> _Link:
+        """A thin bar along +y with sprung ends (ribs) and a painted band at mid-length."""
+        surface = Surface(
+            colour,
+            mottle=0.06,
+            speckle=0.05,
+            details=(
+                Ribs(0.0025, (0.0, 1.0, 0.0), 0.5, 0.45, Box((-1.0, 0.012, -1.0), (1.0, 0.040, 1.0))),
+                Ribs(0.0025, (0.0, 1.0, 0.0), 0.5, 0.45, Box((-1.0, length - 0.040, -1.0), (1.0, length - 0.012, 1.0))),
+                Paint(stripe, Box((-1.0, 0.46 * length, -1.0), (1.0, 0.50 * length, 1.0))),
+            ),
+        )
+        centre = (0.0, 0.7 * length)
+        marks = (Mark(text, centre, np.pi / 2, 0.008, white), Mark(text, centre, np.pi / 2, 0.008, white, -1))
+        return _Link(name, _prisms(_stadium(length, 0.008), z, surface, _STEEL), marks)
+
+    lower_arm = arm("lower_arm", lower_len, (-0.006, 0.006), (0.70, 0.10, 0.08), white, "NARF")
+    upper_arm = arm("upper_arm", upper_len, (0.0065, 0.0165), (0.08, 0.40, 0.46), (0.95, 0.80, 0.10), "A-2")
+    knob = Surface((0.10, 0.10, 0.11), mottle=0.08, speckle=0.08, details=(Ribs(0.002, (1.0, 0.0, 0.0), 0.5, 0.4),))
+    elbow_knob = _prisms(Point(0.0, 0.0).buffer(0.010, quad_segs=8), (0.0165, 0.0225), knob, _PLASTIC)
+    upper_arm = _Link(upper_arm.name, upper_arm.prisms + elbow_knob, upper_arm.marks)
+    shade_outline = Polygon([(-0.013, 0.022), (0.013, 0.022), (0.045, 0.080), (-0.045, 0.080)])
+    shade = Surface(
+        (0.95, 0.74, 0.10),
+        mottle=0.05,
+        speckle=0.05,
+        details=(
+            Paint(dark, Box((-1.0, 0.022, -1.0), (1.0, 0.030, 1.0))),
+            Paint((1.0, 0.96, 0.82), Box((-0.040, 0.0795, -0.023), (0.040, 1.0, 0.023))),  # the bulb's opening
+            Dots(0.009, 0.0015, (0.80, 0.45, 0.05), Box((-1.0, 0.034, -1.0), (1.0, 0.074, 1.0))),
+        ),
+    )
+    head = _Link(
+        "head",
+        _prisms(_stadium(0.024, 0.006), (-0.005, 0.005), steel, _STEEL)
+        + _prisms(shade_outline, (-0.028, 0.028), shade, _STEEL),
+        (Mark("NARF", (0.0, 0.055), 0.0, 0.008, dark), Mark("E27", (0.0, 0.055), 0.0, 0.008, dark, -1)),
+    )
+    up, fwd = (0.0, 0.0, 1.0), (0.0, 0.0, -np.pi / 2)
+    joints = (
+        _Joint("shoulder", "revolute", "base", "lower_arm", up, -0.5, 0.5, (0.0, 0.0, shoulder_z), (np.pi / 2, 0.0, 0.0)),
+        _Joint("elbow", "revolute", "lower_arm", "upper_arm", up, -0.2, 0.8, (0.0, lower_len, 0.0), fwd),
+        _Joint("head_tilt", "revolute", "upper_arm", "head", up, -0.5, 0.9, (0.0, upper_len, 0.0), fwd),
+    )
+    return _Design((base, lower_arm, upper_arm, head), joints)
+
+
+def _gripper() -> _Design:
+    """A two-finger parallel gripper lying flat: palm at the origin, fingers towards +x.
+
+    Each finger slides on the palm's front rail on its own prismatic joint, ``finger_left`` along
+    +y and ``finger_right`` along -y; the value is how far that finger's pad has moved out from the
+    closed position (pads 4 mm apart at zero). The halves differ in carriage colour and marks.
+    """
+    light, black, white = (0.84, 0.85, 0.87), (0.08, 0.08, 0.09), (0.95, 0.95, 0.93)
+    body = Surface(
+        light,
+        mottle=0.05,
+        speckle=0.04,
+        details=(
+            Paint(black, Box((-0.052, -1.0, -1.0), (-0.046, 1.0, 1.0))),
+            Paint((0.95, 0.70, 0.08), Box((-0.040, 0.080, -1.0), (-0.010, 1.0, 1.0))),  # status light, +y side
+            Dots(0.006, 0.0012, (0.55, 0.56, 0.60), Box((-0.044, -0.088, -1.0), (-0.004, -0.050, 1.0))),
+        ),
+    )
+    flange = Surface(black, mottle=0.10, speckle=0.08, details=(Ribs(0.003, (0.0, 1.0, 0.0), 0.5, 0.4),))
+    steel = Surface((0.66, 0.67, 0.70), mottle=0.05, speckle=0.04, grain=0.3, grain_axis=(0.0, 1.0, 0.0))
+    palm_outline = Polygon(
+        [(-0.070, -0.080), (-0.060, -0.090), (0.0, -0.090), (0.0, 0.090), (-0.060, 0.090), (-0.070, 0.080)]
+    )
+    palm = _Link(
+        "palm",
+        _prisms(box(-0.086, -0.040, -0.070, 0.040), (-0.030, 0.030), flange, _STEEL)
+        + _prisms(_rounded(palm_outline, 0.004), (-0.022, 0.022), body, _PLASTIC)
+        + _prisms(box(0.0, -0.085, 0.008, 0.085), (-0.012, 0.012), steel, _STEEL),
+        (
+            Mark("NARF", (-0.030, -0.030), 0.0, 0.012, black),
+            Mark("PG-2", (-0.030, 0.045), 0.0, 0.009, black),
+            Mark("SN 0042", (-0.030, 0.0), 0.0, 0.008, black, -1),
+        ),
+    )
+    aluminium = Surface((0.76, 0.77, 0.79), mottle=0.05, speckle=0.05, grain=0.3)
+    pad = Surface((0.16, 0.16, 0.17), mottle=0.08, speckle=0.06, details=(Ribs(0.002, (1.0, 0.0, 0.0), 0.5, 0.45),))
+    carriage_outline = box(0.0, 0.003, 0.018, 0.030)
+    finger_outline = Polygon([(0.018, 0.003), (0.095, 0.003), (0.095, 0.011), (0.060, 0.016), (0.018, 0.024)])
+    pad_outline = box(0.050, 0.0, 0.093, 0.003)
+
+    def finger(name: str, side: float, anodised: Rgb, text: str) -> _Link:
+        def place(outline: Polygon) -> Polygon:
+            return outline if side > 0 else _scale_geometry(outline, 1.0, -1.0, origin=(0.0, 0.0))
+
+        front_band = Paint(black, Box((0.014, -1.0, -1.0), (1.0, 1.0, 1.0)))
+        carriage = Surface(anodised, mottle=0.06, speckle=0.05, details=(front_band,))
+        return _Link(
+            name,
+            _prisms(place(carriage_outline), (-0.018, 0.018), carriage, _STEEL)
+            + _prisms(place(finger_outline), (-0.011, 0.011), aluminium, _STEEL)
+            + _prisms(place(pad_outline), (-0.009, 0.009), pad, _RUBBER),
+            (
+                Mark(text, (0.007, side * 0.0165), 0.0, 0.010, white),
+                Mark(text, (0.007, side * 0.0165), 0.0, 0.010, white, -1),
+                Mark("NARF", (0.045, side * 0.011), 0.0, 0.0045, black),
+            ),
+        )
+
+    left = finger("finger_left", 1.0, (0.12, 0.30, 0.72), "L")
+    right = finger("finger_right", -1.0, (0.72, 0.14, 0.10), "R")
+    joints = (
+        _Joint("finger_left", "prismatic", "palm", "finger_left", (0.0, 1.0, 0.0), 0.0, 0.04, (0.008, 0.002, 0.0)),
+        _Joint("finger_right", "prismatic", "palm", "finger_right", (0.0, -1.0, 0.0), 0.0, 0.04, (0.008, -0.002, 0.0)),
+    )
+    return _Design((palm, left, right), joints)
+
+
+def _cabinet() -> _Design:
+    """A small wooden cabinet: two drawers on the left (-y) over each other, a door on the right.
+
+    The body frame sits on the floor under the body's centre, +z up, fronts facing +x. Drawers
+    ``drawer_lower`` and ``drawer_upper`` slide out along +x (value: how far, metres); ``door``
+    turns about a vertical hinge at the front right edge (value: the opening angle, 0 = closed).
+    Each moving link's frame is the centre of its front at zero; fronts overlay the body's front.
+    Textures are coarser than the tools' (1 mm texels) to keep the atlases of the larger panels small.
+    """
+    depth, half_width, t = 0.22, 0.16, 0.012
+    front_x = depth / 2
+    plinth_z, floor_z, top_z, shelf_z = 0.020, 0.032, 0.238, (0.129, 0.141)
+    white, black = (0.95, 0.95, 0.93), (0.07, 0.07, 0.08)
+    oak = partial(Surface, (0.74, 0.57, 0.37), mottle=0.10, speckle=0.04, grain=0.30)
+    across, upright = oak(grain_axis=(0.0, 1.0, 0.0)), oak(grain_axis=(0.0, 0.0, 1.0))
+    plate = Paint((0.82, 0.80, 0.74), Box((-0.060, -1.0, 0.170), (-0.020, -0.159, 0.200)))  # maker's plate, -y side
+    walls = box(-front_x, -half_width, front_x, -half_width + t).union(
+        box(-front_x, half_width - t, front_x, half_width)
+    ).union(box(-front_x, -half_width + t, -front_x + t, half_width - t))
+    body = _Link(
+        "body",
+        _prisms(box(-0.095, -0.150, 0.095, 0.150), (0.0, plinth_z), Surface(black, mottle=0.1, speckle=0.08), _PLASTIC)
+        + _prisms(box(-front_x, -half_width, front_x, half_width), (plinth_z, floor_z), across, _WOOD)
+        + _prisms(walls, (floor_z, top_z), oak(grain_axis=(0.0, 0.0, 1.0), details=(plate,)), _WOOD)
+        + _prisms(box(-front_x + t, -t / 2, front_x, t / 2), (floor_z, shelf_z[0]), upright, _WOOD)
+        + _prisms(box(-front_x + t, -t / 2, front_x, t / 2), (shelf_z[1], top_z), upright, _WOOD)
+        + _prisms(box(-front_x + t, -half_width + t, front_x, half_width - t), shelf_z, across, _WOOD)
+        + _prisms(box(-front_x, -half_width, front_x, half_width), (top_z, top_z + t), across, _WOOD),
+    )
+    handle = Surface((0.70, 0.71, 0.73), mottle=0.04, speckle=0.04, grain=0.3, grain_axis=(0.0, 1.0, 0.0))
+    ply = Surface((0.88, 0.76, 0.56), mottle=0.08, speckle=0.04, grain=0.2)
+
+    def drawer(name: str, card: Rgb, letter: str) -> _Link:
+        """Front (overlay, 16 mm), a bar handle, and a tray 0.196 m deep behind the front."""
+        front = Surface(
+            (0.42, 0.56, 0.47),
+            mottle=0.06,
+            speckle=0.04,
+            details=(  # a label card in a holder, black at its left edge
+                Paint(card, Box((0.015, -0.028, 0.022), (1.0, 0.028, 0.040))),
+                Paint(black, Box((0.015, -0.030, 0.020), (1.0, -0.028, 0.042))),
+            ),
+        )
+        tray = box(-0.196, -0.064, 0.0, 0.064).difference(box(-0.188, -0.056, 0.0, 0.056))
+        posts = box(0.016, -0.040, 0.030, -0.032).union(box(0.016, 0.032, 0.030, 0.040))
+        pull = unary_union([posts, box(0.024, -0.040, 0.032, 0.040)])
+        return _Link(
+            name,
+            _prisms(box(0.0, -0.0785, 0.016, 0.0785), (-0.0565, 0.0565), front, _WOOD)
+            + _prisms(box(-0.196, -0.064, 0.0, 0.064), (-0.042, -0.034), ply, _PLYWOOD)
+            + _prisms(tray, (-0.034, 0.040), ply, _PLYWOOD)
+            + _prisms(pull, (-0.006, 0.006), handle, _STEEL),
+            (
+                Mark(letter, (-0.100, 0.0), 0.0, 0.040, (0.30, 0.22, 0.12)),
+                Mark("NARF", (-0.100, 0.0), 0.0, 0.012, black, -1),
+            ),
+        )
+
+    door_surface = Surface(
+        (0.90, 0.87, 0.78),
+        mottle=0.05,
+        speckle=0.04,
+        details=(
+            Paint((0.70, 0.66, 0.56), Box((0.015, -0.146, -0.102), (1.0, -0.012, 0.102))),
+            Paint((0.90, 0.87, 0.78), Box((0.015, -0.142, -0.098), (1.0, -0.016, 0.098))),
+            Dots(0.012, 0.0015, (0.78, 0.74, 0.64), Box((0.015, -0.138, -0.094), (1.0, -0.020, 0.094))),
+        ),
+    )
+    door = _Link(
+        "door",
+        _prisms(box(0.0, -0.158, 0.016, -0.001), (-0.114, 0.114), door_surface, _WOOD)
+        + _prisms(box(0.016, -0.150, 0.030, -0.142), (-0.040, 0.040), handle, _STEEL),
+    )
+    lower = drawer("drawer_lower", white, "A")
+    upper = drawer("drawer_upper", (0.96, 0.82, 0.20), "B")
+    x = (1.0, 0.0, 0.0)
+    joints = (
+        _Joint("drawer_lower", "prismatic", "body", "drawer_lower", x, 0.0, 0.16, (front_x, -0.0805, 0.0775)),
+        _Joint("drawer_upper", "prismatic", "body", "drawer_upper", x, 0.0, 0.16, (front_x, -0.0805, 0.1925)),
+        _Joint("door", "revolute", "body", "door", (0.0, 0.0, 1.0), 0.0, 1.75, (front_x, half_width, 0.135)),
+    )
+    return _Design((body, lower, upper, door), joints, texels_per_m=1000.0)
+
+
 _DESIGNS: dict[str, Callable[[], _Design]] = {
     "clamp": _clamp,
     "lineman-a": _lineman_a,
     "lineman-b": _lineman_b,
     "longnose": _longnose,
+    "lamp": _lamp,
+    "gripper": _gripper,
+    "cabinet": _cabinet,
 }
 
 
@@ -497,7 +802,7 @@ class _SideIsland:
 class _Atlas:
     """Where each face lands in a link's texture: two cap bands, then shelves of side islands.
 
-    Cap bands map ``(x, y)`` isotropically at ``_TEXELS_PER_M`` (image up = +y); a side island maps
+    Cap bands map ``(x, y)`` isotropically at ``texels_per_m`` (image up = +y); a side island maps
     arc length along its ring to columns and ``z`` (top first) to rows.
     """
 
@@ -508,6 +813,7 @@ class _Atlas:
     top_row: int
     bottom_row: int
     sides: tuple[_SideIsland, ...]
+    texels_per_m: float
 
 
 @dataclass
@@ -536,18 +842,18 @@ def _ring_lengths(ring: FloatArray) -> FloatArray:
     return np.linalg.norm(np.roll(ring, -1, axis=0) - ring, axis=1)
 
 
-def _layout(link: _Link) -> _Atlas:
+def _layout(link: _Link, texels_per_m: float) -> _Atlas:
     bounds = np.array([p.outline.bounds for p in link.prisms])
     x_min, y_min = bounds[:, 0].min(), bounds[:, 1].min()
     x_max, y_max = bounds[:, 2].max(), bounds[:, 3].max()
-    width = int(np.ceil((x_max - x_min) * _TEXELS_PER_M)) + 2 * _PAD
+    width = int(np.ceil((x_max - x_min) * texels_per_m)) + 2 * _PAD
     width = max(_MIN_WIDTH, -(-width // 8) * 8)
-    band = int(np.ceil((y_max - y_min) * _TEXELS_PER_M)) + 2 * _PAD
-    row_limit = (width - 2 * _PAD) / _TEXELS_PER_M  # longest run of edges one island can hold
+    band = int(np.ceil((y_max - y_min) * texels_per_m)) + 2 * _PAD
+    row_limit = (width - 2 * _PAD) / texels_per_m  # longest run of edges one island can hold
     sides: list[_SideIsland] = []
     shelf_row, shelf_height, col = 2 * band, 0, 0
     for k, prism in enumerate(link.prisms):
-        height = int(np.ceil((prism.z[1] - prism.z[0]) * _TEXELS_PER_M)) + 2 * _PAD
+        height = int(np.ceil((prism.z[1] - prism.z[0]) * texels_per_m)) + 2 * _PAD
         for ring in _rings(prism.outline):
             lengths = _ring_lengths(ring)
             first = 0
@@ -558,7 +864,7 @@ def _layout(link: _Link) -> _Atlas:
                     n += 1
                 if n == 0:
                     raise ValueError(f"edge longer than the atlas row in link {link.name!r}")
-                island_width = int(np.ceil(run * _TEXELS_PER_M)) + 2 * _PAD
+                island_width = int(np.ceil(run * texels_per_m)) + 2 * _PAD
                 if col + island_width > width:
                     shelf_row, shelf_height, col = shelf_row + shelf_height, 0, 0
                 sides.append(_SideIsland(k, ring, first, n, col, shelf_row, island_width, height))
@@ -566,19 +872,19 @@ def _layout(link: _Link) -> _Atlas:
                 shelf_height = max(shelf_height, height)
                 first += n
     total = -(-(shelf_row + shelf_height) // 8) * 8
-    return _Atlas(width, total, x_min, y_max, 0, band, tuple(sides))
+    return _Atlas(width, total, x_min, y_max, 0, band, tuple(sides), texels_per_m)
 
 
 def _cap_texel(atlas: _Atlas, xy: FloatArray, band_row: int) -> FloatArray:
     """Continuous texel coordinates ``[n, 2]`` (col, row) of points ``xy [n, 2]`` in a cap band."""
-    col = _PAD + (xy[:, 0] - atlas.x_min) * _TEXELS_PER_M
-    row = band_row + _PAD + (atlas.y_max - xy[:, 1]) * _TEXELS_PER_M
+    col = _PAD + (xy[:, 0] - atlas.x_min) * atlas.texels_per_m
+    row = band_row + _PAD + (atlas.y_max - xy[:, 1]) * atlas.texels_per_m
     return np.column_stack([col, row])
 
 
-def _link_mesh(link: _Link) -> tuple[_Mesh, _Atlas]:
+def _link_mesh(link: _Link, texels_per_m: float) -> tuple[_Mesh, _Atlas]:
     """The link's triangles with flat caps, side walls shaded smooth where they curve gently."""
-    atlas = _layout(link)
+    atlas = _layout(link, texels_per_m)
     mesh = _Mesh()
     for k, prism in enumerate(link.prisms):
         z0, z1 = prism.z
@@ -593,11 +899,11 @@ def _link_mesh(link: _Link) -> tuple[_Mesh, _Atlas]:
             mesh.add(positions, normals, _cap_texel(atlas, verts, band_row), tris if sign > 0 else tris[:, ::-1])
         for island in atlas.sides:
             if island.prism == k:
-                _add_side_island(mesh, island, prism.z)
+                _add_side_island(mesh, island, prism.z, texels_per_m)
     return mesh, atlas
 
 
-def _add_side_island(mesh: _Mesh, island: _SideIsland, z: tuple[float, float]) -> None:
+def _add_side_island(mesh: _Mesh, island: _SideIsland, z: tuple[float, float], texels_per_m: float) -> None:
     ring = island.ring
     m = len(ring)
     edge = np.roll(ring, -1, axis=0) - ring
@@ -617,7 +923,7 @@ def _add_side_island(mesh: _Mesh, island: _SideIsland, z: tuple[float, float]) -
         xy = np.stack([ring[i], ring[j], ring[j], ring[i]])
         zs = np.array([z0, z0, z1, z1])
         normals = np.column_stack([np.stack([n_i, n_j, n_j, n_i]), np.zeros(4)])
-        cols = island.col + _PAD + np.array([s, s + lengths[e], s + lengths[e], s]) * _TEXELS_PER_M
+        cols = island.col + _PAD + np.array([s, s + lengths[e], s + lengths[e], s]) * texels_per_m
         rows = island.row + _PAD + (z1 - zs) * scale_z
         faces = np.array([[0, 1, 2], [0, 2, 3]])
         mesh.add(np.column_stack([xy, zs]), normals, np.column_stack([cols, rows]), faces)
@@ -633,8 +939,8 @@ def _paint_atlas(link: _Link, atlas: _Atlas, noise: ValueNoise) -> NDArray[np.ui
         rows, cols = np.nonzero(owner >= 0)
         xy = np.column_stack(
             [
-                atlas.x_min + (cols + 0.5 - _PAD) / _TEXELS_PER_M,
-                atlas.y_max - (rows + 0.5 - _PAD) / _TEXELS_PER_M,
+                atlas.x_min + (cols + 0.5 - _PAD) / atlas.texels_per_m,
+                atlas.y_max - (rows + 0.5 - _PAD) / atlas.texels_per_m,
             ]
         )
         for k, prism in enumerate(link.prisms):
@@ -648,7 +954,7 @@ def _paint_atlas(link: _Link, atlas: _Atlas, noise: ValueNoise) -> NDArray[np.ui
     for island in atlas.sides:
         prism = link.prisms[island.prism]
         image[island.row : island.row + island.height, island.col : island.col + island.width] = _paint_island(
-            island, prism, noise
+            island, prism, noise, atlas.texels_per_m
         )
     return to_uint8(image)
 
@@ -658,7 +964,7 @@ def _cap_owners(link: _Link, atlas: _Atlas, band_height: int) -> NDArray[np.int6
     outline belong to it; texels just outside every outline go to a neighbour, so that filtering at
     the silhouette picks up the right colour."""
     owner = np.full((band_height, atlas.width), -1, dtype=np.int64)
-    margin = (_PAD + 1) / _TEXELS_PER_M
+    margin = (_PAD + 1) / atlas.texels_per_m
     for grown in (True, False):
         for k, prism in enumerate(link.prisms):
             outline = prism.outline.buffer(margin, quad_segs=2) if grown else prism.outline
@@ -675,7 +981,7 @@ def _cap_owners(link: _Link, atlas: _Atlas, band_height: int) -> NDArray[np.int6
 
 def _draw_mark(band: FloatArray, inside: NDArray[np.bool_], atlas: _Atlas, mark: Mark) -> None:
     """Blend ``mark`` into a cap band ``[h, w, 3]`` in place, only over texels ``inside`` the link."""
-    coverage = rotated_mask(text_mask(mark.text, round(mark.height * _TEXELS_PER_M)), mark.angle, mark.face < 0)
+    coverage = rotated_mask(text_mask(mark.text, round(mark.height * atlas.texels_per_m)), mark.angle, mark.face < 0)
     col, row = _cap_texel(atlas, np.array([mark.centre]), 0)[0]
     h, w = coverage.shape
     top, left = int(round(row - h / 2)), int(round(col - w / 2))
@@ -688,13 +994,13 @@ def _draw_mark(band: FloatArray, inside: NDArray[np.bool_], atlas: _Atlas, mark:
     region[:] = region * (1 - alpha[..., None]) + np.asarray(mark.colour) * alpha[..., None]
 
 
-def _paint_island(island: _SideIsland, prism: _Prism, noise: ValueNoise) -> FloatArray:
+def _paint_island(island: _SideIsland, prism: _Prism, noise: ValueNoise, texels_per_m: float) -> FloatArray:
     """Colours ``[height, width, 3]`` of one side island; margins continue along the ring."""
     ring = np.concatenate([island.ring, island.ring[:1]])
     cumulative = np.concatenate([[0.0], np.cumsum(_ring_lengths(island.ring))])
     perimeter = cumulative[-1]
     start = cumulative[island.first_edge]
-    s = (start + (np.arange(island.width) + 0.5 - _PAD) / _TEXELS_PER_M) % perimeter
+    s = (start + (np.arange(island.width) + 0.5 - _PAD) / texels_per_m) % perimeter
     x, y = np.interp(s, cumulative, ring[:, 0]), np.interp(s, cumulative, ring[:, 1])
     z0, z1 = prism.z
     scale_z = (island.height - 2 * _PAD) / (z1 - z0)
@@ -749,6 +1055,11 @@ def _fmt(values: Sequence[float]) -> str:
     return " ".join(f"{v:.6g}" for v in values)
 
 
+def _fmt_exact(values: Sequence[float]) -> str:
+    """The shortest text that reads back as the same floats (``pi / 2`` keeps all its digits)."""
+    return " ".join(np.format_float_positional(v, trim="-") for v in values)
+
+
 def _urdf_text(name: str, design: _Design, inertials: Sequence[tuple[float, FloatArray]]) -> str:
     robot = ET.Element("robot", name=name)
     zero = {"xyz": "0 0 0", "rpy": "0 0 0"}
@@ -771,7 +1082,7 @@ def _urdf_text(name: str, design: _Design, inertials: Sequence[tuple[float, Floa
         node = ET.SubElement(robot, "joint", name=joint.name, type=joint.kind)
         ET.SubElement(node, "parent", link=joint.parent)
         ET.SubElement(node, "child", link=joint.child)
-        ET.SubElement(node, "origin", zero)
+        ET.SubElement(node, "origin", xyz=_fmt_exact(joint.xyz), rpy=_fmt_exact(joint.rpy))
         ET.SubElement(node, "axis", xyz=_fmt(joint.axis))
         ET.SubElement(node, "limit", lower=f"{joint.lower:.6g}", upper=f"{joint.upper:.6g}", effort="50", velocity="1")
     ET.indent(robot)
