@@ -27,6 +27,7 @@ import torch
 from narf_core import estimate as E
 from narf_core.bundle import NarfModel, load_bundle, save_bundle
 from narf_core.data.dataset import Dataset
+from narf_core.modes import choose_mode
 from narf_core.geometry import Pinhole
 
 COVERAGE = 0.95
@@ -48,6 +49,7 @@ def statistics(
     param = E._Parameterisation.around(T, model)
     aabb = model.aabb.detach().double().cpu()
     centre = (aabb[0] + aabb[1]) / 2
+    options = replace(options, mode=choose_mode(model, options.mode)[0])  # a Problem takes a resolved mode
     stat = covariance(Problem(model, options, param.radius, uses_depth), obs, camera, param, T,
                       model.kinematics.joint_vector(joints), centre, options.uncertainty_rays,
                       options.uncertainty_patch, torch.Generator().manual_seed(options.seed + 1))

@@ -29,7 +29,8 @@ def measure(model: NarfModel, dataset: Dataset, frame: Frame, rays: int = 1024, 
 
     images = dataset.load(frame)
     mask = images.labels > 0
-    options = E.EstimateOptions.preset("gauss-newton", theta_starts=1)
+    # The configuration field's Jacobian (one composite, θ per ray), whatever mode `auto` picks for the model.
+    options = E.EstimateOptions.preset("gauss-newton", theta_starts=1, mode="narf")
     obs = E._observation(images.rgb, mask, images.depth, E._mask_box(mask, options.box_margin), 1, model.aabb.device)
     param = E._Parameterisation.around(torch.from_numpy(np.asarray(frame.T_cam_obj, np.float64)), model)
     problem = gn.Problem(model, options, param.radius, images.depth is not None)

@@ -1,10 +1,12 @@
 """``narf bench render``: the paper's Table I on our data, with run time beside every error.
 
-For each tool and split (train / test / novel) and each render mode (``narf``, ``parts``): per-pixel
-MSE, PSNR, N and milliseconds per image, at the dataset size (default 160x120) and at 640x480; a
-sweep of the ray-marching step (samples per ray) plotted as error against run time; optionally the
-same on datasets with label noise. Missing datasets are synthesised and missing models trained into
-the work folder, so the full run is one command; ``--quick`` uses the bundled demo models only.
+For each object (the four tools and the multi-joint objects), split (train / test / novel) and render
+mode (``narf``, ``parts``): per-pixel MSE, PSNR, N and milliseconds per image, at the dataset size
+(default 160x120) and at 640x480; per object the configuration field's speed-up over the composed
+parts, its PSNR gap and the mode ``auto`` picks; a sweep of the ray-marching step (samples per ray)
+plotted as error against run time; optionally the same on datasets with label noise. Missing
+datasets are synthesised and missing models trained into the work folder, so the full run is one
+command; ``--quick`` uses the bundled demo models only.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from pathlib import Path
 from narf_core.bundle import NarfModel, load_bundle
 from narf_core.data.dataset import Dataset
 from narf_core.evaluate import evaluate_render
+from narf_core.modes import choose_mode
 
 SPLITS = ("train", "test", "novel")
 PAPER_MSE = {  # Table I of the paper (real data)
@@ -26,9 +29,16 @@ PAPER_MSE = {  # Table I of the paper (real data)
 }
 
 
+def all_tools() -> tuple[str, ...]:
+    """Every procedural object ``narf synth --tool`` knows (the 1-DoF tools and the multi-joint objects)."""
+    from narf_core.data.synth.tools import TOOLS
+
+    return TOOLS
+
+
 @dataclass
 class RenderBenchConfig:
-    tools: tuple[str, ...] = ("clamp", "lineman-a", "lineman-b", "longnose")
+    tools: tuple[str, ...] = field(default_factory=all_tools)
     splits: tuple[str, ...] = SPLITS
     modes: tuple[str, ...] = ("narf", "parts")
     sizes: tuple[tuple[int, int], ...] = ((160, 120), (640, 480))
@@ -93,12 +103,13 @@ def step_sweep(model: NarfModel, dataset: Dataset, divisions: tuple[float, ...],
 def run(work: Path, config: RenderBenchConfig) -> dict:
     """Run the benchmark; writes ``render.json``, ``render.md`` and ``render_error_vs_time.png`` in ``work``."""
     work.mkdir(parents=True, exist_ok=True)
-    rows, sweeps = [], {}
+    rows, sweeps, auto = [], {}, {}
     for noise in (False, True) if config.noise else (False,):
         for tool in config.tools:
             for size in config.sizes:
                 dataset = _dataset(work, tool, size, config.views, noise)
                 model = _model(work, tool, _dataset(work, tool, config.sizes[0], config.views, noise), config, noise)
+                auto[f"{tool}{' (noise)' if noise else ''}"] = dict(zip(("mode", "reason"), choose_mode(model)))
                 for mode in config.modes if model.has_parts else ("narf",):
                     for split in config.splits:
                         score = evaluate_render(
@@ -107,15 +118,34 @@ def run(work: Path, config: RenderBenchConfig) -> dict:
                         rows.append({"tool": tool, "noise": noise, **score.summary(), "paper_mse": PAPER_MSE.get(tool, {}).get(split)})
                 if size == config.sizes[0]:
                     sweeps[f"{tool}{' (noise)' if noise else ''}"] = step_sweep(model, dataset, config.step_sweep, limit=config.images_per_split or 8)
-    result = {"rows": rows, "step_sweep": sweeps}
+    result = {"rows": rows, "modes": mode_summary(rows), "auto": auto, "step_sweep": sweeps}
     (work / "render.json").write_text(json.dumps(result, indent=1))
     (work / "render.md").write_text(markdown(result))
     plot(sweeps, work / "render_error_vs_time.png")
     return result
 
 
+def mode_summary(rows: list[dict]) -> list[dict]:
+    """Per tool, noise and size where both modes ran: each mode's mean ms per image over the splits,
+    ``speedup`` (parts' time over narf's) and ``psnr_gap_db`` (narf's PSNR minus parts', per split)."""
+    groups: dict[tuple, dict[str, dict[str, dict]]] = {}
+    for r in rows:
+        groups.setdefault((r["tool"], r["noise"], r["width"], r["height"]), {}).setdefault(r["mode"], {})[r["split"]] = r
+    out = []
+    for (tool, noise, width, height), modes in groups.items():
+        if set(modes) != {"narf", "parts"}:
+            continue
+        ms = {m: sum(r["ms_per_image"] for r in by_split.values()) / len(by_split) for m, by_split in modes.items()}
+        gap = {split: modes["narf"][split]["psnr"] - r["psnr"] for split, r in modes["parts"].items() if split in modes["narf"]}
+        out.append({"tool": tool, "noise": noise, "width": width, "height": height, "narf_ms": ms["narf"],
+                    "parts_ms": ms["parts"], "speedup": ms["parts"] / ms["narf"], "psnr_gap_db": gap})
+    return out
+
+
 def markdown(result: dict) -> str:
-    """Table I's shape: tool, split, then MSE, PSNR, N and ms per image for each mode and size."""
+    """Table I's shape: tool, split, then MSE, PSNR, N and ms per image for each mode and size; then
+    per object the configuration field's speed-up over the composed parts, its PSNR gap per split
+    and the mode ``auto`` picks from the bundle's measurement."""
     lines = [
         "| tool | noise | split | mode | size | MSE | PSNR (dB) | N | ms/image | paper MSE |",
         "|---|---|---|---|---|---|---|---|---|---|",
@@ -126,6 +156,17 @@ def markdown(result: dict) -> str:
             f"| {r['tool']} | {'yes' if r['noise'] else 'no'} | {r['split']} | {r['mode']} | {r['width']}x{r['height']} "
             f"| {r['mse']:.5f} | {r['psnr']:.2f} | {r['n']} | {r['ms_per_image']:.1f} | {paper} |"
         )
+    lines += ["", "Configuration field (narf) against composed parts, per object and size; `auto`: the bundle's choice "
+              "(narf_core/modes.py):", "",
+              "| tool | noise | size | narf ms/image | parts ms/image | narf speed-up | narf − parts PSNR (dB) | auto |",
+              "|---|---|---|---|---|---|---|---|"]
+    for m in result.get("modes", []):
+        gap = ", ".join(f"{split} {g:+.2f}" for split, g in m["psnr_gap_db"].items())
+        pick = result.get("auto", {}).get(f"{m['tool']}{' (noise)' if m['noise'] else ''}", {}).get("mode", "-")
+        lines.append(f"| {m['tool']} | {'yes' if m['noise'] else 'no'} | {m['width']}x{m['height']} | {m['narf_ms']:.1f} "
+                     f"| {m['parts_ms']:.1f} | {m['speedup']:.2f}x | {gap} | {pick} |")
+    for name, a in result.get("auto", {}).items():
+        lines.append(f"\n`auto` renders {name} in {a['mode']} mode: {a['reason']}.")
     lines += ["", "Error against run time (test split, marching step = box diagonal / samples):", "",
               "| model | samples per diagonal | MSE | PSNR (dB) | ms/image |", "|---|---|---|---|---|"]
     for name, sweep in result["step_sweep"].items():

@@ -8,7 +8,8 @@ A bundle holds tensors only (never pickle):
   ``points.<link>``        surface points per link, in the link frame, for ADD
 and one JSON document in the safetensors metadata under ``"narf"``: format and version, object
 name, links, joints with limits, bounds, field architectures and hyper-parameters, the URDF text
-(for FK), training provenance and metrics, and ``checksum``: the SHA-256 of the tensors (see
+(for FK), training provenance and metrics, the render modes' measurement (``mode_measurement``,
+narf_core/modes.py), and ``checksum``: the SHA-256 of the tensors (see
 :func:`tensors_digest`), written at save and verified at load. A bundle whose tensors do not match
 it, or that holds a non-finite weight, is refused; one saved before checksums existed loads with the
 finiteness check only (load and save it again to add one).
@@ -37,12 +38,12 @@ from narf_core.fields.composed import ComposedField, compose_parts
 from narf_core.diameter import object_diameter
 from narf_core.geometry import Pinhole, Rays
 from narf_core.kinematics import KinematicTree
+from narf_core.modes import MODES, RECORD_KEY, choose_mode
 from narf_core.render import OccupancyGrid, RenderOutput, render_image, render_rays
 
 FORMAT = "narf-bundle"
 FORMAT_VERSION = 2  # 2: occupancy grids stored as packed bits, their shapes in the metadata
 CHECKSUM_ALGORITHM = "sha256"
-RENDER_MODES = ("narf", "parts")
 STEPS_PER_DIAGONAL = 256
 
 
@@ -109,10 +110,16 @@ class NarfModel:
 
         ``parts`` composes the part fields at the part poses FK gives for ``θ [k]`` (differentiable
         in ``θ``); the composition is its own occupancy grid, so empty space is skipped there too.
-        With one ``θ`` per ray (``[n, k]``), FK runs per sample instead.
+        With one ``θ`` per ray (``[n, k]``), FK runs per sample instead. ``narf`` marches the
+        model's grid, or for a field with FK inside (the articulated field) its part grids posed at
+        ``θ`` (``field.occupancy(θ)``), which are tight at every configuration. ``auto``: the mode
+        :func:`~narf_core.modes.choose_mode` picks for this model.
         """
+        if mode == "auto":
+            mode = choose_mode(self, mode)[0]
         if mode == "narf":
-            return self.field, self.grid
+            posed = getattr(self.field, "occupancy", None)  # a field with FK inside: its parts' grids posed at θ
+            return self.field, (posed(theta) if callable(posed) else self.grid)
         if mode == "parts":
             if not self.has_parts:
                 raise ValueError(f"model {self.name!r} has no part fields: render mode 'parts' is unavailable")
@@ -120,7 +127,7 @@ class NarfModel:
                 return ComposedField(self.part_fields, self.part_grids, self.kinematics.part_poses), None
             composition = compose_parts(self.part_fields, self.part_grids, self.kinematics.part_poses(theta).to(torch.float32))
             return composition, composition
-        raise ValueError(f"unknown render mode {mode!r}; expected one of {', '.join(RENDER_MODES)}")
+        raise ValueError(f"unknown render mode {mode!r}; expected one of {', '.join(MODES)}")
 
     def render_rays(
         self,
@@ -168,8 +175,8 @@ class NarfModel:
             )
 
     def describe(self) -> dict:
-        """JSON-able description: links, joints and limits, bounds, metrics (the service's
-        ``/v1/models`` answers are made of it)."""
+        """JSON-able description: links, joints and limits, bounds, metrics, the modes and the one
+        ``auto`` picks with its reason and measurement (the service's ``/v1/models`` answers are made of it)."""
         return {
             "name": self.name,
             "links": list(self.links),
@@ -177,6 +184,8 @@ class NarfModel:
             "bounds": self.aabb.tolist(),
             "diameter": self.diameter,
             "modes": ["narf", "parts"] if self.has_parts else ["narf"],
+            "auto_mode": dict(zip(("mode", "reason"), choose_mode(self, "auto"))),
+            RECORD_KEY: self.metadata.get(RECORD_KEY),
             "field": self.metadata.get("field") or {},
             "metrics": self.metadata.get("metrics") or {},
             "provenance": self.metadata.get("provenance") or {},

@@ -32,22 +32,29 @@ from __future__ import annotations
 import math
 import time as _time
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
+from torch import Tensor
 
 from narf_core.checks import check_number, check_option_types, check_pose, option_rule
 from narf_core.estimate import MIN_MASK_PIXELS, SOLVERS, EstimateInputError, EstimateOptions, EstimateResult, refine
-from narf_core.geometry import Pinhole, so3_exp, so3_log
+from narf_core.geometry import Pinhole, Rays, so3_exp, so3_log
+from narf_core.modes import MODES, choose_mode
+from narf_core.sampling import Samples
 
 if TYPE_CHECKING:
     from narf_core.bundle import NarfModel
 
 STATUSES = ("tracking", "uncertain", "lost", "reinitialised")
+MARCHES = ("frame", "iteration")
 _MIN_VELOCITY_GAP_S = 1e-3  # velocities are measured over at least this long
+# A frame's band reaches this far beyond the model's surface points at the prediction (refine_frame):
+# the prediction's error is a few millimetres.
+_FRAME_MARGIN_M = 0.006
 
 
 class TrackInputError(EstimateInputError):
@@ -76,10 +83,21 @@ class TrackOptions:
     # rays go near the mask's edges and image gradients ("edges"), where a distance error shows.
     silhouette_weight_rgb: float = 5.0
     ray_sampling_rgb: str = "edges"
+    # Without depth, the box centre's distance from the camera is held to the prediction's by this weight
+    # (refine_frame's distance_prior) where the mask's box is at most the preset's reference size: there
+    # the silhouette's scale alone lets it wander; in a larger box it pins the distance well enough.
+    distance_prior_rgb: float = 3.0
     solver: str = "adam"
-    mode: str = "narf"
+    mode: str = "auto"  # the render mode (narf_core/modes.py)
+    # "frame": where a ray can meet the object is found once per frame, from the model's surface
+    # points at the prediction, and no iteration marches (refine_frame; narf mode, band_m 0);
+    # "iteration": the refiner marches its rays at every iteration (refine), as with band_m or parts mode.
+    march: str = "frame"
     band_m: float = 0.0  # march only this far around the model's surface (EstimateOptions.band_m); 0 = off
     eval_rays: int = 512  # rays of the final loss (only reported: one start, nothing to choose between)
+    # A warm-started frame's occluder test (EstimateOptions.occlusion_margin, metres; never at a
+    # re-initialisation). Off: the robust preset's 1 cm drifted the track (docs/benchmarks.md).
+    occlusion_margin: float = 0.0
     uncertainty_rays: int = 256  # rays for Σ per frame; 0 = no Σ
     reinit_solver: str = "robust"
     reinit_iterations: int = 100
@@ -109,11 +127,15 @@ class TrackOptions:
         need(self.uncertainty_rays >= 0, "uncertainty_rays", "must be >= 0")
         need(self.silhouette_weight >= 0, "silhouette_weight", "must be >= 0")
         need(self.silhouette_weight_rgb >= 0, "silhouette_weight_rgb", "must be >= 0")
+        need(self.distance_prior_rgb >= 0, "distance_prior_rgb", "must be >= 0")
+        need(self.occlusion_margin >= 0, "occlusion_margin", "must be >= 0")
         for name in ("ray_sampling", "ray_sampling_rgb"):
-            need(getattr(self, name) in ("uniform", "edges"), name, "must be 'uniform' or 'edges'")
-        need(self.mode in ("narf", "parts"), "mode", "must be 'narf' or 'parts'")
+            need(getattr(self, name) in ("uniform", "stratified", "edges"), name,
+                 "must be 'uniform', 'stratified' or 'edges'")
+        need(self.mode in MODES, "mode", f"must be one of {', '.join(MODES)}")
         need(self.band_m == 0 or 0.001 <= self.band_m <= 1, "band_m", "must be 0 (off) or in [0.001, 1] metres")
         need(self.eval_rays >= 16, "eval_rays", "must be >= 16")
+        need(self.march in MARCHES, "march", f"must be one of {', '.join(MARCHES)}")
 
     def step_options(self, depth: bool) -> EstimateOptions:
         """The refiner's options for a warm-started frame."""
@@ -121,7 +143,8 @@ class TrackOptions:
                   "theta_starts": 1, "coarse_to_fine": 1, "early_stop": False, "seed": self.seed,
                   "band_m": self.band_m, "eval_rays": self.eval_rays,
                   "ray_sampling": self.ray_sampling if depth else self.ray_sampling_rgb,
-                  "uncertainty": self.uncertainty_rays > 0, "uncertainty_rays": max(self.uncertainty_rays, 16)}
+                  "uncertainty": self.uncertainty_rays > 0, "uncertainty_rays": max(self.uncertainty_rays, 16),
+                  "occlusion_margin": self.occlusion_margin}
         if self.solver != "adam":
             return EstimateOptions.preset(self.solver, **common)
         return EstimateOptions.preset("robust", lr_pose=self.lr_pose, lr_theta=self.lr_theta, lr_decay=self.lr_decay,
@@ -129,10 +152,14 @@ class TrackOptions:
                                       **common)
 
     def reinit_options(self) -> EstimateOptions:
-        """The multi-start refiner's options for a re-initialisation."""
+        """The multi-start refiner's options for a re-initialisation. No occluder test
+        (``occlusion_margin``): from a start centimetres off, the observed depth lies in front of the
+        render on the very rays that would pull the object in (on the bundled clamp's first frame
+        from a rough pose: ADD 3.9 cm with the preset's 1 cm margin, 0.8 cm without)."""
         return EstimateOptions.preset(self.reinit_solver, iterations=self.reinit_iterations, mode=self.mode,
                                       theta_starts=self.reinit_theta_starts, seed=self.seed, band_m=self.band_m,
-                                      uncertainty=self.uncertainty_rays > 0, uncertainty_rays=max(self.uncertainty_rays, 16))
+                                      uncertainty=self.uncertainty_rays > 0, uncertainty_rays=max(self.uncertainty_rays, 16),
+                                      occlusion_margin=0.0)
 
 
 @dataclass
@@ -214,12 +241,15 @@ class TrackResult:
     reason: str | None = None
     uncertainty: dict | None = None
     covariance: np.ndarray | None = None
+    mode: str | None = None  # the render mode the refiner used (``options.mode``, ``auto`` resolved) and why
+    mode_reason: str | None = None
 
     def to_dict(self) -> dict:
         return {
             "time": self.time, "status": self.status, "T_cam_obj": np.asarray(self.T_cam_obj).tolist(),
             "joints": dict(self.joints), "overlap": self.overlap, "loss": self.loss, "iterations": self.iterations,
             "seconds": self.seconds, "reason": self.reason, "uncertainty": self.uncertainty,
+            "mode": self.mode, "mode_reason": self.mode_reason,
         }
 
 
@@ -338,6 +368,170 @@ def overlap(model: NarfModel, camera: Pinhole, mask: np.ndarray, T_cam_obj: np.n
 
 
 # --------------------------------------------------------------------------------------------
+# one warm-started frame, without marching
+
+
+def refine_frame(
+    model: NarfModel,
+    camera: Pinhole,
+    image: np.ndarray,
+    mask: np.ndarray,
+    depth: np.ndarray | None,
+    T_pred: np.ndarray,
+    joints_pred: Mapping[str, float],
+    options: EstimateOptions,
+    distance_prior: float = 0.0,
+) -> EstimateResult:
+    """The refiner's Adam steps for a warm-started frame without marching: :func:`refine`'s loss on
+    fresh rays at every iteration, each ray sampled only in a band that is known for the whole frame.
+
+    At the prediction (``T_pred``, ``joints_pred``) the model's surface points give every box pixel
+    the depths where its ray can meet the object (:func:`narf_core.band.ray_band`, widened by
+    ``_FRAME_MARGIN_M``, the prediction's error being a few millimetres; nothing where no point
+    projects near it). An iteration takes the lattice samples of its rays in that band
+    (:func:`frame_band`), keeps those the occupancy grid holds at the iteration's pose
+    (:func:`occupied`) and evaluates the field there: no marching rounds, one field call. The final
+    loss (``options.eval_rays`` rays) and the covariance (``options.uncertainty_rays`` rays) take
+    their samples the same way. ``narf`` mode; where the band cannot be trusted (surface points
+    behind the camera) this is :func:`refine`. ``distance_prior`` (for a view without depth) adds
+    that weight times the squared motion of the box centre along the line of sight, in object radii,
+    to the loss where the mask's box is no larger than ``options.reference_box_px``.
+    """
+    from narf_core.band import ray_band
+    from narf_core.compositing import composite
+    from narf_core.estimate import (
+        _Adam, _box_scale, _check_observation, _Loss, _mask_box, _object_rays, _observation, _overlaps,
+        _Parameterisation, _ray_index, _uncertainty,
+    )
+    from narf_core.gauss_newton import Problem, cluster_sample
+    from narf_core.geometry import pose_to_position_quaternion
+    from narf_core.observation import check_observation, usable_depth
+
+    start = _time.perf_counter()
+    image, mask, depth = _check_observation(image, mask, depth, camera)
+    T0 = torch.from_numpy(check_pose(T_pred, "T_init", error=EstimateInputError))
+    warnings = check_observation(image, mask, depth, camera, expected_depth_m=float(T0[2, 3]))
+    depth = usable_depth(depth, warnings)
+    theta0 = model.kinematics.joint_vector(joints_pred, field="joints_init", error=EstimateInputError)
+    device = model.aabb.device
+    camera = Pinhole(camera.K.detach().to(device, torch.float32), camera.width, camera.height)
+    box = _mask_box(mask, options.box_margin)
+    scale = _box_scale(box, options)
+    obs = _observation(image, mask, depth, box, 1, device)
+    obs.scale = scale
+    param = _Parameterisation.around(T0, model)
+    uses_depth = depth is not None and options.depth_weight > 0
+
+    def result(status: str, p: Tensor | None, loss: float | None, iterations: int = 0, trace=(),
+               uncertainty=None, recovered: bool = False) -> EstimateResult:
+        T, theta = (T0, theta0) if p is None else (param.poses(p)[0], param.thetas(p)[0])
+        position, quaternion = pose_to_position_quaternion(T)
+        return EstimateResult(T.numpy().copy(), position.numpy().copy(), quaternion.numpy().copy(),
+                              param.joints(model, theta), loss, iterations, _time.perf_counter() - start, list(trace),
+                              status, recovered, uncertainty=uncertainty, warnings=warnings)
+
+    if not _overlaps(camera, obs.pixels, T0, model.aabb):
+        return result("no_overlap", None, None)
+    rays_box = camera.rays(obs.pixels.to(torch.float32))
+    around = ray_band(model, camera, rays_box, T0[None], theta0[None], _FRAME_MARGIN_M)
+    if around is None:
+        return refine(model, image, mask, camera, T_pred, joints_init=joints_pred, depth=depth, options=options)
+    near, far = (b.detach().double().cpu() for b in around)
+    field, grid = model._field_for("narf", theta0.to(torch.float32))
+
+    class FrameLoss(_Loss):
+        """The refiner's loss, rendered from the band's samples of the rays (:attr:`index` into the box)."""
+
+        index: Tensor
+
+        def _render(self, rays_obj, theta, outputs, band=None):
+            th = theta[0].to(rays_obj.origins)
+            lattice = frame_band(near[self.index], far[self.index], model.step)
+            out = composite(field, rays_obj, occupied(grid, rays_obj, lattice, th), theta=th, outputs=outputs)
+            return out.rgb, out.opacity, out.depth
+
+    loss_fn = FrameLoss(model, replace(options, band_m=0.0), param.radius, uses_depth)
+    target = obs.levels[-1]
+    rng = torch.Generator().manual_seed(options.seed)
+    n_pixels = obs.pixels.shape[0]
+    n_rays = min(round(scale * options.rays_per_iteration), n_pixels)
+
+    view = param.T_centre[:3, 3] / param.T_centre[:3, 3].norm()  # the line of sight to the box centre
+
+    def loss_at(p: Tensor, index: Tensor) -> Tensor:
+        loss_fn.index = index
+        loss = loss_fn(rays_box[index], target, index, param.poses(p), param.thetas(p))
+        if distance_prior > 0 and scale == 1:  # the centre's motion along the line of sight, in object radii
+            loss = loss + distance_prior * (p[:, :3] @ view) ** 2
+        return loss
+
+    k = theta0.shape[0]
+    p0 = torch.cat([torch.zeros(1, 6, dtype=torch.float64), param.u_of(theta0[None])], dim=1)
+    adam = _Adam(p0.clone(), torch.tensor([options.lr_pose] * 6 + [options.lr_theta] * k, dtype=torch.float64))
+    last_finite, rate, trace, failures = None, 1.0, [], 0
+    for i in range(options.iterations):
+        p = adam.params.clone().requires_grad_(True)
+        loss = loss_at(p, _ray_index(obs, options, n_rays, rng, True))
+        value = float(loss.detach().sum())
+        grad = torch.autograd.grad(loss.sum(), p)[0] if loss.requires_grad else torch.zeros_like(p)
+        if not (math.isfinite(value) and bool(torch.isfinite(grad).all())):
+            failures += 1  # back to the last finite iterate, fresh moments, half the rate
+            adam.params = p0.clone() if last_finite is None else last_finite.clone()
+            adam.reset()
+            rate *= 0.5
+            if failures >= 8:
+                break
+            continue
+        last_finite = adam.params.clone()
+        trace.append((value, _time.perf_counter() - start))
+        adam.step(grad, rate * options.lr_decay ** ((i + 1) / max(options.iterations - 1, 1)))
+    index = torch.arange(n_pixels) if n_pixels <= options.eval_rays else torch.randperm(n_pixels, generator=rng)[
+        : options.eval_rays]
+    final = None
+    for candidate in (adam.params, last_finite):
+        if candidate is not None and final is None:
+            with torch.no_grad():
+                value = float(loss_at(candidate, index).sum())
+            final = (candidate, value) if math.isfinite(value) else None
+    if final is None:
+        return result("non_finite", None, None, options.iterations, trace, recovered=True)
+    p, loss = final
+    uncertainty = None
+    if options.uncertainty:
+        T, theta = param.poses(p)[0], param.thetas(p)[0]
+        index, cluster, weight = cluster_sample(obs.pixels.cpu(), obs.importance, options.uncertainty_patch,
+                                                options.uncertainty_rays, torch.Generator().manual_seed(options.seed + 1))
+        lattice = occupied(grid, _object_rays(rays_box[index], T[None]), frame_band(near[index], far[index], model.step),
+                           theta.to(rays_box.origins))
+        problem = Problem(model, options, param.radius, uses_depth, samples=lattice)
+        uncertainty = _uncertainty(model, options, obs, camera, param, T, theta, uses_depth, problem,
+                                   (index, cluster, weight))
+    return result("max_iterations", p, loss, options.iterations, trace, uncertainty, failures > 0)
+
+
+def frame_band(near: Tensor, far: Tensor, step: float) -> Samples:
+    """The lattice samples (interval ``step``, anchored at ``t = 0`` like the march's, each at its
+    interval's middle) of rays between the distances ``near [n]`` and ``far [n]`` (none where
+    ``far <= near``)."""
+    k0 = torch.floor(near / step)
+    count = torch.where(far > near, torch.ceil(far / step) - k0, torch.zeros_like(k0)).long()
+    ray = torch.repeat_interleave(torch.arange(len(near)), count)
+    j = torch.arange(len(ray)) - (torch.cumsum(count, 0) - count)[ray]
+    t = (k0[ray] + j + 0.5) * step
+    return Samples(ray, t, torch.full_like(t, step))
+
+
+def occupied(grid, rays_obj: Rays, samples: Samples, theta: Tensor) -> Samples:
+    """The ``samples`` of ``rays_obj`` in occupied cells of ``grid`` at ``θ [k]`` (all without a grid)."""
+    if grid is None or len(samples) == 0:
+        return samples
+    with torch.no_grad():
+        x = rays_obj.origins[samples.ray] + samples.t[:, None].to(rays_obj.origins) * rays_obj.directions[samples.ray]
+        keep = grid.occupied(x, theta.detach())
+    return Samples(samples.ray[keep], samples.t[keep], samples.delta[keep])
+
+
+# --------------------------------------------------------------------------------------------
 # one frame
 
 
@@ -406,13 +600,24 @@ def step(
     state: TrackState,
     options: TrackOptions | None = None,
 ) -> tuple[TrackResult, TrackState]:
-    """Track one frame from ``state``; returns the frame's result and the next state.
+    """Track one frame from ``state``; returns the frame's result (with the render mode used and
+    why) and the next state.
 
     Raises:
-        TrackInputError: a frame at or before the state's time, a non-finite state, size mismatches.
+        TrackInputError: a frame at or before the state's time, a non-finite state, size mismatches,
+            ``options.mode`` ``parts`` on a model without part fields.
     """
-    start = _time.perf_counter()
     opts = options or TrackOptions()
+    mode, mode_reason = choose_mode(model, opts.mode, error=TrackInputError)
+    result, nxt = _step(model, camera, frame, state, replace(opts, mode=mode))  # resolved once for the frame
+    result.mode, result.mode_reason = mode, mode_reason
+    return result, nxt
+
+
+def _step(
+    model: NarfModel, camera: Pinhole, frame: TrackFrame, state: TrackState, opts: TrackOptions
+) -> tuple[TrackResult, TrackState]:
+    start = _time.perf_counter()
     t = _finite(frame.time, "frame.time")
     state.check(model)
     if t <= state.time:
@@ -435,8 +640,13 @@ def step(
     iterations = 0
     if state.status != "lost" and gap <= opts.max_gap_s:
         T_pred, joints_pred = predict(model, state, t)
-        result = refine(model, frame.image, mask, camera, T_pred, joints_init=joints_pred, depth=depth,
-                        options=opts.step_options(depth is not None))
+        step_options = opts.step_options(depth is not None)
+        if opts.march == "frame" and opts.band_m == 0 and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf":
+            result = refine_frame(model, camera, frame.image, mask, depth, T_pred, joints_pred, step_options,
+                                  0.0 if depth is not None else opts.distance_prior_rgb)
+        else:
+            result = refine(model, frame.image, mask, camera, T_pred, joints_init=joints_pred, depth=depth,
+                            options=step_options)
         iterations += result.iterations
         score = overlap(model, camera, mask, result.T_cam_obj, result.joints) if result.loss is not None else 0.0
         if result.status not in ("no_overlap", "non_finite") and score >= opts.lost_overlap:

@@ -1,6 +1,6 @@
 """What the worker threads run: validated requests in, response models out.
 
-The checks that need the model (joints against its limits, the ``parts`` mode) are here as well,
+The checks that need the model (joints against its limits, the render mode) are here as well,
 and are run before a job is queued so that bad input never waits for a worker.
 """
 
@@ -59,9 +59,15 @@ def check_joints(model: NarfModel, joints: Mapping[str, float] | None, field: st
         raise invalid(e.field or field, e.reason) from None
 
 
-def check_mode(model: NarfModel, mode: str | None, field: str) -> None:
-    if mode == "parts" and not model.has_parts:
-        raise invalid(field, f"model {model.name!r} has no part fields; only mode 'narf' is available")
+def check_mode(model: NarfModel, mode: str | None, field: str) -> tuple[str, str]:
+    """``(mode, reason)`` the requested ``mode`` (``None``: ``auto``) comes to for ``model``
+    (:func:`narf_core.modes.choose_mode`); its refusal (``parts`` without part fields) as a 422 naming ``field``."""
+    from narf_core.modes import choose_mode
+
+    try:
+        return choose_mode(model, mode or "auto", field=field)
+    except InputError as e:
+        raise invalid(field, e.reason) from None
 
 
 def pinhole(camera: Camera, device: torch.device) -> Pinhole:
@@ -72,8 +78,9 @@ def describe(name: str, model: NarfModel, *, full: bool) -> ModelSummary | Model
     """The model as served under ``name``, from :meth:`NarfModel.describe` (plus, in full, its
     metadata less the URDF text)."""
     about = model.describe()
+    auto_mode, auto_mode_reason = check_mode(model, "auto", "name")
     summary = {"name": name, "links": about["links"], "joints": [JointInfo(**j) for j in about["joints"]],
-               "modes": about["modes"]}
+               "modes": about["modes"], "auto_mode": auto_mode, "auto_mode_reason": auto_mode_reason}
     if not full:
         return ModelSummary(**summary)
     metadata = _json_safe({k: v for k, v in model.metadata.items() if k != "urdf"})
@@ -125,6 +132,7 @@ def render_images(
     """
     start = time.perf_counter()
     device = model.aabb.device
+    mode, _ = check_mode(model, request.mode, "mode")
     theta = _theta(model, request.joints, "joints").to(device)
     T = torch.as_tensor(request.pose.as_matrix(), dtype=torch.float32, device=device)
     parts = []
@@ -138,7 +146,7 @@ def render_images(
                         "budget per request; ask for fewer pixels"
                     )
                     raise ApiError(422, message, field="camera", code=reason)
-                parts.append(model.render(T, theta, band, outputs=tuple(request.outputs), mode=request.mode))
+                parts.append(model.render(T, theta, band, outputs=tuple(request.outputs), mode=mode))
     except ValueError as e:
         raise ApiError(422, str(e)) from None
     out = {name: torch.cat([part[name] for part in parts]) for name in request.outputs}
@@ -152,11 +160,13 @@ def render_json(
 ) -> RenderResponse:
     images, theta, seconds = render_images(model, request, should_stop)
     encoded = {k: base64.b64encode(encode_png(v)).decode("ascii") for k, v in images.items()}
+    mode, reason = check_mode(model, request.mode, "mode")
     return RenderResponse(
         model=name,
         width=request.camera.width,
         height=request.camera.height,
-        mode=request.mode,
+        mode=mode,
+        mode_reason=reason,
         pose=PoseOut.from_matrix(request.pose.as_matrix()),
         joints={**model.joint_dict(theta), **(request.joints or {})},  # the values as sent, not rounded to float32
         seconds=seconds,
@@ -268,6 +278,7 @@ def estimate(
             raise invalid(field, f"size {w}x{h} does not match the camera's {size[1]}x{size[0]}")
     if not mask.any():
         raise invalid("mask", "the mask is empty: no object pixel to compare against")
+    mode, mode_reason = check_mode(model, options.mode, "request.options.mode")
 
     ground_truth = None
     if request.ground_truth is not None:
@@ -308,4 +319,6 @@ def estimate(
         metrics=metrics,
         uncertainty=_uncertainty_out(result.uncertainty),
         warnings=list(result.warnings),
+        mode=result.mode or mode,  # (the core's refine says; a stand-in refiner may not)
+        mode_reason=result.mode_reason or mode_reason,
     )

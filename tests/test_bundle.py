@@ -320,7 +320,7 @@ def test_a_bundle_saved_without_parts_loads_without_parts(tiny_model, tmp_path):
 def test_an_unknown_render_mode_is_a_value_error(tiny_model, tiny_dataset):
     T, joints, camera = first_test_view(tiny_dataset)
     theta = tiny_model.joint_vector(joints)
-    with pytest.raises(ValueError, match="unknown render mode 'nerf'; expected one of narf, parts"):
+    with pytest.raises(ValueError, match="unknown render mode 'nerf'; expected one of auto, narf, parts"):
         tiny_model.render(T, theta, camera, mode="nerf")
     with pytest.raises(ValueError, match="unknown render mode"):
         tiny_model.render_rays(camera.rays().transform(torch.eye(4)), theta, mode="")

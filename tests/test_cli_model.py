@@ -19,6 +19,7 @@ from narf_core.bundle import load_bundle, save_bundle  # noqa: E402
 from narf_core.cli import main  # noqa: E402
 from narf_core.data.dataset import Dataset  # noqa: E402
 from narf_core.geometry import pose_to_position_quaternion  # noqa: E402
+from narf_core.modes import choose_mode  # noqa: E402
 
 
 def run(capsys, *argv: str) -> tuple[int, str, str]:
@@ -79,7 +80,8 @@ def test_train_writes_a_bundle_with_its_command(capsys, tiny_dataset, tmp_path):
             "--no-parts"]
     code, stdout, err = run(capsys, *argv)
     assert code == 0, err
-    assert stdout.startswith(f"wrote {out} (") and stdout.count("\n") == 1
+    assert stdout.startswith(f"wrote {out} (")
+    assert stdout.splitlines()[-1] == "mode auto renders narf: the model has no part fields, so the configuration field"
     model = load_bundle(out)
     assert not model.has_parts
     provenance = model.metadata["provenance"]
@@ -101,7 +103,8 @@ def test_eval_json(capsys, tiny_bundle, tiny_dataset):
     code, stdout, err = run(capsys, "eval", tiny_bundle, tiny_dataset, "--split", "novel", "--limit", "3", "--json")
     assert code == 0, err
     r = json.loads(stdout)
-    assert r["split"] == "novel" and r["mode"] == "narf" and r["n"] == 3 and (r["width"], r["height"]) == (48, 36)
+    assert (r["mode"], r["mode_reason"]) == choose_mode(load_bundle(tiny_bundle))  # --mode auto by default
+    assert r["split"] == "novel" and r["n"] == 3 and (r["width"], r["height"]) == (48, 36)
     assert 0 < r["mse"] < 0.05 and r["psnr"] == pytest.approx(-10 * np.log10(r["mse"]))
 
 
@@ -226,7 +229,7 @@ def test_render_refuses_a_missing_or_corrupt_model(capsys, tiny_bundle, view, tm
     parts_free = tmp_path / "narf-only.narf"
     save_bundle(parts_free, dataclasses.replace(load_bundle(tiny_bundle), part_fields=None, part_grids=None))
     assert_error(capsys, "render", ["render", parts_free, "--pose", pose, "--mode", "parts", "--out", tmp_path / "x.png"],
-                 "no part fields")
+                 "needs part fields", "--no-parts")
 
 
 # ---------------------------------------------------------------------------------------------

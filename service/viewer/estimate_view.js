@@ -71,7 +71,7 @@ export class EstimateView {
     this.info = info;
     this.joints = jointSliders(this.$("estimate-joints"), info.joints, (e) => this.#renderStart(e), "estimate-joint");
     this.$("est-mode").querySelector('option[value="parts"]').disabled = !info.modes.includes("parts");
-    if (!info.modes.includes("parts")) this.$("est-mode").value = "narf";
+    if (!info.modes.includes("parts") && this.$("est-mode").value === "parts") this.$("est-mode").value = "auto";
     this.groundTruth = null;
     this.$("gt-label").hidden = true;
     this.$("example").disabled = this.$("run").disabled = false;
@@ -422,6 +422,7 @@ export class EstimateView {
       ["status", `${response.status} after ${response.iterations} iterations${response.recovered_non_finite ? " (a non-finite step was undone)" : ""}`],
       ["loss", response.loss === null ? "not finite" : response.loss.toPrecision(4)],
       ["time", `${response.seconds.toFixed(2)} s refining, ${response.wall_seconds.toFixed(2)} s in the server`],
+      ["field", response.mode_reason === "requested" ? response.mode : `${response.mode} (auto: ${response.mode_reason})`],
       ["position", `${response.pose.position.map((v) => v.toFixed(4)).join(", ")} m`],
       ["orientation", `[${response.pose.orientation.map((v) => v.toFixed(4)).join(", ")}] (qx, qy, qz, qw)`],
       ["roll, pitch, yaw", `${matrixToRpy(R).map((v) => degrees(v).toFixed(2)).join("°, ")}°`],

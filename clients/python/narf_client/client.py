@@ -189,6 +189,7 @@ def parse_track(body: dict[str, Any]) -> TrackUpdate:
         pose=Pose(np.asarray(body["pose"]["matrix"], dtype=np.float64)), joints=dict(body["joints"]),
         uncertainty=Uncertainty.from_json(body.get("uncertainty")), overlap=body.get("overlap"),
         iterations=int(body["iterations"]), seconds=float(body["seconds"]), state=body["state"],
+        mode=body.get("mode"), mode_reason=body.get("mode_reason"),
     )
 
 
@@ -210,6 +211,8 @@ def parse_render(body: dict[str, Any]) -> RenderResult:
         opacity=None if opacity is None else opacity.astype(np.float32) / 255,
         joints=dict(body.get("joints", {})),
         seconds=float(body.get("seconds", 0.0)),
+        mode=body.get("mode"),
+        mode_reason=body.get("mode_reason"),
     )
 
 
@@ -227,6 +230,8 @@ def parse_estimate(body: dict[str, Any]) -> Estimate:
         recovered_non_finite=bool(body.get("recovered_non_finite", False)),
         warnings=tuple(body.get("warnings", ())),
         uncertainty=Uncertainty.from_json(body.get("uncertainty")),
+        mode=body.get("mode"),
+        mode_reason=body.get("mode_reason"),
     )
 
 
@@ -240,6 +245,8 @@ def parse_model(body: dict[str, Any]) -> ModelInfo:
         bounds=None if bounds is None else np.asarray(bounds, dtype=np.float64),
         metrics=dict(body.get("metrics") or {}),
         metadata=dict(body.get("metadata") or {}),
+        auto_mode=body.get("auto_mode"),
+        auto_mode_reason=body.get("auto_mode_reason"),
     )
 
 
@@ -347,7 +354,7 @@ class NarfClient(_Base):
         *,
         joints: Mapping[str, float] | None = None,
         outputs: Sequence[str] = ("rgb",),
-        mode: str = "narf",
+        mode: str = "auto",
     ) -> RenderResult:
         """Render ``model`` at ``pose`` (``T_cam_obj``) and ``joints`` (missing: mid-range)."""
         body = render_payload(model, pose, K, width, height, joints, outputs, mode)
@@ -493,7 +500,7 @@ class AsyncNarfClient(_Base):
         *,
         joints: Mapping[str, float] | None = None,
         outputs: Sequence[str] = ("rgb",),
-        mode: str = "narf",
+        mode: str = "auto",
     ) -> RenderResult:
         body = render_payload(model, pose, K, width, height, joints, outputs, mode)
         return parse_render((await self._request("POST", "/v1/render", json=body)).json())

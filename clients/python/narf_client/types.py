@@ -105,6 +105,8 @@ class RenderResult:
     opacity: np.ndarray | None
     joints: dict[str, float] = field(default_factory=dict)
     seconds: float = 0.0
+    mode: str | None = None  # the render mode that ran ("narf" or "parts"; "auto" resolved) ...
+    mode_reason: str | None = None  # ... and why ("requested", or the rule "auto" followed)
 
 
 @dataclass(frozen=True)
@@ -127,6 +129,8 @@ class Estimate:
     recovered_non_finite: bool = False
     warnings: tuple[str, ...] = ()  # the server's doubts about the input ("<code>: <message>")
     uncertainty: Uncertainty | None = None  # the estimate's covariance, when the server computed one
+    mode: str | None = None  # the render mode that ran ("narf" or "parts"; "auto" resolved) ...
+    mode_reason: str | None = None  # ... and why ("requested", or the rule "auto" followed)
 
 
 @dataclass(frozen=True)
@@ -175,6 +179,8 @@ class ModelInfo:
     bounds: np.ndarray | None = None
     metrics: dict[str, Any] = field(default_factory=dict)
     metadata: dict[str, Any] = field(default_factory=dict)
+    auto_mode: str | None = None  # the mode "auto" renders this model in ...
+    auto_mode_reason: str | None = None  # ... and why
 
     @property
     def mid_joints(self) -> dict[str, float]:
@@ -213,3 +219,5 @@ class TrackUpdate:
     iterations: int
     seconds: float
     state: str
+    mode: str | None = None  # the render mode the tracker used ("auto" resolved) and why
+    mode_reason: str | None = None
