@@ -42,7 +42,7 @@ def run(
     for n in composites:
         for budget in budgets_s:
             config = TrainConfig(composites=n, distill_steps=10**9)
-            student = make_field(model.field.config())
+            student = make_field(_distilled_config(model))
             with tempfile.TemporaryDirectory() as work:
                 seconds = distill(
                     student, teacher, model.grid, model.aabb, model.lower, model.upper, config,
@@ -58,6 +58,15 @@ def run(
     (out_dir / "distill.json").write_text(json.dumps(result, indent=1))
     (out_dir / "distill.md").write_text(markdown(result))
     return result
+
+
+def _distilled_config(model: NarfModel) -> dict:
+    """The config of a fresh distilled field: the model's own, or for an articulated model the paper's
+    K-planes field over its box and limits."""
+    config = model.field.config()
+    if config.get("arch") != "articulated":
+        return config
+    return {"arch": "kplanes", "aabb": config["aabb"], "theta_lower": config["theta_lower"], "theta_upper": config["theta_upper"]}
 
 
 def markdown(result: dict) -> str:

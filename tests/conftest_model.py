@@ -17,10 +17,12 @@ TINY_VIEWS = 8
 
 
 def tiny_config(**overrides):
-    """The :class:`~narf_core.train.pipeline.TrainConfig` of the shared model (fields as ``overrides``)."""
+    """The :class:`~narf_core.train.pipeline.TrainConfig` of the shared model (fields as ``overrides``);
+    its configuration field is the distilled one (tests/test_fields.py builds the articulated one from
+    its part fields)."""
     from narf_core.train.pipeline import TrainConfig
 
-    settings = {"part_steps": 30, "distill_steps": 30, "batch_rays": 256, "grid_resolution": 32, **overrides}
+    settings = {"part_steps": 30, "distill_steps": 30, "batch_rays": 256, "grid_resolution": 32, "field": "distilled", **overrides}
     return TrainConfig(**settings)
 
 

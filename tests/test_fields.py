@@ -1,4 +1,4 @@
-"""Radiance fields: encodings, the K-planes and FastNeRF fields, their configs, gradients and a tiny fit."""
+"""Radiance fields: encodings, the K-planes, FastNeRF and articulated fields, their configs, gradients and a tiny fit."""
 
 import json
 import math
@@ -7,12 +7,17 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from narf_core.fields import FastNeRFField, KPlanesField, RadianceField, make_field
+from narf_core.fields import ArticulatedField, FastNeRFField, KPlanesField, RadianceField, make_field
+from narf_core.fields.articulated import chain_spec
 from narf_core.fields.base import SIGMA_MAX_LOG, trunc_exp
 from narf_core.fields.encodings import frequency_encoding, frequency_encoding_size, sample_plane, spherical_harmonics
+from narf_core.fields.composed import compose_parts
 from narf_core.fields.kplanes import total_variation
 from narf_core.geometry import Rays
+from narf_core.kinematics import KinematicTree
 from narf_core.render import render_rays
+
+pytest_plugins = ("conftest_model",)
 
 AABB = [[-0.1, -0.05, -0.02], [0.1, 0.05, 0.02]]
 SMALL = {
@@ -273,3 +278,84 @@ def test_kplanes_fits_a_theta_dependent_sphere():
         out = render_rays(field, rays, box, theta=theta, step=step)
     psnr = -10 * math.log10(float(((out.rgb - rgb) ** 2).mean()))
     assert psnr > 25  # 26.6 dB; the error is mostly at the silhouette (31+ dB elsewhere)
+
+
+# --------------------------------------------------------------------------------------------
+# The articulated field: part K-planes posed by the forward kinematics inside the field
+
+MIMIC_URDF = """<robot name="mimic">
+  <link name="root"/><link name="a"/><link name="b"/>
+  <joint name="drive" type="revolute"><parent link="root"/><child link="a"/><origin xyz="0.01 0 0.02" rpy="0.1 0 0.3"/>
+    <axis xyz="0 0 1"/><limit lower="-0.8" upper="1.2" effort="1" velocity="1"/></joint>
+  <joint name="follow" type="prismatic"><parent link="a"/><child link="b"/><axis xyz="1 0 0"/>
+    <mimic joint="drive" multiplier="-0.5" offset="0.1"/></joint>
+</robot>"""
+
+
+def articulated_field(kin, **kw) -> ArticulatedField:
+    """An untrained articulated field on ``kin`` with small random planes (every part over AABB)."""
+    p = len(kin.part_names)
+    field = ArticulatedField(
+        AABB, kin.lower.tolist(), kin.upper.tolist(), chain=chain_spec(kin), part_aabbs=[AABB] * p,
+        grid_shapes=[[4, 3, 2]] * p, resolution=(8, 16), features=4, hidden=16, **kw,
+    )
+    with torch.no_grad():
+        field.atlas.uniform_(0.1, 0.9)
+    return field
+
+
+@pytest.mark.parametrize("urdf", ["articulated.urdf", "synth_articulated.urdf", "mimic"])
+def test_articulated_field_kinematics_match_the_urdf(assets, urdf):
+    """FK inside the field (revolute, prismatic, continuous, fixed chains, mimic joints) gives the
+    kinematic tree's part poses, for one θ and for a batch."""
+    kin = KinematicTree.from_urdf_string(MIMIC_URDF) if urdf == "mimic" else KinematicTree.from_urdf(assets / urdf, load_meshes=False)
+    field = articulated_field(kin)
+    g = torch.Generator().manual_seed(0)
+    theta = kin.lower + (kin.upper - kin.lower) * torch.rand(5, kin.n_joints, generator=g, dtype=torch.float64)
+    expected = kin.part_poses(theta).float()
+    torch.testing.assert_close(field.part_poses(theta.float()), expected, atol=1e-5, rtol=0)
+    torch.testing.assert_close(field.part_poses(theta[2].float()), expected[2], atol=1e-5, rtol=0)
+
+
+def test_articulated_field_config_round_trip_and_errors(assets):
+    kin = KinematicTree.from_urdf(assets / "synth_articulated.urdf", load_meshes=False)
+    field = articulated_field(kin)
+    config = json.loads(json.dumps(field.config()))
+    rebuilt = make_field(config)
+    rebuilt.load_state_dict(field.state_dict())
+    x, theta = points(64), torch.tensor([0.05, 0.3])
+    torch.testing.assert_close(rebuilt(x, torch.zeros_like(x), theta), field(x, torch.zeros_like(x), theta))
+    with pytest.raises(ValueError, match="needs joint limits"):
+        make_field({**config, "theta_lower": None, "theta_upper": None})
+    with pytest.raises(ValueError, match="one box and one grid shape per part: the chain has 3 parts"):
+        make_field({**config, "part_aabbs": config["part_aabbs"][:2]})
+    driven = [5 if i == 1 else i for i in config["chain"]["theta_index"]]
+    with pytest.raises(ValueError, match="joint 1 is driven by theta\\[5\\]"):
+        make_field({**config, "chain": {**config["chain"], "theta_index": driven}})
+    with pytest.raises(ValueError, match="theta must be \\[2\\] or \\[64, 2\\]"):
+        field(x, torch.zeros_like(x), torch.zeros(3))
+
+
+@pytest.mark.slow
+def test_articulated_field_renders_what_the_composed_parts_render(tiny_model, tiny_dataset):
+    """Built from the trained model's part fields, the articulated field gives the composition's
+    density and colour (to float rounding) at points of every part, at the limits and mid-range,
+    for a shared θ and one per sample; its posed occupancy is the parts' occupancy."""
+    model = tiny_model
+    field = ArticulatedField.from_parts(model.kinematics, model.part_fields, model.part_grids, model.aabb).eval()
+    g = torch.Generator().manual_seed(0)
+    for theta in (model.lower, (model.lower + model.upper) / 2, model.upper):
+        composition = compose_parts(model.part_fields, model.part_grids, model.kinematics.part_poses(theta.double()).float())
+        x = model.aabb[0] + (model.aabb[1] - model.aabb[0]) * torch.rand(100000, 3, generator=g)
+        occupied = composition.occupied(x)
+        assert torch.equal(field.occupancy(theta).occupied(x), occupied)
+        x = x[occupied]
+        assert x.shape[0] > 100
+        d = torch.nn.functional.normalize(torch.randn(x.shape, generator=g), dim=-1)
+        with torch.no_grad():
+            sigma, rgb = composition(x, d)
+            for th in (theta, theta.expand(x.shape[0], -1).clone()):
+                s, c = field(x, d, th)
+                torch.testing.assert_close(s, sigma, rtol=1e-2, atol=1e-3)
+                torch.testing.assert_close(c, rgb, rtol=0, atol=1e-3)
+            torch.testing.assert_close(field.density_only(x, theta), s)

@@ -68,6 +68,27 @@ def test_the_bundle_records_what_was_trained(tiny_bundle):
     assert not (tiny_bundle.parent / f"{tiny_bundle.name}.work").exists()  # removed once the bundle exists
 
 
+@pytest.mark.slow
+def test_the_articulated_field_is_trained_without_distillation_and_renders_like_the_parts(tiny_dataset, tmp_path):
+    """``field="articulated"``: stage 2 copies the part fields into the configuration field (no
+    distillation step runs), the bundle loads it back, and narf mode renders what parts mode renders."""
+    config = tiny_config(field="articulated", part_steps=15)
+    model = load_bundle(train(tiny_dataset, tmp_path / "articulated.narf", config, progress=False))
+    assert model.field.config()["arch"] == "articulated" and model.metadata["field"]["arch"] == "articulated"
+    assert set(model.metadata["provenance"]["timings_s"]) == {"part0_s", "part1_s", "articulated_s"}
+    dataset = Dataset.open(tiny_dataset)
+    for frame in dataset.frames("novel")[:3]:
+        T, theta = torch.as_tensor(frame.T_cam_obj, dtype=torch.float32), model.joint_vector(frame.joints)
+        narf, parts = (model.render(T, theta, dataset.camera, outputs=("rgb", "opacity"), mode=m) for m in ("narf", "parts"))
+        torch.testing.assert_close(narf["rgb"], parts["rgb"], rtol=0, atol=2e-3)
+        torch.testing.assert_close(narf["opacity"], parts["opacity"], rtol=0, atol=2e-3)
+
+
+def test_an_unknown_configuration_field_is_refused_before_training(tiny_dataset, tmp_path):
+    with pytest.raises(TrainError, match="unknown configuration field 'nerf'; expected one of articulated, distilled"):
+        train(tiny_dataset, tmp_path / "x.narf", tiny_config(field="nerf"), progress=False)
+
+
 def json_config(config: TrainConfig) -> dict:
     return {k: list(v) if isinstance(v, tuple) else v for k, v in dataclasses.asdict(config).items()}
 
@@ -454,3 +475,19 @@ def test_distill_benchmark_compares_stream_and_pool_for_the_same_budget(tiny_mod
         assert 1.5 <= row["seconds"] < 5  # the pool's rendering counts against the budget
         assert row["test"]["n"] == row["novel"]["n"] == 2 and math.isfinite(row["novel"]["psnr"])
     assert "| 40 | 1.5 |" in (tmp_path / "distill.md").read_text()
+
+
+@pytest.mark.slow
+def test_fields_benchmark_puts_the_articulated_field_beside_the_bundles_field_and_the_parts(tiny_model, tiny_dataset):
+    from benchmarks.fields import markdown, run
+
+    rows = run(tiny_model, Dataset.open(tiny_dataset), images=2, reps=1)
+    assert [(r["split"], r["variant"]) for r in rows] == [
+        (split, name) for split in ("test", "novel") for name in ("narf", "parts", "articulated")
+    ]
+    for split in ("test", "novel"):
+        by_name = {r["variant"]: r for r in rows if r["split"] == split}
+        # built from the parts, the articulated field renders their images (to float rounding)
+        assert by_name["articulated"]["psnr"] == pytest.approx(by_name["parts"]["psnr"], abs=0.05)
+        assert all(r["n"] == 2 and r["cpu_ms"] > 0 and math.isfinite(r["psnr"]) for r in by_name.values())
+    assert "| novel | articulated |" in markdown(rows, 48, 36)

@@ -6,17 +6,18 @@ its ``state_dict``).
 
 from __future__ import annotations
 
+from narf_core.fields.articulated import ArticulatedField
 from narf_core.fields.base import RadianceField
 from narf_core.fields.fastnerf import FastNeRFField
 from narf_core.fields.kplanes import KPlanesField
 
-ARCHITECTURES = ("kplanes", "fastnerf")
+ARCHITECTURES = ("kplanes", "fastnerf", "articulated")
 
-__all__ = ["ARCHITECTURES", "FastNeRFField", "KPlanesField", "RadianceField", "make_field"]
+__all__ = ["ARCHITECTURES", "ArticulatedField", "FastNeRFField", "KPlanesField", "RadianceField", "make_field"]
 
 
 def make_field(config: dict) -> RadianceField:
-    """A new (untrained) field from ``config``: ``{"arch": "kplanes" | "fastnerf", "aabb": ..., ...}``.
+    """A new (untrained) field from ``config``: ``{"arch": "kplanes" | "fastnerf" | "articulated", "aabb": ..., ...}``.
 
     The other keys are the architecture's keyword arguments; missing ones take their defaults.
     Raises ``ValueError`` for an unknown architecture or an unknown or invalid hyper-parameter.
@@ -27,6 +28,8 @@ def make_field(config: dict) -> RadianceField:
         cls: type[RadianceField] = KPlanesField
     elif arch == "fastnerf":
         cls = FastNeRFField
+    elif arch == "articulated":
+        cls = ArticulatedField
     else:
         raise ValueError(f"unknown field architecture {arch!r}; expected one of {', '.join(ARCHITECTURES)}")
     if "aabb" not in kwargs:

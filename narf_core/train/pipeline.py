@@ -20,9 +20,10 @@ import torch
 from narf_core import __version__
 from narf_core.bundle import NarfModel, march_step, save_bundle
 from narf_core.data.dataset import Dataset
-from narf_core.fields import make_field
+from narf_core.fields import ArticulatedField, make_field
 from narf_core.fields.composed import ComposedField, union_occupancy
 from narf_core.kinematics import KinematicTree
+from narf_core.modes import RECORD_KEY, measure_modes
 from narf_core.render import OccupancyGrid, render_rays
 from narf_core.train.distill import composite_rays
 from narf_core.train.loop import run_stage, save_atomic
@@ -31,9 +32,17 @@ from narf_core.train.parts import RayTargets, concat_targets as _concat_targets,
 
 @dataclass
 class TrainConfig:
-    """Hyper-parameters of both stages; ``budget_s`` caps the total training time."""
+    """Hyper-parameters of both stages; ``budget_s`` caps the total training time.
+
+    ``field``: the configuration field. ``articulated`` (:class:`~narf_core.fields.ArticulatedField`)
+    holds the part fields' K-planes and the forward kinematics, so stage 2 takes seconds (the part
+    fields are copied in, no distillation); ``distilled`` is the paper's field of ``arch``, trained
+    on renders of the composed parts. ``articulated`` needs K-planes parts and at least one joint;
+    otherwise the distilled field is trained.
+    """
 
     arch: str = "kplanes"
+    field: str = "articulated"
     part_steps: int = 800
     distill_steps: int = 1000
     batch_rays: int = 2048
@@ -56,6 +65,16 @@ class TrainConfig:
 
 class TrainError(ValueError):
     """Training cannot start or resume (e.g. a work folder left by a different run)."""
+
+
+FIELDS = ("articulated", "distilled")
+
+
+def articulated_field(config: TrainConfig, kin: KinematicTree) -> bool:
+    """Whether :func:`train` builds the articulated field (else it distils the paper's field)."""
+    if config.field not in FIELDS:
+        raise TrainError(f"unknown configuration field {config.field!r}; expected one of {', '.join(FIELDS)}")
+    return config.field == "articulated" and config.arch == "kplanes" and kin.n_joints > 0
 
 
 def ray_loss(out, targets: RayTargets, config: TrainConfig) -> torch.Tensor:
@@ -94,12 +113,15 @@ def train(
     out = Path(out)
     dataset = Dataset.open(dataset_root)
     kin = KinematicTree.from_urdf(dataset.urdf_path)
+    articulated = articulated_field(config, kin)  # refuses an unknown field before any work
     dataset_hash = hashlib.sha256((Path(dataset_root) / "scene.json").read_bytes()).hexdigest()[:16]
     work = out.parent / f"{out.name}.work"
     _check_work_folder(work, config, dataset_hash)
     torch.manual_seed(config.seed)
     t_start = time.perf_counter()
-    budget_parts = None if config.budget_s is None else 0.35 * config.budget_s / len(kin.parts)
+    # without a distillation stage the part fields get (nearly) the whole budget
+    share = 0.9 if articulated else 0.35
+    budget_parts = None if config.budget_s is None else share * config.budget_s / len(kin.parts)
 
     boxes = part_boxes(kin)
     rays_per_part: list[RayTargets] | None = None
@@ -137,11 +159,16 @@ def train(
             bins=bins, samples_per_bin=max(2, -(-(per_axis - 1) // bins) + 1),
         )
         save_atomic({"grid": union.occupancy.to(torch.uint8), "theta_range": union.theta_range}, union_path)
-    student = make_field({"arch": config.arch, "aabb": aabb.tolist(), "theta_lower": lower.tolist(), "theta_upper": upper.tolist()})
-    spent = time.perf_counter() - t_start
-    budget_distill = None if config.budget_s is None else max(config.budget_s - spent, 0.0)
-    seconds = distill(student, teacher, union, aabb, lower, upper, config, work / "distill.ckpt", budget_distill, progress)
-    timings["distill_s"] = seconds
+    if articulated:
+        started = time.perf_counter()
+        student = ArticulatedField.from_parts(kin, part_fields, part_grids, aabb)
+        timings["articulated_s"] = time.perf_counter() - started
+    else:
+        student = make_field({"arch": config.arch, "aabb": aabb.tolist(), "theta_lower": lower.tolist(), "theta_upper": upper.tolist()})
+        spent = time.perf_counter() - t_start
+        budget_distill = None if config.budget_s is None else max(config.budget_s - spent, 0.0)
+        seconds = distill(student, teacher, union, aabb, lower, upper, config, work / "distill.ckpt", budget_distill, progress)
+        timings["distill_s"] = seconds
 
     model = NarfModel(
         name=out.stem,
@@ -163,6 +190,9 @@ def train(
         },
         step=march_step(aabb),
     )
+    record = measure_modes(model, dataset, progress=progress)  # what `mode: auto` renders (narf_core/modes.py)
+    if record is not None:
+        model.metadata[RECORD_KEY] = record
     save_bundle(out, model)
     shutil.rmtree(work, ignore_errors=True)
     return out
