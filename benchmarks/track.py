@@ -10,9 +10,10 @@ per frame (mean, 95th percentile, max, over frames whose status is not ``lost``)
 ``lost`` frames and of re-initialisations, and the NEES coverage (the share of frames with a
 covariance whose normalised error lies inside the 95% region: 0.95 when Σ is calibrated). The
 per-frame settings head the table; ``--band-m`` marches only a band around the model's surface
-(``EstimateOptions.band_m``), to compare with the whole box. With ``--events`` the sequence
-with a glance away and an occluding bar is tracked as well. The error against time is plotted per
-run (``<work>/track/<tool>-<size>-<modality>.png``) and every per-frame row is kept in
+(``EstimateOptions.band_m``), to compare with the whole box, and ``--march iteration`` marches at
+every iteration instead of sampling the band found once per frame (``TrackOptions.march``). With
+``--events`` the sequence with a glance away and an occluding bar is tracked as well. The error
+against time is plotted per run (``<work>/track/<tool>-<size>-<modality>.png``) and every per-frame row is kept in
 ``<work>/track/result.json``. With ``--service-clients N``, N clients track the 160x120 sequence at
 once through ``POST /v1/track`` on a loopback server, and each one's frames per second is reported.
 """
@@ -145,10 +146,13 @@ def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, m
 def markdown(result: dict) -> str:
     """The summary as a table: error and speed side by side."""
     o = result["options"]
-    band = f"a {o['band_m'] * 100:g} cm band around the surface" if o["band_m"] else "the whole box"
+    band = f"marched through a {o['band_m'] * 100:g} cm band around the surface" if o["band_m"] else \
+        "marched through the whole box"
+    if not o["band_m"] and o.get("march") == "frame":
+        band = "sampled in the band around the surface found once per frame (no marching)"
     lines = [
         f"Tracking, {result['frames']}-frame sequences (30 fps), from the first frame's label; per frame "
-        f"{o['iterations']} {o['solver']} iterations of {o['rays_per_iteration']} rays marched through {band}",
+        f"{o['iterations']} {o['solver']} iterations of {o['rays_per_iteration']} rays {band}",
         "",
         "| tool | size | input | events | frames/s (all / after the 1st) | frames per CPU second (after the 1st) "
         "| ADD mean / p95 / max (cm) | joint error mean / p95 / max | lost | re-init. | NEES 95% coverage |",
@@ -172,13 +176,16 @@ def markdown(result: dict) -> str:
                       f"{service['frames']} frames each): frames/s per client min {service['frames_per_second_min']:.2f}, "
                       f"mean {service['frames_per_second_mean']:.2f}; ADD mean per client "
                       + ", ".join(f"{c['add_mean_m'] * 100:.2f} cm" if "error" not in c else c["error"]
-                                  for c in service["per_client"])]
+                                  for c in service["per_client"])
+                      + "; ms per frame per client (tracker time in the server) "
+                      + ", ".join(f"{c['frame_seconds_mean'] * 1000:.0f} ({c['tracker_seconds_mean'] * 1000:.0f})"
+                                  for c in service["per_client"] if "error" not in c)]
     return "\n".join(lines)
 
 
 def main(args: argparse.Namespace) -> int:
     """``narf bench track``: ``args`` has ``work``, ``models``, ``tools``, ``frames``, ``sizes``,
-    ``modalities``, ``events``, ``iterations``, ``band_m``, ``service_clients``, ``json``."""
+    ``modalities``, ``events``, ``iterations``, ``band_m``, ``march``, ``service_clients``, ``json``."""
     tools = args.tools or sorted(p.stem for p in args.models.glob("*.narf"))
     models, missing = {}, []
     for tool in tools:
@@ -192,7 +199,8 @@ def main(args: argparse.Namespace) -> int:
     if missing:
         print(f"narf bench track: skipping {', '.join(missing)}: no model in {args.models}", file=sys.stderr)
     sizes = tuple(tuple(s) for s in args.sizes) if args.sizes else SIZES
-    overrides = {"iterations": args.iterations, "band_m": getattr(args, "band_m", None)}
+    overrides = {"iterations": args.iterations, "band_m": getattr(args, "band_m", None),
+                 "march": getattr(args, "march", None)}
     options = TrackOptions(**{k: v for k, v in overrides.items() if v is not None})
     result = run(models, args.work, frames=args.frames, sizes=sizes, modalities=tuple(args.modalities),
                  events=args.events, options=options)
@@ -211,22 +219,24 @@ def main(args: argparse.Namespace) -> int:
 
 def service_run(model_path: Path, dataset: Dataset, clients: int, frames: int) -> dict:
     """``clients`` threads each tracking the first ``frames`` frames of ``dataset`` through
-    ``POST /v1/track`` on a server on loopback (one worker per core, the state in the token);
-    frames per second per client, counted after each client's first (initialising) frame."""
+    ``POST /v1/track`` on a server on loopback, run as its own process as deployed (``narf serve``
+    with its defaults: one worker per core, the state in the token); frames per second per client,
+    counted after each client's first (initialising) frame, and the mean time between two of its
+    answers beside the server's tracker time per frame (the rest is waiting for a worker, HTTP,
+    decoding and the client's own work)."""
+    import os
+    import shutil
+    import tempfile
     import threading
 
     from narf_client import NarfClient, TrackFrame
-    from narf_service.app import create_app
-    from narf_service.main import serve_in_thread
-    from narf_service.registry import ModelRegistry
-    from narf_service.settings import Settings
+    from narf_service.main import serve_process
 
     labels = sequence_frames(dataset)[:frames]
     sent = [TrackFrame(f.time, im.image, im.mask, im.depth) for f, im in zip(labels, load_frames(dataset, labels))]
     K = dataset.camera.K.double().numpy()
     model = load_bundle(model_path)
-    settings = Settings(models_dir=model_path.parent, state_key="bench-track-key-0123456789")
-    app = create_app(settings, registry=ModelRegistry(models={model.name: model}))
+    name = model_path.stem
     per_client: list[dict] = [{} for _ in range(clients)]
 
     def client(i: int) -> None:
@@ -237,21 +247,27 @@ def service_run(model_path: Path, dataset: Dataset, clients: int, frames: int) -
 
     def track_all(i: int) -> None:
         with NarfClient(url, timeout=120) as narf:
-            stamps, statuses, errors = [], [], []
-            for update in narf.track(sent, K, labels[0].T_cam_obj, model=model.name, initial_joints=labels[0].joints):
+            stamps, statuses, errors, steps = [], [], [], []
+            for update in narf.track(sent, K, labels[0].T_cam_obj, model=name, initial_joints=labels[0].joints):
                 stamps.append(time.perf_counter())
                 statuses.append(update.status)
+                steps.append(update.seconds)
                 i_frame = len(stamps) - 1
                 errors.append(score(model, labels[i_frame], _as_result(update))["add_m"])
         per_client[i] = {"frames_per_second": (len(stamps) - 1) / (stamps[-1] - stamps[0]),
-                         "lost": statuses.count("lost"), "add_mean_m": float(np.mean(errors))}
+                         "lost": statuses.count("lost"), "add_mean_m": float(np.mean(errors)),
+                         "frame_seconds_mean": (stamps[-1] - stamps[0]) / (len(stamps) - 1),
+                         "tracker_seconds_mean": float(np.mean(steps[1:]))}
 
-    with serve_in_thread(app) as url:
-        threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
+    env = {**os.environ, "NARF_STATE_KEY": "bench-track-key-0123456789"}
+    with tempfile.TemporaryDirectory() as folder:
+        shutil.copy(model_path, Path(folder) / model_path.name)  # serve this bundle alone
+        with serve_process(["--models", folder], env) as url:
+            threads = [threading.Thread(target=client, args=(i,)) for i in range(clients)]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
     fps = [c["frames_per_second"] for c in per_client if "frames_per_second" in c]
     return {"clients": clients, "frames": frames, "per_client": per_client,
             "failed_clients": sum("error" in c for c in per_client),

@@ -19,7 +19,7 @@ object-frame origin and direction and its configuration ``θ``. The renderer is 
 differentiable composite with those as leaves (``θ`` per ray), and reverse mode gives
 ``dP_i / d(o_i, d_i, θ_i)`` for every ray at once, one backward pass per predicted channel (5 at
 most, the graph kept between them); the chain to ``p`` is a ``[6 + k]``-column product with
-the small Jacobian of the pose (12 vector-Jacobian products of a 4x4 product). So the cost is one composite and five
+the small Jacobian of the pose (central differences of a 4x4 product, one batch). So the cost is one composite and five
 vector-Jacobian products whatever ``k`` is, where finite differences need ``6 + k`` extra renders
 (and are no more exact), and forward mode through the field is not available (PyTorch has no
 forward-mode rule for ``grid_sample``, the field's K-planes lookup); ``narf bench estimate``
@@ -58,17 +58,20 @@ import torch
 from torch import Tensor
 
 from narf_core.band import ray_band
+from narf_core.compositing import composite
 from narf_core.geometry import Rays, invert_pose, se3_exp
 
 if TYPE_CHECKING:
     from narf_core.bundle import NarfModel
     from narf_core.estimate import EstimateOptions, _Observation, _Parameterisation, _Target
     from narf_core.geometry import Pinhole
+    from narf_core.sampling import Samples
 
 _CHANNELS = 5  # rgb, opacity, depth
 _LAMBDA_UP, _LAMBDA_DOWN = 4.0, 3.0
 _LAMBDA_MIN, _LAMBDA_MAX = 1e-6, 1e8
 _FD_THETA = 1e-3  # forward-difference step for θ in parts mode, as a fraction of the joint's range
+_FD_POSE = 1e-5  # central-difference step of the pose columns (object radii, radians)
 _MAX_FAILURES = 8
 _STEP_FACTORS = (1.0, 2.0, 4.0)  # multiples of the LM step tried, in order, while the cost keeps falling
 _GROUP = 4  # jittered rays averaged per pixel at a coarse pyramid level
@@ -119,15 +122,20 @@ class Chain:
 
     def object_from_camera_jacobian(self, p: Tensor) -> tuple[Tensor, Tensor]:
         """``T_obj_cam`` of every row ``[S, 4, 4]`` and the derivative of its top 3x4 block, ``[S, 3, 4, 6]``
-        in the pose columns: 12 vector-Jacobian products of a tiny graph (rows are independent, so one
-        product serves every row). Not ``torch.func.jacfwd``: its first call imports torch._dynamo, about
-        1.5 s and 66 MiB of resident memory in every process that estimates."""
-        with torch.enable_grad():
-            pose = p[:, :6].detach().requires_grad_(True)
-            T_obj_cam = invert_pose(self.poses(torch.cat([pose, p[:, 6:].detach()], dim=1)))
-            top = T_obj_cam[:, :3, :].reshape(-1, 12)
-            rows = [torch.autograd.grad(top[:, i].sum(), pose, retain_graph=i < 11)[0] for i in range(12)]
-        return T_obj_cam.detach(), torch.stack(rows, 1).reshape(-1, 3, 4, 6)
+        in the pose columns: central differences in float64 (step ``_FD_POSE``: truncation and rounding
+        both near 1e-10 of a 4x4 product of unit size), all 12 shifted poses of every row in one batch.
+        Not ``torch.func.jacfwd``: its first call imports torch._dynamo, about 1.5 s and 66 MiB of
+        resident memory in every process that estimates; not 12 vector-Jacobian products: a dozen
+        small backward passes cost more than the render they serve."""
+        p = p.detach().double()
+        S = p.shape[0]
+        shift = torch.zeros(2, 6, p.shape[1], dtype=torch.float64)
+        shift[0, :, :6] = torch.eye(6, dtype=torch.float64) * _FD_POSE
+        shift[1, :, :6] = -shift[0, :, :6]
+        rows = torch.cat([p, (p[:, None, None, :] + shift[None]).reshape(-1, p.shape[1])])  # [S + 12 S, d]
+        T_obj_cam = invert_pose(self.poses(rows))
+        ahead, behind = T_obj_cam[S:, :3, :].reshape(S, 2, 6, 3, 4).unbind(1)
+        return T_obj_cam[:S], ((ahead - behind) / (2 * _FD_POSE)).permute(0, 2, 3, 1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -147,13 +155,16 @@ class Residuals:
 @dataclass
 class Problem:
     """Everything fixed about the residuals of one run; ``camera``: where ``options.band_m`` marches only
-    the band around the surface (narf_core/band.py)."""
+    the band around the surface (narf_core/band.py); ``samples``: where every render is of the same
+    rays, their samples, marched once (the tracker's frame, :mod:`narf_core.track`): the field is
+    evaluated there at each pose instead of marching again (``narf`` mode, one start)."""
 
     model: NarfModel
     options: EstimateOptions
     radius: float
     uses_depth: bool
     camera: Pinhole | None = None
+    samples: Samples | None = None
 
     def predictions(
         self, rays_cam: Rays, T_obj_cam: Tensor, theta: Tensor, grad: bool
@@ -192,6 +203,9 @@ class Problem:
     def _render(
         self, rays: Rays, theta: Tensor, S: int, n: int, outputs: tuple[str, ...], band: tuple[Tensor, Tensor] | None
     ) -> Tensor:
+        if self.samples is not None:
+            out = composite(self.model.field, rays, self.samples, theta=theta, outputs=outputs, background=0.0)
+            return torch.cat([out.rgb, out.opacity[:, None], out.depth[:, None]], -1)
         kw = dict(mode=self.options.mode, outputs=outputs, background=0.0)
         render = self.model.render_rays
         if self.options.mode == "parts" and theta.shape[1] > 0:
@@ -650,16 +664,23 @@ def covariance(
     max_rays: int,
     patch: int,
     rng: torch.Generator,
+    rays: tuple[Tensor, Tensor, Tensor] | None = None,
 ) -> Covariance:
     """``Σ [6+k, 6+k]`` and the residuals' statistics at the estimate ``T [4,4]``, ``θ [k]`` in the local
     parameterisation of :class:`~narf_core.estimate.Uncertainty` (see the module docstring), from
     about ``max_rays`` rays of the box in whole ``patch``-pixel clusters, scaled to the whole box.
-    ``patch = 1``: independent rays, ``Σ = (H / σ² + Σ₀⁻¹)⁻¹``; else the cluster sandwich."""
+    ``patch = 1``: independent rays, ``Σ = (H / σ² + Σ₀⁻¹)⁻¹``; else the cluster sandwich. ``rays``:
+    ``(index [n], cluster [n], weight [m])`` as :func:`cluster_sample` gives, drawn by the caller (the
+    rays of ``problem.samples``, linearised in one chunk) instead of here."""
     chain = Chain.local(T, param, centre_obj)
     d = 6 + theta.shape[0]
     p = torch.cat([torch.zeros(6, dtype=torch.float64), theta.double()])[None]
-    index, cluster, weight = cluster_sample(obs.pixels.cpu(), obs.importance, patch, max_rays, rng)
-    info = information(problem, obs, camera, chain, p, index, cluster, weight)
+    if rays is None:
+        index, cluster, weight = cluster_sample(obs.pixels.cpu(), obs.importance, patch, max_rays, rng)
+        info = information(problem, obs, camera, chain, p, index, cluster, weight)
+    else:
+        index, cluster, weight = rays
+        info = information(problem, obs, camera, chain, p, index, cluster, weight, chunk=max(len(index), 1))
     if info is None:  # a non-finite render: no Σ
         return Covariance(torch.full((d, d), math.nan, dtype=torch.float64), math.nan, 1, math.nan)
     variance, prior = info.variance(), prior_precision(param)

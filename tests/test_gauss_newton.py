@@ -447,3 +447,25 @@ def test_the_service_returns_the_uncertainty(model, tmp_path):
         with pytest.raises(InvalidInput) as info:
             narf.estimate(image, mask, K, T, model="slider", options={"solver": "lbfgs"}, iterations=1)
         assert "solver" in info.value.field
+
+
+def test_the_pose_jacobian_matches_autograd() -> None:
+    """The central differences of ``T_obj_cam``'s top block in the pose columns agree with reverse mode
+    (the exact derivative) to 1e-8, at rows away from the reference pose."""
+    from narf_core.geometry import invert_pose, se3_exp
+
+    g = torch.Generator().manual_seed(3)
+    T_ref = se3_exp(torch.randn(1, 6, generator=g, dtype=torch.float64) * 0.5)[0]
+    T_ref[:3, 3] += torch.tensor([0.0, 0.0, 0.6], dtype=torch.float64)
+    centre = torch.eye(4, dtype=torch.float64)
+    centre[:3, 3] = torch.tensor([0.05, -0.02, 0.6], dtype=torch.float64)
+    chain = gauss_newton.Chain(T_ref, centre, 0.15, torch.zeros(1, dtype=torch.float64),
+                               torch.ones(1, dtype=torch.float64), True)
+    p = torch.randn(3, 7, generator=g, dtype=torch.float64) * 0.1
+    T_obj_cam, dT = chain.object_from_camera_jacobian(p)
+    pose = p[:, :6].clone().requires_grad_(True)
+    top = invert_pose(chain.poses(torch.cat([pose, p[:, 6:]], dim=1)))[:, :3, :].reshape(-1, 12)
+    exact = torch.stack([torch.autograd.grad(top[:, i].sum(), pose, retain_graph=True)[0] for i in range(12)], 1)
+    torch.testing.assert_close(T_obj_cam, invert_pose(chain.poses(p)), rtol=0, atol=1e-12)
+    torch.testing.assert_close(dT, exact.reshape(-1, 3, 4, 6), rtol=0, atol=1e-8)
+    assert float(exact.abs().max()) > 0.1  # not trivially zero

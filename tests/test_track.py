@@ -195,6 +195,132 @@ def test_band_and_frame_options_are_validated() -> None:
     assert step.band_m == 0.02 and step.eval_rays == 512
 
 
+def test_march_option_is_validated_and_band_or_parts_march_per_iteration(clamp, clamp_sequence: Path, monkeypatch) -> None:
+    from narf_core import track as track_module
+    from narf_core.data.dataset import Dataset
+    from narf_core.track import MARCHES, TrackFrame, TrackInputError, TrackOptions, TrackState, step
+
+    with pytest.raises(TrackInputError, match=r"options\.march must be one of frame, iteration"):
+        TrackOptions(march="once")
+    for bad in (-1.0, math.nan):
+        with pytest.raises(TrackInputError, match=r"options\.distance_prior_rgb must be"):
+            TrackOptions(distance_prior_rgb=bad)
+        with pytest.raises(TrackInputError, match=r"options\.occlusion_margin must be"):
+            TrackOptions(occlusion_margin=bad)
+    with_occluders = TrackOptions(occlusion_margin=0.02)
+    assert with_occluders.step_options(True).occlusion_margin == 0.02
+    assert with_occluders.reinit_options().occlusion_margin == 0.0  # never from a start far off
+    assert TrackOptions().march == "frame" and MARCHES == ("frame", "iteration")
+    dataset = Dataset.open(clamp_sequence)
+    frame = dataset.frames()[1]
+    images = dataset.load(frame)
+    observed = TrackFrame(images.rgb, images.labels > 0, frame.time, images.depth)
+    used = []
+    real_frame, real_refine = track_module.refine_frame, track_module.refine
+    monkeypatch.setattr(track_module, "refine_frame", lambda *a, **k: used.append("frame") or real_frame(*a, **k))
+    monkeypatch.setattr(track_module, "refine", lambda *a, **k: used.append("iteration") or real_refine(*a, **k))
+    for options, expected in ((TrackOptions(), "frame"), (TrackOptions(march="iteration"), "iteration"),
+                              (TrackOptions(band_m=0.01), "iteration"), (TrackOptions(mode="parts"), "iteration")):
+        state = TrackState.initial(clamp, frame.T_cam_obj, frame.joints, frame.time - 0.033, status="tracking")
+        result, _ = step(clamp, dataset.camera, observed, state, TrackOptions(**{**options.__dict__, "iterations": 2,
+                                                                                 "uncertainty_rays": 0}))
+        assert used[-1] == expected and result.status == "tracking"
+
+
+def test_frame_band_renders_what_the_march_renders(clamp, clamp_sequence: Path) -> None:
+    """A frame's samples (the lattice in the band around the surface points at the prediction, kept
+    where the occupancy holds at the pose) render what a full march renders, at the prediction and at
+    poses moved by the prediction's error and more, where the march takes other samples."""
+    import torch
+
+    from narf_core.band import ray_band
+    from narf_core.compositing import composite
+    from narf_core.data.dataset import Dataset
+    from narf_core.estimate import _object_rays
+    from narf_core.geometry import se3_exp
+    from narf_core.render import box_pixels
+    from narf_core.track import _FRAME_MARGIN_M, frame_band, occupied
+
+    dataset = Dataset.open(clamp_sequence)
+    camera = dataset.camera
+    frame = dataset.frames()[3]
+    T = torch.tensor(frame.T_cam_obj)
+    theta = clamp.kinematics.joint_vector(frame.joints).float()
+    rays_cam = camera.rays(box_pixels(camera, T.float(), clamp.aabb))
+    with torch.no_grad():
+        near, far = ray_band(clamp, camera, rays_cam, T[None], theta[None].double(), _FRAME_MARGIN_M)
+        band = frame_band(near.double(), far.double(), clamp.step)
+        assert len(band) < 0.25 * len(rays_cam) * float((clamp.aabb[1] - clamp.aabb[0]).norm()) / clamp.step
+        outputs = ("rgb", "opacity", "depth")
+        for move in (0.0, 0.001, 0.003):  # metres along each camera axis
+            pose = se3_exp(torch.tensor([move, -move, move, 0.0, 0.0, 0.0], dtype=torch.float64)) @ T
+            rays = _object_rays(rays_cam, pose[None])
+            full = clamp.render_rays(rays, theta, outputs=outputs)
+            kept = composite(clamp.field, rays, occupied(clamp.grid, rays, band, theta), theta=theta, outputs=outputs)
+            assert float(full.opacity.max()) > 0.99
+            assert float((kept.opacity - full.opacity).abs().mean()) < 1e-3
+            assert float((kept.opacity - full.opacity).abs().max()) < 0.1
+            assert float((kept.rgb - full.rgb).abs().mean()) < 1e-3
+            solid = full.opacity > 0.99
+            assert float((kept.depth[solid] - full.depth[solid]).abs().max()) < 0.01 * float(full.depth[solid].max())
+        assert len(frame_band(near.double()[:4], near.double()[:4], clamp.step)) == 0  # an empty band: no sample
+
+
+def test_frame_and_iteration_marching_give_the_same_step(clamp, clamp_sequence: Path) -> None:
+    """A warm-started step without marching (march "frame") lands where the refiner that marches
+    every iteration lands: the same rays, the same loss, renders equal up to the march's early stop."""
+    from narf_core.data.dataset import Dataset
+    from narf_core.geometry import se3_exp
+    from narf_core.track import TrackOptions, TrackState, step
+    from narf_core.track_io import sequence_frames
+
+    dataset = Dataset.open(clamp_sequence)
+    frames = sequence_frames(dataset)
+    import torch
+
+    off = se3_exp(torch.tensor([0.004, -0.003, 0.005, 0.02, -0.01, 0.015], dtype=torch.float64)).numpy()
+    for i in (2, 5):
+        observed = _frames(dataset, frames[i:i + 1])[0]
+        answers = []
+        for march in ("frame", "iteration"):
+            state = TrackState.initial(clamp, off @ frames[i].T_cam_obj, frames[i].joints, frames[i - 1].time,
+                                       status="tracking")
+            result, _ = step(clamp, dataset.camera, observed, state, TrackOptions(march=march))
+            assert result.status in ("tracking", "uncertain") and result.uncertainty is not None
+            answers.append(result)
+        assert np.abs(answers[0].T_cam_obj - answers[1].T_cam_obj).max() < 5e-4
+        assert abs(answers[0].joints["jaw_opening"] - answers[1].joints["jaw_opening"]) < 5e-4
+        assert answers[0].loss == pytest.approx(answers[1].loss, rel=0.02)
+        s0, s1 = (np.sqrt(np.diag(r.covariance)) for r in answers)
+        np.testing.assert_allclose(s0, s1, rtol=0.1)
+
+
+def test_distance_prior_holds_the_line_of_sight_distance(clamp, clamp_sequence: Path) -> None:
+    """Without depth, the prior holds the box centre's distance along the line of sight to the
+    prediction's, and leaves the other directions to the image."""
+    from narf_core.data.dataset import Dataset
+    from narf_core.track import TrackOptions, _centre, refine_frame
+
+    dataset = Dataset.open(clamp_sequence)
+    frame = dataset.frames()[4]
+    images = dataset.load(frame)
+    truth = np.asarray(frame.T_cam_obj)
+    centre = truth[:3, :3] @ _centre(clamp) + truth[:3, 3]
+    view = centre / np.linalg.norm(centre)
+    predicted = truth.copy()
+    predicted[:3, 3] += 0.01 * view + 0.004 * np.cross(view, [0.0, 1.0, 0.0])  # 1 cm too far, 4 mm aside
+    options = TrackOptions().step_options(False)
+    moved = {}
+    for weight in (0.0, 1e4):
+        result = refine_frame(clamp, dataset.camera, images.rgb, images.labels > 0, None, predicted, frame.joints,
+                              options, weight)
+        shift = (result.T_cam_obj[:3, :3] @ _centre(clamp) + result.T_cam_obj[:3, 3]) - (centre + predicted[:3, 3]
+                                                                                        - truth[:3, 3])
+        moved[weight] = (abs(float(shift @ view)), float(np.linalg.norm(shift - (shift @ view) * view)))
+    assert moved[1e4][0] < 0.001 < moved[0.0][0]  # held along the line of sight ...
+    assert moved[1e4][1] > 0.002  # ... while the image still moves it sideways
+
+
 def test_band_renders_what_the_whole_box_renders(clamp, clamp_sequence: Path) -> None:
     """Marching only the band around the surface points (and no ray that none projects near) gives the
     full march's image of the clamp's box, from fewer live rays; a pose half behind the camera gets no band."""
