@@ -2,8 +2,10 @@
 
 ``create_app()`` builds the FastAPI app; models are loaded once, in the lifespan, from
 ``settings.models_dir``. Compute runs on a bounded :class:`~narf_service.workers.WorkQueue`; a full
-queue answers 503 with ``Retry-After``; a client that disconnects cancels its job. Every error has
-the body ``{"error": {"code", "message", "field"?}}`` (see :mod:`narf_service.errors`). The token,
+queue answers 503 with ``Retry-After``; a client that disconnects cancels its job. A tracking
+frame's job hands the frame on to a child process (:mod:`narf_service.processes`), so that
+concurrent tracks use every worker's core instead of taking turns at this interpreter's lock.
+Every error has the body ``{"error": {"code", "message", "field"?}}`` (see :mod:`narf_service.errors`). The token,
 timeouts and body limits are enforced before a route runs (:mod:`narf_service.guards`,
 :mod:`narf_service.limits`, :mod:`narf_service.bodies`).
 """
@@ -31,6 +33,7 @@ from narf_service.errors import install_error_handlers, invalid
 from narf_service.guards import AuthGate, BodyDeadline, authorized
 from narf_service.limits import BodySizeLimit
 from narf_service.monitoring import MetricsMiddleware, ServiceMetrics
+from narf_service.processes import ModelProcesses
 from narf_service.registry import MODEL_NAME_MAX, MODEL_NAME_PATTERN, ModelRegistry
 from narf_service.schemas import (
     EstimateRequest,
@@ -246,7 +249,8 @@ def create_app(
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        torch.set_num_threads(settings.torch_threads or choose_threads(AUTO, share=settings.workers))
+        threads = settings.torch_threads or choose_threads(AUTO, share=settings.workers)
+        torch.set_num_threads(threads)
         app.state.engine = engine if engine is not None else Engine.narf_core()
         if registry is not None:
             app.state.registry = registry
@@ -256,11 +260,17 @@ def create_app(
             )
         queue = WorkQueue(settings.workers, settings.queue_size, retry_after_max_s=settings.retry_after_max_s)
         app.state.queue = queue
+        app.state.processes = None
+        if settings.track_processes:  # a job's process outlives its budget only by a margin, then it is killed
+            app.state.processes = ModelProcesses(app.state.registry.models, settings.workers, torch_threads=threads,
+                                                 timeout_s=settings.max_seconds + 60)
         metrics.watch(queue, app.state.registry)
         try:
             yield
         finally:
             queue.shutdown()
+            if app.state.processes is not None:
+                app.state.processes.close()
 
     app = FastAPI(
         title="NARF",

@@ -40,6 +40,11 @@ class Settings(BaseSettings):
     workers: int = Field(0, ge=0, description="Compute threads; 0 = one per available core.")
     queue_size: int = Field(-1, ge=-1, description="Requests waiting beyond the running ones; -1 = 4 per worker.")
     torch_threads: int = Field(0, ge=0, description="torch intra-op threads; 0 = free cores at start / workers.")
+    track_processes: bool = Field(
+        True, description="Run /v1/track frames in child processes, one per worker, each with its own copy of the "
+        "models (started on the first frame), so concurrent tracks are not serialised on one interpreter's lock; "
+        "false: on the worker threads like the other routes."
+    )
     retry_after_max_s: int = Field(30, gt=0, description="Cap on the Retry-After hint sent with a 503.")
     max_json_bytes: int = Field(
         64 * 2**10, gt=0, description="Largest JSON document: a JSON body or the estimate's 'request' part (413 above)."

@@ -27,8 +27,9 @@ from pydantic import Json
 
 from narf_service import jobs
 from narf_service.bodies import GuardedBodyRoute
-from narf_service.errors import invalid
+from narf_service.errors import ApiError, invalid
 from narf_service.images import decode_depth, decode_mask, decode_rgb
+from narf_service.processes import ModelProcesses, WorkerLost
 from narf_service.registry import ModelRegistry
 from narf_service.routing import check_pixels, error_responses, registry_of, require_token, run_job
 from narf_service.schemas import PoseOut, TrackRequest, TrackResponse, UncertaintyOut
@@ -166,17 +167,34 @@ async def track(
     if o.iterations is not None and o.iterations > settings.max_iterations:
         raise invalid("request.options.iterations", f"{o.iterations} exceeds this server's limit of {settings.max_iterations}")
     overrides = {k: v for k, v in {"iterations": o.iterations, "rays_per_iteration": o.rays_per_iteration,
-                                   "solver": o.solver}.items() if v is not None}
+                                   "solver": o.solver, "mode": o.mode}.items() if v is not None}
     if o.uncertainty is False:
         overrides["uncertainty_rays"] = 0
     try:
         options = TrackOptions(**overrides)
     except TrackInputError as e:  # the core's rule, named as the request's field
         raise invalid("request." + (e.field or "options"), e.reason) from None
+    jobs.check_mode(model, options.mode, "request.options.mode")
     uploads = {"image": await image.read(), "mask": await mask.read() if mask is not None else None,
                "depth": await depth.read() if depth is not None else None}
-    return await run_job(request, lambda stop: _track_frame(key, params, model, state, options, uploads,
-                                                          settings.max_image_pixels))
+    processes: ModelProcesses | None = request.app.state.processes
+    if processes is None:
+        return await run_job(request, lambda stop: _track_frame(key, params, model, state, options, uploads,
+                                                              settings.max_image_pixels))
+
+    def in_child(stop: object) -> TrackResponse:
+        try:
+            return processes.call(_track_in_child, key, params, state, options, uploads, settings.max_image_pixels)
+        except WorkerLost as e:  # the server's fault, not the request's: the client may send the frame again
+            raise ApiError(503, str(e), headers={"Retry-After": "1"}) from None
+
+    return await run_job(request, in_child)
+
+
+def _track_in_child(models: dict[str, NarfModel], key: bytes, params: TrackRequest, state: TrackState, options: Any,
+                    uploads: dict[str, bytes | None], max_pixels: int) -> TrackResponse:
+    """:func:`_track_frame` in a :class:`~narf_service.processes.ModelProcesses` child, on its copy of the model."""
+    return _track_frame(key, params, models[params.model], state, options, uploads, max_pixels)
 
 
 def _track_frame(key: bytes, params: TrackRequest, model: NarfModel, state: TrackState, options: Any,
@@ -208,6 +226,6 @@ def _track_frame(key: bytes, params: TrackRequest, model: NarfModel, state: Trac
         model=params.model, time=result.time, status=result.status, reason=result.reason, pose=PoseOut.from_matrix(T),
         joints={k: float(v) for k, v in result.joints.items()}, uncertainty=uncertainty,
         overlap=None if result.overlap is None or not math.isfinite(result.overlap) else float(result.overlap),
-        iterations=result.iterations, seconds=result.seconds,
+        iterations=result.iterations, seconds=result.seconds, mode=result.mode, mode_reason=result.mode_reason,
         state=encode_state(key, params.model, model, nxt),
     )

@@ -149,7 +149,8 @@ def test_track_round_trip_async_and_any_replica(server: str, frames, clamp) -> N
 
     updates = asyncio.run(go())
     assert len(updates) == 2 and updates[-1].status in ("tracking", "uncertain", "reinitialised")
-    settings = Settings(models_dir=ROOT / "models", workers=1, torch_threads=1, state_key="s" * 24)
+    settings = Settings(models_dir=ROOT / "models", workers=1, torch_threads=1, state_key="s" * 24,
+                        track_processes=False)  # the other way to run a frame: on the worker thread
     with serve_in_thread(create_app(settings, registry=ModelRegistry(models={"clamp": clamp}))) as other:
         with NarfClient(other) as narf:
             third = narf.track_step(sent[2], K, model="clamp", state=updates[-1].state, options=FAST)
@@ -183,3 +184,83 @@ def test_track_bad_input_over_http(server: str, frames) -> None:
         with pytest.raises(InvalidInput) as info:
             narf.track_step(sent[3], K, model="clamp", state=token, options={"iterations": 0})
         assert info.value.field.startswith("request.options")
+
+
+@pytest.mark.slow
+def test_track_faults_over_http(server: str, frames, clamp) -> None:
+    """The faults of a real camera stream, over HTTP: each a 4xx naming the field, or an answer (a status,
+    a finite pose) the tracking goes on from; never a 500. The server tracks in its child processes, so an
+    error found there (a part of the wrong size) must come back as the same 422."""
+    import base64
+    import json
+
+    import httpx
+
+    from narf_client.client import encode_png, track_files
+    from narf_service.tracking import _sign
+
+    sent, K, labels = frames
+
+    def finite(update) -> bool:
+        return bool(np.isfinite(update.pose.matrix).all()) and all(np.isfinite(v) for v in update.joints.values())
+
+    with NarfClient(server) as narf:
+        first = narf.track_step(sent[0], K, model="clamp", initial_pose=labels[0].T_cam_obj, options=FAST)
+        second = narf.track_step(sent[1], K, model="clamp", state=first.state, options=FAST)
+        with pytest.raises(InvalidInput) as info:  # out of order: an earlier frame after a later one
+            narf.track_step(sent[0], K, model="clamp", state=second.state, options=FAST)
+        assert info.value.field == "request.time" and "time order" in info.value.message
+        # a depth missing in the middle of an RGB-D sequence, then a depth with no valid return (all NaN)
+        no_depth = narf.track_step(TrackFrame(sent[2].time, sent[2].image, sent[2].mask), K, model="clamp",
+                                   state=second.state, options=FAST)
+        assert no_depth.status in ("tracking", "uncertain") and finite(no_depth)
+        blind = TrackFrame(sent[3].time, sent[3].image, sent[3].mask, np.full_like(sent[3].depth, np.nan))
+        nan_depth = narf.track_step(blind, K, model="clamp", state=no_depth.state, options=FAST)
+        assert nan_depth.status != "lost" and finite(nan_depth)
+        # a gap in time (a dropped stretch of the stream): no prediction, the object is found again
+        late = TrackFrame(sent[2].time + 5.0, sent[2].image, sent[2].mask, sent[2].depth)
+        found = narf.track_step(late, K, model="clamp", state=second.state, options=FAST)
+        assert found.status == "reinitialised" and "since the last estimate" in found.reason and finite(found)
+        assert np.linalg.norm(found.pose.position - labels[2].T_cam_obj[:3, 3]) < 0.03
+
+    version, payload, _ = second.state.split(".")
+    data = json.loads(base64.urlsafe_b64decode(payload + "=" * (-len(payload) % 4)))
+    data["v"][0] = float("nan")  # a NaN in the previous state, correctly signed (as by a buggy replica)
+    body = "v1." + base64.urlsafe_b64encode(json.dumps(data).encode()).rstrip(b"=").decode()
+    older = f"v0.{payload}.{_sign(b's' * 24, 'v0.' + payload)}"  # a token of an older format, signed
+    with NarfClient(server) as narf:
+        for token, words in ((f"{body}.{_sign(b's' * 24, body)}", "unusable state"), (older, "format 'v0'")):
+            with pytest.raises(InvalidInput) as info:
+                narf.track_step(sent[2], K, model="clamp", state=token, options=FAST)
+            assert info.value.field == "request.state" and words in info.value.message
+
+    # parts the client would refuse to send, sent raw: the child decodes them and answers 422
+    files = track_files(sent[2], K, model="clamp", state=second.state, initial_pose=None, initial_joints=None,
+                        options=FAST)
+    for field, part in (("mask", ("mask.png", encode_png(np.zeros((60, 80), np.uint8)), "image/png")),
+                        ("image", ("image.png", b"\x89PNG\r\n\x1a\n not a png", "image/png"))):
+        answer = httpx.post(f"{server}/v1/track", files={**files, field: part}, timeout=120)
+        assert answer.status_code in (400, 422), answer.text
+        assert answer.json()["error"]["field"] == field
+    assert httpx.get(f"{server}/readyz").status_code == 200  # the server still answers
+
+
+@pytest.mark.slow
+def test_a_lost_tracking_process_is_a_503_and_replaced(clamp, frames, tmp_path) -> None:
+    """A child process killed between two frames (out of memory, say): that frame is a 503 with Retry-After,
+    the client's retry is answered by a fresh child from the same token."""
+    from narf_client import ServiceUnavailable
+
+    sent, K, labels = frames
+    settings = Settings(models_dir=tmp_path, workers=1, torch_threads=1, state_key="s" * 24)
+    app = create_app(settings, registry=ModelRegistry(models={"clamp": clamp}))
+    with serve_in_thread(app) as url, NarfClient(url, retries=0) as narf:
+        first = narf.track_step(sent[0], K, model="clamp", initial_pose=labels[0].T_cam_obj, options=FAST)
+        (child,) = app.state.processes._all
+        child.process.kill()
+        child.process.wait()
+        with pytest.raises(ServiceUnavailable) as info:
+            narf.track_step(sent[1], K, model="clamp", state=first.state, options=FAST)
+        assert info.value.status_code == 503 and "worker process ended" in str(info.value)
+        again = narf.track_step(sent[1], K, model="clamp", state=first.state, options=FAST)
+        assert again.status in ("tracking", "uncertain") and app.state.processes.started == 1
