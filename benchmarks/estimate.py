@@ -4,11 +4,12 @@ Protocol (NARF22 §IV-C): per tool, ``scenes`` frames of the ``test`` split (and
 ``novel``) picked with a fixed seed; the initial pose is the labelled pose perturbed by a rotation
 uniform within ±10 deg in azimuth and elevation (about the camera's vertical and horizontal axes,
 through the object's centre) and a translation of length uniform in [0, 2 cm] in a uniform
-direction; θ starts at mid-range; 150 Adam iterations. Each scene is refined with two presets of
-options: ``paper`` (the paper's masked photometric loss) and ``robust`` (plus silhouette and depth
-terms, 4 joint starts, coarse-to-fine). Reported per tool, split, render mode and preset: ADD
-mean/std, configuration error mean/std per joint (m or deg), success rates (ADD < 1 cm, ADD < 10% of
-the diameter) and seconds per scene; the error along the iterations and along wall time (poses
+direction; θ starts at mid-range for every joint; 150 Adam iterations. Each scene is refined with
+two presets of options: ``paper`` (the paper's masked photometric loss) and ``robust`` (plus
+silhouette and depth terms, 4 joint starts, coarse-to-fine). Reported per object (the tools and the
+multi-joint objects), split, render mode and preset: ADD mean/std, the error of every joint,
+mean/std (m or deg; the table in mm or deg), success rates (ADD < 1 cm, ADD < 10% of the
+diameter) and seconds per scene; the error along the iterations and along wall time (poses
 recorded every few iterations); and a sweep of the perturbation size (1x, 2x, 3x) per preset.
 
 With datasets written with label noise, the refiner sees the noisy labels (mask and initial pose)
@@ -36,6 +37,7 @@ from narf_core.data.dataset import Dataset, Frame
 from narf_core.estimate import PRESETS, EstimateOptions, EstimateResult, chi2_quantile, refine
 from narf_core.geometry import so3_exp, transform_points
 from narf_core.metrics import add
+from narf_core.modes import choose_mode
 
 PAPER_TABLE_II = {"clamp": {"add_m": (0.0107, 0.0043), "configuration_error_m": (0.0073, 0.0065)}}
 RECORD_EVERY = 10  # iterations between recorded poses for the error-vs-iterations curves
@@ -253,7 +255,7 @@ def run(
     *,
     out_dir: str | Path,
     splits: tuple[str, ...] = ("test", "novel"),
-    scenes: int = 17,
+    scenes: int | None = None,
     perturbation: tuple[float, float] = (10.0, 0.02),
     scale_sweep: tuple[float, ...] = (1.0, 2.0, 3.0),
     iterations: int = 150,
@@ -269,14 +271,16 @@ def run(
     in order; paths are opened). The table has one row per tool, split, render mode and refiner
     preset (:meth:`EstimateOptions.preset`); the curves and the perturbation sweep (every preset,
     ``perturbation * scale``) use the first split and the first mode the model renders.
-    ``perturbation`` is ``(degrees, metres)``; ``quick`` runs 3 scenes of the first split, the first
-    mode only and the sweep at its smallest and largest scale. Modes a model cannot render
+    ``perturbation`` is ``(degrees, metres)``; ``scenes`` defaults to the paper's 17 (3 with
+    ``quick``); ``quick`` runs the first split and the first mode only and the sweep at its smallest
+    and largest scale. Modes a model cannot render
     (``parts`` without part fields) and splits a dataset lacks are skipped and listed under ``skipped``.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    scenes = scenes if scenes is not None else (3 if quick else 17)
     if quick:
-        scenes, modes, splits = min(scenes, 3), modes[:1], splits[:1]
+        modes, splits = modes[:1], splits[:1]
         scale_sweep = tuple(sorted({min(scale_sweep), max(scale_sweep)}))
     config = {
         "splits": list(splits), "scenes": scenes, "perturbation_deg_m": list(perturbation),
@@ -286,7 +290,9 @@ def run(
     }
     table, curves, sweep, skipped = [], {}, [], []
     jacobian: dict[str, dict] = {}  # tool -> CPU seconds per Gauss-Newton Jacobian, by method
+    auto: dict[str, dict] = {}  # tool -> the mode `auto` refines it in, and why
     for tool, model, dataset in _pairs(models, datasets):
+        auto[tool] = dict(zip(("mode", "reason"), choose_mode(model)))
         first: dict[str, list[dict]] = {}  # preset -> rows of the first split and mode (reused by the sweep)
         sweep_frames, sweep_mode = None, None
         for split in splits:
@@ -325,7 +331,7 @@ def run(
 
             jacobian[tool] = measure(model, dataset, sweep_frames[0])
     result = {"config": config, "table": table, "curves": curves, "sweep": sweep, "skipped": skipped,
-              "paper": PAPER_TABLE_II, "jacobian": jacobian}
+              "paper": PAPER_TABLE_II, "jacobian": jacobian, "auto": auto}
     (out_dir / "estimate.json").write_text(json.dumps(result, indent=1))
     (out_dir / "estimate.md").write_text(markdown(result))
     plot_curves(curves, out_dir / "estimate_error_vs_iterations.png")
@@ -342,7 +348,12 @@ def _num(x: float | None) -> str:
 
 
 def _fmt_joints(joints: dict) -> str:
-    return "<br>".join(f"{name}: {j['mean']:.4f} ± {j['std']:.4f} {j['unit']}" for name, j in joints.items()) or "-"
+    """Each joint's error, mean ± std: prismatic joints in mm, revolute ones in degrees."""
+    def one(j: dict) -> str:
+        scale, unit = (1000, "mm") if j["unit"] == "m" else (1, j["unit"])
+        return f"{scale * j['mean']:.2f} ± {scale * j['std']:.2f} {unit}"
+
+    return "<br>".join(f"{name}: {one(j)}" for name, j in joints.items()) or "-"
 
 
 def markdown(result: dict) -> str:
@@ -356,7 +367,7 @@ def markdown(result: dict) -> str:
         "`gauss-newton` = the same terms, Levenberg-Marquardt with Huber weights, its own iteration count. "
         "'inside 95 % region': share of scenes whose true error lies inside the estimate's χ² 95 % region.",
         "",
-        "| tool | split | mode | preset | N | ADD (cm) | configuration error | ADD < 1 cm | ADD < 10% d "
+        "| tool | split | mode | preset | N | ADD (cm) | per-joint error | ADD < 1 cm | ADD < 10% d "
         "| s/scene | iterations | inside 95 % region | NEES median |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -371,7 +382,7 @@ def markdown(result: dict) -> str:
         lines.append(
             f"| {tool} (paper: real data, GPU, FastNeRF) | test | narf | paper | 17 "
             f"| {100 * p['add_m'][0]:.2f} ± {100 * p['add_m'][1]:.2f} "
-            f"| {p['configuration_error_m'][0]:.4f} ± {p['configuration_error_m'][1]:.4f} m | - | - | - | 150 | - | - |"
+            f"| {1000 * p['configuration_error_m'][0]:.2f} ± {1000 * p['configuration_error_m'][1]:.2f} mm | - | - | - | 150 | - | - |"
         )
     lines += [
         "",
@@ -390,6 +401,8 @@ def markdown(result: dict) -> str:
         from narf_benchmarks.jacobian import markdown as jacobian_markdown
 
         lines += jacobian_markdown(result["jacobian"])
+    for tool, a in result.get("auto", {}).items():
+        lines.append(f"\n`auto` refines {tool} in {a['mode']} mode: {a['reason']}.")
     for s in result["skipped"]:
         what = s.get("mode") or f"split {s['split']}"
         lines.append(f"\nSkipped {s['tool']} / {what}: {s['reason']}.")
@@ -467,13 +480,16 @@ def _prepare(args: argparse.Namespace, tool: str, noise: bool) -> tuple[NarfMode
 
 
 def main(args: argparse.Namespace) -> int:
-    """``narf bench estimate``: ``args`` has ``work``, ``tools``, ``noise``, ``quick``, ``models``, ``json``."""
+    """``narf bench estimate``: ``args`` has ``work``, ``tools``, ``noise``, ``quick``, ``models``, ``json``
+    and optionally ``presets``, ``scales`` (the perturbation sweep) and ``scenes`` (per split)."""
     if args.tools:
         tools = tuple(args.tools)
     elif args.quick:
         tools = tuple(sorted(p.stem for p in args.models.glob("*.narf")))
     else:
-        tools = ("clamp", "lineman-a", "lineman-b", "longnose")
+        from narf_benchmarks.render import all_tools
+
+        tools = all_tools()
     models, datasets, missing = {}, {}, []
     for noise in (False, True) if args.noise else (False,):
         for tool in tools:
@@ -488,6 +504,9 @@ def main(args: argparse.Namespace) -> int:
         raise ValueError(f"no model to benchmark: {args.models} has no bundled model for {names}")
     if missing:
         print(f"narf bench estimate: skipping {', '.join(missing)}: no bundled model in {args.models}", file=sys.stderr)
-    result = run(models, datasets, out_dir=args.work / "estimate", quick=args.quick)
+    chosen = {k: v for k, v in (("presets", tuple(getattr(args, "presets", None) or ())),
+                                ("scale_sweep", tuple(getattr(args, "scales", None) or ())),
+                                ("scenes", getattr(args, "scenes", None))) if v}
+    result = run(models, datasets, out_dir=args.work / "estimate", quick=args.quick, **chosen)
     print(json.dumps(result, indent=1) if args.json else markdown(result))
     return 0

@@ -65,7 +65,8 @@ def shifted_sets(
     spp: int, seed: int, progress: bool = True,
 ) -> dict[str, Dataset]:
     """The restyled datasets of ``frame_ids``, one per condition, made (or remade) in ``out`` unless
-    ``out/<condition>`` already holds exactly these frames rendered with the same settings."""
+    ``out/<condition>`` already holds these frames (and maybe more: pick yours with
+    :func:`source_frames`) rendered with the same settings."""
     from narf_core.data.synth.restyle import restyle
 
     def current(name: str) -> bool:
@@ -73,8 +74,8 @@ def shifted_sets(
             g = Dataset.open(out / name).generator.get("restyle", {})
         except (ValueError, OSError):
             return False
-        return (g.get("source_frames") == sorted(frame_ids) and g.get("size") == list(size) and g.get("spp") == spp
-                and g.get("seed") == seed)
+        return (set(frame_ids) <= set(g.get("source_frames") or []) and g.get("size") == list(size)
+                and g.get("spp") == spp and g.get("seed") == seed)
 
     missing = tuple(name for name in conditions if not current(name))
     if missing:
@@ -83,10 +84,17 @@ def shifted_sets(
     return {name: Dataset.open(out / name) for name in conditions}
 
 
-def warning_counts(dataset: Dataset) -> dict[str, int]:
-    """How many frames of ``dataset`` draw each observation warning code (depth checked at the true distance)."""
+def source_frames(dataset: Dataset, split: str, source_ids: set[int]) -> list:
+    """The frames of a restyled ``dataset`` in ``split`` drawn from the source frames ``source_ids``."""
+    origin = {f["id"]: f["source_id"] for f in dataset.generator.get("frames", [])}
+    return [f for f in dataset.frames(split) if origin.get(f.id, f.id) in source_ids]
+
+
+def warning_counts(dataset: Dataset, frames: list | None = None) -> dict[str, int]:
+    """How many ``frames`` of ``dataset`` (default: all) draw each observation warning code (depth
+    checked at the true distance)."""
     counts: dict[str, int] = {}
-    for frame in dataset.frames():
+    for frame in dataset.frames() if frames is None else frames:
         images = dataset.load(frame)
         for w in check_observation(images.rgb, images.labels > 0, images.depth, dataset.camera,
                                    expected_depth_m=float(frame.T_cam_obj[2, 3])):
@@ -135,10 +143,11 @@ def run(
         root = out_dir / "data" / f"{tool}-{size[0]}x{size[1]}-spp{spp}-seed{seed}"
         sets = shifted_sets(source, root, ids, conditions=conditions, size=size, spp=spp, seed=seed, progress=progress)
         for condition, dataset in sets.items():
-            warnings.append({"tool": tool, "condition": condition, "frames": len(dataset),
-                             "warnings": warning_counts(dataset)})
-            for split in picked:
-                frames = dataset.frames(split)
+            mine = {split: source_frames(dataset, split, {f.id for f in frames}) for split, frames in picked.items()}
+            every = [f for frames in mine.values() for f in frames]
+            warnings.append({"tool": tool, "condition": condition, "frames": len(every),
+                             "warnings": warning_counts(dataset, every)})
+            for split, frames in mine.items():
                 for kind in inputs:
                     view = dataset if kind == "rgbd" else _WithoutDepth(dataset)
                     for preset in presets:

@@ -29,8 +29,10 @@ jaw from mid-range: its 18 cm travel is 7 jaw widths, and where the rendered and
 not overlap the photometric loss is flat in θ. The robust preset does, and the depth term fixes the
 distance that a 160x120 view hardly constrains. ``gauss-newton`` (``solver = "gauss-newton"``,
 narf_core/gauss_newton.py) uses the robust preset's terms with Levenberg-Marquardt steps and Huber
-weights for 30 iterations: cheaper than the robust preset, but it ends in a worse local minimum
-more often (``narf bench estimate`` shows both), so it is not the default.
+weights for at most 30 iterations, with a heavier depth weight (:meth:`EstimateOptions.gauss_newton`):
+about half the robust preset's CPU time for a similar error from the paper's 10 deg / 2 cm, but
+its basin is narrower (a wrong jaw start or a 3x perturbation more often ends in a wrong minimum;
+docs/benchmarks.md), so it is not the default.
 
 Every estimate carries an :class:`Uncertainty` (``options.uncertainty``): one Gauss-Newton
 linearisation at the optimum, whatever the solver, plus the model's own error (:func:`model_error`).
@@ -57,12 +59,24 @@ iteration, held fixed in the gradient), ``robust_loss`` (Huber or Cauchy per res
 ``robust_scale``) and ``occlusion_margin`` (no residual for a ray whose observed depth lies that
 far in front of the render) apply to both solvers.
 
+A segmenter's mask is not the truth: its edge is off by a pixel or two, it misses a blob or adds
+one, and it marks only the visible part of an occluded object. With ``mask_band_px`` the pixels
+that near the mask's boundary carry no silhouette, masked-colour or depth residual; there the render
+is compared with the unmasked image where it draws the object (a render over a pixel of another
+colour costs; the unknown background does not). ``outside_weight`` weighs the rays outside the
+mask less (a render of the object there may be right: an occluder or a missed blob), except where
+the observed depth lies behind the rendered surface. Both act on the Adam solver's fine level.
+
 ``theta_starts = S`` runs S configurations (the given one and S-1 spread over the joint box) as
 ONE batch of ``S * rays_per_iteration / 2`` rays for the first third of the iterations (in
 ``parts`` mode, whose composition takes one configuration, one render call per start), then keeps
 the start with the lowest loss on one fixed set of up to 4096 fine rays: half the rays per start
 while the starts compete cost no accuracy, and a third of the iterations is long enough for the
-right jaw start to pull ahead (docs/benchmarks.md). A non-finite loss or gradient
+right jaw start to pull ahead (docs/benchmarks.md). ``pose_starts = P`` widens the basin in
+pose: the given pose and P - 1 turned about the object's centre (out of the image plane first,
+where a silhouette changes least for a wrong angle), each also moved onto the mask and the observed
+depth, are scored with every θ start once, on one set of rays without gradients, and each θ start
+is refined from the given pose and from its best other one. A non-finite loss or gradient
 never reaches the parameters: the best finite iterate is restored, Adam's moments reset and its
 rates halved.
 """
@@ -88,10 +102,12 @@ from narf_core.geometry import (
     invert_pose,
     pose_to_position_quaternion,
     se3_exp,
+    se3_log,
     so3_log,
     transform_points,
 )
 from narf_core.metrics import add, add_s, joint_errors, success_rates
+from narf_core.modes import MODES, choose_mode
 from narf_core.observation import check_observation, usable_depth
 from narf_core.render import ray_aabb
 
@@ -99,20 +115,29 @@ if TYPE_CHECKING:
     from narf_core.bundle import NarfModel
 
 PRESETS = ("paper", "robust", "gauss-newton")
-MODES = ("narf", "parts")
 SOLVERS = ("adam", "gauss-newton")
 ROBUST_LOSSES = ("none", "huber", "cauchy")
 RAY_SAMPLINGS = ("uniform", "stratified", "edges", "auto")
+MASK_TRUSTS = ("full", "partial", "auto")
 MIN_MASK_PIXELS = 4
 _U_LIMIT = 0.2  # a start keeps u this far inside ±π/2 (where dθ/du = 0): 2% of the half-range from a limit
 _MAX_RECOVERIES = 8  # consecutive non-finite iterations before giving up
 _COARSE_SHARE = 0.25  # of the iterations go to the coarse pyramid levels
 _PRUNE_SHARE = 1 / 3  # of the iterations run every θ start (half the rays each); then the best goes on alone
 _MAX_BOX_SCALE = 4  # reference_box_px multiplies the rays per iteration by at most this
+_BEHIND_M = 0.01  # observed depth this far behind the rendered surface: the object is not on that ray
 _EVAL_RAYS = 4096  # starts are compared, and the final loss measured, on at most this many rays of the box
+_SCORE_RAYS = 1024  # box rays on which every (pose, θ) start is scored before the refinement
+_POSES_KEPT = 1  # pose starts refined per θ start besides the given pose (the best scored; docs/benchmarks.md)
+# Directions of the turned pose starts (camera axes, in order): about the camera's x axis (up and down),
+# its y axis (left and right), the diagonals between them, then the viewing axis.
+_POSE_TURNS = ((0, 0, 0), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0),
+               (1, 1, 0), (-1, -1, 0), (1, -1, 0), (-1, 1, 0), (0, 0, 1), (0, 0, -1))
 _ADAM_BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
-GN_ITERATIONS = 30  # the gauss-newton preset's Levenberg-Marquardt iterations
+GN_ITERATIONS = 30  # the gauss-newton preset's Levenberg-Marquardt iterations (at most)
+GN_DEPTH_WEIGHT = 50.0  # the gauss-newton preset's depth_weight (see EstimateOptions.gauss_newton)
+GN_UNCERTAINTY_RAYS = 1024  # the gauss-newton preset's uncertainty_rays
 # The robust preset's reference_box_px: the largest mask box (grown by box_margin) of the bundled
 # clamp's test and novel views at 160x120, its training size; boxes up to it keep the plain sampling.
 ROBUST_BOX_PX = 144
@@ -135,7 +160,7 @@ class EstimateOptions:
     lr_theta: float = 0.05  # per step, in u where θ = mid + half_range * sin(u)
     lr_decay: float = 0.1  # final rate / first rate, exponential in between
     rays_per_iteration: int = 1024
-    mode: str = "narf"  # "narf" (the configuration field) or "parts" (composed part fields)
+    mode: str = "auto"  # "narf" (the configuration field), "parts" (composed part fields) or "auto" (narf_core/modes.py)
     silhouette_weight: float = 0.0
     depth_weight: float = 0.0
     theta_starts: int = 1
@@ -155,6 +180,15 @@ class EstimateOptions:
     photometric_compensation: bool = False  # per-channel gain and bias, closed form each iteration
     occlusion_margin: float = 0.0  # metres; observed depth this far in front of the render = occluder (0 = off)
     depth_sigma: float = 0.0  # sensor depth noise at 1 m (σ = depth_sigma z²); 0: depth residuals in object radii
+    # How far the given mask is trusted (Adam's loss; a segmenter's mask is not the truth): "full",
+    # "partial" or "auto" (partial with a depth image in a box larger than reference_box_px). Partial: no
+    # silhouette, masked-colour or depth residual within mask_band_px pixels of the mask's boundary
+    # (its edge is uncertain by a few pixels; there the render is compared with the unmasked image
+    # where it draws the object), and the rays outside the mask weigh outside_weight (an occluder or
+    # a blob the mask missed may hide the object there) unless the observed depth lies behind the render.
+    mask_trust: str = "full"
+    mask_band_px: int = 3
+    outside_weight: float = 0.3
     # Rays of an iteration: "uniform" (independent draws over the box), "stratified" (one per cell of a
     # grid over the box), "edges" (half drawn on silhouette edges and texture, half uniform) or
     # "auto" (uniform in a box up to reference_box_px, edges in a larger one).
@@ -168,6 +202,12 @@ class EstimateOptions:
     # at all where none projects near its pixel (narf_core/band.py); 0 = the whole box.
     band_m: float = 0.0
     eval_rays: int = _EVAL_RAYS  # starts are compared, and the final loss measured, on at most this many box rays
+    # A wider basin: the given pose and pose_starts - 1 others turned about the object's centre by
+    # pose_spread_deg (_pose_turns), each with every θ start, are scored once on the same rays; every θ
+    # start then goes on from the given pose and from its best other, until the starts are pruned
+    # (twice the starts in the first third of the iterations). 1 = the given pose only.
+    pose_starts: int = 1
+    pose_spread_deg: float = 30.0
     uncertainty: bool = True  # a covariance of the estimate (one linearisation at the optimum)
     uncertainty_rays: int = 4096  # rays of the box used for it
     uncertainty_patch: int = 4  # pixels per side of the squares whose residuals count as correlated
@@ -184,7 +224,7 @@ class EstimateOptions:
         need(self.lr_theta > 0, "lr_theta", "must be > 0")
         need(0 < self.lr_decay <= 1, "lr_decay", "must be in (0, 1]")
         need(self.rays_per_iteration >= 1, "rays_per_iteration", "must be >= 1")
-        need(self.mode in MODES, "mode", "must be 'narf' or 'parts'")
+        need(self.mode in MODES, "mode", f"must be one of {', '.join(MODES)}")
         need(self.silhouette_weight >= 0, "silhouette_weight", "must be >= 0")
         need(self.depth_weight >= 0, "depth_weight", "must be >= 0")
         need(1 <= self.theta_starts <= 64, "theta_starts", "must be in [1, 64]")
@@ -200,12 +240,17 @@ class EstimateOptions:
         need(0 <= self.damping <= 1e6, "damping", "must be in [0, 1e6]")
         need(self.occlusion_margin >= 0, "occlusion_margin", "must be >= 0")
         need(self.depth_sigma >= 0, "depth_sigma", "must be >= 0")
+        need(self.mask_trust in MASK_TRUSTS, "mask_trust", f"must be one of {', '.join(MASK_TRUSTS)}")
+        need(0 <= self.mask_band_px <= 32, "mask_band_px", "must be in [0, 32] pixels (0 = trust the mask's edge)")
+        need(0 <= self.outside_weight <= 1, "outside_weight", "must be in [0, 1] (1 = trust the mask outside it)")
         need(self.reference_box_px >= 0, "reference_box_px", "must be >= 0 (0 = off)")
         need(self.ray_sampling in RAY_SAMPLINGS, "ray_sampling", f"must be one of {', '.join(RAY_SAMPLINGS)}")
         need(self.uncertainty_rays >= 16, "uncertainty_rays", "must be >= 16")
         need(self.adam_iterations >= 0, "adam_iterations", "must be >= 0")
         need(self.band_m == 0 or 0.001 <= self.band_m <= 1, "band_m", "must be 0 (off) or in [0.001, 1] metres")
         need(self.eval_rays >= 16, "eval_rays", "must be >= 16")
+        need(1 <= self.pose_starts <= len(_POSE_TURNS), "pose_starts", f"must be in [1, {len(_POSE_TURNS)}]")
+        need(0 < self.pose_spread_deg <= 90, "pose_spread_deg", "must be in (0, 90] degrees")
         need(1 <= self.uncertainty_patch <= 64, "uncertainty_patch", "must be in [1, 64]")
         for name in ("sigma_floor_position", "sigma_floor_rotation", "sigma_floor_joint"):
             need(getattr(self, name) >= 0, name, "must be >= 0")
@@ -217,28 +262,41 @@ class EstimateOptions:
         well-determined distance (see the module docstring for measurements). A mask box larger
         than ``ROBUST_BOX_PX`` (a camera finer than the model was trained at, a near object) draws
         proportionally more rays, half of them on the silhouette's edges (``reference_box_px``,
-        ``ray_sampling = "auto"``); up to that size nothing changes."""
+        ``ray_sampling = "auto"``) and, with a depth image, trusts the mask only partially
+        (``mask_trust = "auto"``: a segmenter's mask at a camera's native size); up to that size
+        nothing changes."""
         return cls(**{
             "silhouette_weight": 1.0, "depth_weight": 1.0, "theta_starts": 4, "coarse_to_fine": 2, "lr_pose": 0.02,
-            "reference_box_px": ROBUST_BOX_PX, "ray_sampling": "auto", **overrides,
+            "reference_box_px": ROBUST_BOX_PX, "ray_sampling": "auto", "mask_trust": "auto", **overrides,
         })
 
     @classmethod
     def gauss_newton(cls, **overrides) -> EstimateOptions:
         """Levenberg-Marquardt on the robust preset's terms (colour, silhouette, depth) with Huber
-        weights, 4 configuration starts and 2 pyramid levels, ``GN_ITERATIONS`` iterations
-        (narf_core/gauss_newton.py). ``adam_iterations`` runs Adam first instead of the pyramid."""
+        weights, 4 configuration starts and 2 pyramid levels, at most ``GN_ITERATIONS`` iterations
+        (narf_core/gauss_newton.py), the covariance on ``GN_UNCERTAINTY_RAYS`` rays.
+        ``adam_iterations`` runs Adam first instead of the pyramid.
+
+        ``depth_weight`` is ``GN_DEPTH_WEIGHT``, not the robust preset's 1: Gauss-Newton sums its
+        residuals (three colour channels, the silhouette and the depth of every ray) where Adam's
+        loss averages the colour over its channels and the depth term over the rays with a depth
+        alone, so the same weight gives the depth a several times smaller share, and a 160x120
+        view's colour barely constrains the distance (docs/benchmarks.md). It stops once
+        ``patience`` accepted steps in a row each moved less than ``tolerance``."""
         return cls(**{
-            "solver": "gauss-newton", "iterations": GN_ITERATIONS, "silhouette_weight": 1.0, "depth_weight": 1.0,
-            "theta_starts": 4, "coarse_to_fine": 2, "robust_loss": "huber", "tolerance": 1e-3, "patience": 3,
-            **overrides,
+            "solver": "gauss-newton", "iterations": GN_ITERATIONS, "silhouette_weight": 1.0,
+            "depth_weight": GN_DEPTH_WEIGHT, "theta_starts": 4, "coarse_to_fine": 2, "robust_loss": "huber",
+            "tolerance": 3e-3, "patience": 2, "uncertainty_rays": GN_UNCERTAINTY_RAYS, **overrides,
         })
 
     def max_rays(self) -> int:
         """An upper bound on the rays a refinement traces, known before any work: every iteration
-        (Adam's first with ``adam_iterations``) at the largest box scale, for every start."""
+        (Adam's first with ``adam_iterations``) at the largest box scale, for every start, and the
+        scoring of the pose starts."""
         scale = _MAX_BOX_SCALE if self.reference_box_px else 1
-        return (self.iterations + self.adam_iterations) * self.rays_per_iteration * scale * self.theta_starts
+        starts = self.theta_starts * (1 + _POSES_KEPT) if self.pose_starts > 1 else self.theta_starts
+        scoring = 3 * self.pose_starts * self.theta_starts * _SCORE_RAYS if self.pose_starts > 1 else 0  # _start_rows
+        return (self.iterations + self.adam_iterations) * self.rays_per_iteration * scale * starts + scoring
 
     @classmethod
     def preset(cls, name: str = "paper", **overrides) -> EstimateOptions:
@@ -379,6 +437,8 @@ class EstimateResult:
     history: list[Snapshot] = field(default_factory=list)
     uncertainty: Uncertainty | None = None
     warnings: list[str] = field(default_factory=list)  # narf_core.observation.check_observation's
+    mode: str | None = None  # the render mode that ran (``options.mode``, ``auto`` resolved) ...
+    mode_reason: str | None = None  # ... and why (narf_core.modes.choose_mode)
 
     def to_dict(self) -> dict:
         """A JSON-able copy (arrays as nested lists)."""
@@ -401,6 +461,8 @@ class EstimateResult:
             ],
             "uncertainty": None if self.uncertainty is None else self.uncertainty.to_dict(),
             "warnings": list(self.warnings),
+            "mode": self.mode,
+            "mode_reason": self.mode_reason,
         }
 
 
@@ -466,6 +528,8 @@ class _Target:
     mask: Tensor  # [P] mask coverage in [0, 1]
     depth: Tensor | None  # [P] metres, 0 = none (never filtered: only at the finest level)
     width: int  # box filter width in pixels (odd)
+    band: Tensor | None = None  # [P] bool: within options.mask_band_px of the mask's boundary (None: no band)
+    image: Tensor | None = None  # [P, 3] the unmasked image, for the band's rays (finest level only)
 
 
 @dataclass
@@ -507,25 +571,42 @@ def _box_filter(image: Tensor, width: int) -> Tensor:
 
 
 def _observation(
-    image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, box: tuple[int, int, int, int], levels: int, device
+    image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, box: tuple[int, int, int, int], levels: int, device,
+    band_px: int = 0,
 ) -> _Observation:
+    """The box's pixels and targets; ``band_px > 0`` marks the pixels within that distance of the
+    mask's boundary (:func:`_mask_band`) and keeps the unmasked image for them."""
     u0, v0, u1, v1 = box
     rgb = torch.tensor(image[v0:v1, u0:u1], dtype=torch.float32) / 255
     m = torch.tensor(mask[v0:v1, u0:u1], dtype=torch.float32)[..., None]
     masked = torch.cat([rgb * m, m], dim=-1)  # [h, w, 4]
     d = None if depth is None else torch.tensor(depth[v0:v1, u0:u1]).reshape(-1)
+    band = _mask_band(m[..., 0], band_px).reshape(-1) if band_px > 0 else None
     targets = []
     for level in range(levels):
         width = 2 ** (levels - 1 - level) + 1 if level < levels - 1 else 1
         blurred = _box_filter(masked, width).reshape(-1, 4)
-        targets.append(_Target(blurred[:, :3], blurred[:, 3], d if width == 1 else None, width))
+        targets.append(_Target(blurred[:, :3], blurred[:, 3], d if width == 1 else None, width, band,
+                               rgb.reshape(-1, 3) if band is not None and width == 1 else None))
     v, u = torch.meshgrid(torch.arange(v0, v1), torch.arange(u0, u1), indexing="ij")
     pixels = torch.stack([u.reshape(-1), v.reshape(-1)], -1)
     targets = [
-        _Target(t.rgb.to(device), t.mask.to(device), None if t.depth is None else t.depth.to(device), t.width)
+        _Target(*(None if x is None else x.to(device) for x in (t.rgb, t.mask, t.depth)), t.width,
+                *(None if x is None else x.to(device) for x in (t.band, t.image)))
         for t in targets
     ]
     return _Observation(pixels.to(device), targets, _importance(masked), (v1 - v0, u1 - u0))
+
+
+def _mask_band(mask: Tensor, px: int) -> Tensor:
+    """``[h, w]`` bool: pixels within ``px`` (chessboard distance) of the boundary of ``mask [h, w]``
+    (0/1): those the mask's dilation by ``px`` adds or its erosion by ``px`` removes. A segmenter's
+    edge is off by a pixel or two (and bleeds or shrinks as a whole), so its pixels there are no
+    evidence of where the object's silhouette lies."""
+    x = mask[None, None]
+    grown = F.max_pool2d(x, 2 * px + 1, stride=1, padding=px)[0, 0]
+    shrunk = -F.max_pool2d(-x, 2 * px + 1, stride=1, padding=px)[0, 0]
+    return (grown > 0.5) & (shrunk < 0.5)
 
 
 def _importance(masked: Tensor) -> Tensor:
@@ -612,6 +693,92 @@ def _theta_starts(theta0: Tensor, param: _Parameterisation, count: int) -> Tenso
     return torch.stack(rows)
 
 
+def _pose_turns(count: int, spread_deg: float) -> Tensor:
+    """``[count, 3]`` rotation vectors (camera axes, radians) of the pose starts: none first, then
+    ``spread_deg`` about the directions of :data:`_POSE_TURNS` in order. Turns out of the image
+    plane come first: they change the silhouette least for a small angle, so a wrong one is where
+    the loss's basin is narrowest; a turn in the image plane rotates the silhouette, which the
+    silhouette term sees from far."""
+    turns = torch.tensor(_POSE_TURNS[:count], dtype=torch.float64)
+    return turns / turns.norm(dim=-1, keepdim=True).clamp_min(1) * math.radians(spread_deg)
+
+
+@torch.no_grad()
+def _start_rows(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, thetas: Tensor) -> Tensor:
+    """The refinement's start rows for the θ starts ``thetas [S, k]``: ``[S, 6 + k]`` at the given
+    pose, or (``options.pose_starts > 1``) ``[(1 + K) * S, 6 + k]``: those, then each θ start at
+    the ``K = _POSES_KEPT`` other pose starts whose loss is the lowest on one fixed set of up to
+    ``_SCORE_RAYS`` box rays at the coarsest level, where the target is smoothest. The given pose
+    stays whatever the score: from a small error its own start is the best, and a start's score is
+    a rough guide (the refinement compares the starts again after a third of its iterations).
+    The pose starts: the turns of :func:`_pose_turns` about the object's centre, each also moved
+    onto the observation (:func:`_aligned`)."""
+    opts = loss_fn.options
+    u = param.u_of(thetas)
+    rows = torch.cat([torch.zeros(len(u), 6, dtype=torch.float64), u], dim=1)
+    if opts.pose_starts == 1:
+        return rows
+    turns = _pose_turns(opts.pose_starts, opts.pose_spread_deg)
+    n_turns, n_starts = len(turns), len(rows)
+    turned = rows.repeat(n_turns, 1)  # turn-major: row t * S + s is θ start s under turn t
+    turned[:, 3:6] = turns.repeat_interleave(n_starts, 0)
+    n_pixels = obs.pixels.shape[0]
+    g = torch.Generator().manual_seed(opts.seed + 2)
+    index = torch.arange(n_pixels) if n_pixels <= _SCORE_RAYS else torch.randperm(n_pixels, generator=g)[:_SCORE_RAYS]
+    index = index.to(obs.pixels.device)
+    rays = camera.rays(obs.pixels[index].to(torch.float32))
+    candidates = torch.cat([turned, _aligned(loss_fn, obs, camera, param, turned, index, rays)])
+    losses = loss_fn(rays, obs.levels[0], index, param.poses(candidates), param.thetas(candidates)).cpu()
+    losses = torch.where(torch.isfinite(losses), losses, math.inf).reshape(-1, n_starts)[1:]  # all but the given pose
+    best = losses.topk(min(_POSES_KEPT, len(losses)), dim=0, largest=False).indices + 1  # [K, S], per θ start
+    chosen = candidates.reshape(-1, n_starts, candidates.shape[1])[best, torch.arange(n_starts)]
+    return torch.cat([rows, chosen.reshape(-1, candidates.shape[1])])
+
+
+@torch.no_grad()
+def _aligned(
+    loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, rows: Tensor, index: Tensor, rays: Rays
+) -> Tensor:
+    """``rows [R, 6 + k]`` moved in the camera frame so that each one's rendered silhouette on the box
+    pixels ``index [n]`` (rays ``rays``) has the mask's centroid and, where a depth is observed, its
+    surface the median observed depth in the mask (medians of the whole silhouettes: where a start
+    is centimetres off, the pixels that both cover may show different parts of the object). Such a
+    start overlaps the object too little for the loss's gradient to pull it across; its
+    silhouette's offset says where to go. Rows that draw nothing there stay."""
+    n_rows, n = rows.shape[0], len(rays)
+    T = param.poses(rows)
+    outputs = ("rgb", "opacity") + (("depth",) if loss_fn.uses_depth else ())
+    _, opacity, rendered = loss_fn._render(_object_rays(rays, T), param.thetas(rows), outputs)
+    opacity = opacity.reshape(n_rows, n).double().cpu()
+    target = obs.levels[-1]
+    mask = target.mask[index].double().cpu()
+    uv = obs.pixels[index].double().cpu() + 0.5
+    drawn = opacity.sum(-1)
+    offset = (mask @ uv) / mask.sum().clamp_min(1e-9) - (opacity @ uv) / drawn.clamp_min(1e-9)[:, None]  # [R, 2] px
+    aabb = loss_fn.model.aabb.detach().double().cpu()
+    centre = transform_points(T, (aabb[0] + aabb[1]) / 2)  # [R, 3]
+    along = torch.zeros(n_rows, dtype=torch.float64)
+    if rendered is not None and target.depth is not None:
+        observed = target.depth[index].double().cpu()
+        seen = observed[(observed > 0) & (mask > 0.5)]
+        surface = rendered.reshape(n_rows, n).double().cpu() / opacity.clamp_min(1e-6)
+        surface = torch.where(opacity > 0.5, surface, torch.nan).nanmedian(-1).values
+        if len(seen):
+            along = torch.nan_to_num(seen.median() - surface, nan=0.0)
+    K = camera.K.detach().double().cpu()
+    z = centre[:, 2].clamp_min(1e-3)
+    z_new = (z + along).clamp_min(1e-3)
+    lateral = [(centre[:, i] / z + offset[:, i] / K[i, i]) * z_new - centre[:, i] for i in (0, 1)]  # the ray moves with it
+    shift = torch.stack([*lateral, z_new - z], -1)
+    shift = torch.where((drawn > 0.5)[:, None], shift, torch.zeros_like(shift))
+    moved = torch.eye(4, dtype=torch.float64).repeat(n_rows, 1, 1)
+    moved[:, :3, 3] = shift
+    xi = se3_log(moved @ se3_exp(torch.cat([rows[:, :3] * param.radius, rows[:, 3:6]], -1)))  # the centre frame
+    out = rows.clone()
+    out[:, :3], out[:, 3:6] = xi[:, :3] / param.radius, xi[:, 3:6]
+    return out
+
+
 # --------------------------------------------------------------------------------------------
 # Rendering and loss
 
@@ -643,7 +810,8 @@ class _Loss:
         n_starts, n = T.shape[0], len(rays_cam)
         depth = target.depth[index] if (self.uses_depth and target.depth is not None) else None
         mask, observed = target.mask[index], target.rgb[index]
-        needs_opacity = opts.silhouette_weight > 0 or depth is not None or opts.photometric_compensation
+        needs_opacity = (opts.silhouette_weight > 0 or depth is not None or opts.photometric_compensation
+                         or opts.mask_trust == "partial")
         outputs = ("rgb",) + (("opacity",) if needs_opacity else ())
         outputs += ("depth",) if depth is not None else ()
         band = None
@@ -660,14 +828,22 @@ class _Loss:
             gain, bias = _gain_bias(rgb.detach(), opacity.detach(), observed, mask, keep)
             rgb = gain[:, None] * rgb + bias[:, None] * opacity[..., None]
         used = keep.to(rgb.dtype)
+        edge = None if target.band is None or target.image is None else target.band[index]
+        if edge is not None:  # the render against the unmasked image where it draws the object; no mask there
+            observed = torch.where(edge[:, None], opacity[..., None] * target.image[index], observed)
+        if opts.mask_trust == "partial" and opts.outside_weight < 1:
+            used = used * _outside_weight(mask, edge, depth, rendered_depth, opacity, opts.outside_weight)
         count = used.sum(-1).clamp_min(1)
         colour = _robust((rgb - observed) ** 2, opts.robust_loss, opts.robust_scale).mean(-1)
         loss = (colour * used).sum(-1) / count
         if opts.silhouette_weight > 0:
             silhouette = _robust((opacity - mask) ** 2, opts.robust_loss, opts.robust_scale)
-            loss = loss + opts.silhouette_weight * (silhouette * used).sum(-1) / count
+            trusted = used if edge is None else used * ~edge
+            loss = loss + opts.silhouette_weight * (silhouette * trusted).sum(-1) / count
         if depth is not None:
             valid = (depth > 0) & (mask > 0.5) & keep
+            if edge is not None:  # a segmenter's edge pixel may be the table's
+                valid = valid & ~edge
             if bool(valid.any()):
                 # Rendered depth is opacity-weighted; compare like with like (no division by opacity).
                 err = (rendered_depth - opacity * depth) / self.radius
@@ -722,6 +898,24 @@ def _occluded(depth: Tensor, rendered_depth: Tensor, opacity: Tensor, margin: fl
     else is in front of the object there, so the ray is no evidence about it."""
     surface = rendered_depth.detach() / opacity.detach().clamp_min(1e-6)
     return (depth > 0) & (opacity.detach() > 0.5) & (depth < surface - margin)
+
+
+def _outside_weight(
+    mask: Tensor, edge: Tensor | None, depth: Tensor | None, rendered_depth: Tensor | None, opacity: Tensor, weight: float
+) -> Tensor:
+    """``[S, n]`` weights of the rays: ``weight`` outside the mask ``[n]`` (and off its boundary band
+    ``edge [n]``), 1 elsewhere. The mask is the object's *visible* part as a segmenter saw it: where
+    it says background, an occluder or a missed blob may hide the object, so a render of the
+    object there is weak evidence against it. Unless the observed depth ``[n]`` lies
+    :data:`_BEHIND_M` behind the rendered surface (``rendered_depth / opacity [S, n]``): then the
+    sensor sees past the object, which is not there."""
+    outside = mask <= 0.5 if edge is None else (mask <= 0.5) & ~edge
+    w = torch.where(outside, weight, 1.0)[None].expand_as(opacity)
+    if depth is not None and rendered_depth is not None:
+        surface = rendered_depth.detach() / opacity.detach().clamp_min(1e-6)
+        behind = (depth > 0) & (opacity.detach() > 0.5) & (depth > surface + _BEHIND_M)
+        w = torch.where(behind, 1.0, w)
+    return w
 
 
 def _gain_bias(rgb: Tensor, opacity: Tensor, observed: Tensor, mask: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
@@ -830,15 +1024,18 @@ def refine(
             model.kinematics.joint_vector(ground_truth[1], fill_mid=False, field="ground_truth.joints",
                                           error=EstimateInputError),
         )
-    if opts.mode == "parts" and not model.has_parts:
-        raise EstimateInputError(f"options.mode 'parts' needs part fields, which model {model.name!r} lacks")
+    mode, mode_reason = choose_mode(model, opts.mode, error=EstimateInputError)
+    opts = replace(opts, mode=mode)
 
     device = model.aabb.device  # rays and targets live with the model; the pose parameters on the CPU
     camera = Pinhole(camera.K.detach().to(device, torch.float32), camera.width, camera.height)
     box = _mask_box(mask, opts.box_margin)
     scale = _box_scale(box, opts)
     opts = replace(opts, rays_per_iteration=round(scale * opts.rays_per_iteration)) if scale > 1 else opts
-    obs = _observation(image, mask, depth, box, opts.coarse_to_fine, device)
+    with_depth = depth is not None and opts.depth_weight > 0
+    partial = opts.mask_trust == "partial" or (opts.mask_trust == "auto" and scale > 1 and with_depth)
+    opts = replace(opts, mask_trust="partial" if partial else "full")
+    obs = _observation(image, mask, depth, box, opts.coarse_to_fine, device, opts.mask_band_px if partial else 0)
     obs.scale = scale
     param = _Parameterisation.around(T0, model)
 
@@ -869,20 +1066,21 @@ def refine(
             history=[] if run is None else run.history,
             uncertainty=uncertainty,
             warnings=warnings,
+            mode=mode,
+            mode_reason=mode_reason,
         )
 
     if not _overlaps(camera, obs.pixels, T0, model.aabb):
         return result("no_overlap", None, None)
     loss_fn = _Loss(model, opts, param.radius, uses_depth, camera)
-    starts = _theta_starts(theta0, param, opts.theta_starts)
+    params0 = _start_rows(loss_fn, obs, camera, param, _theta_starts(theta0, param, opts.theta_starts))
     if opts.solver == "gauss-newton":
         from narf_core.gauss_newton import GaussNewtonRun, Problem
 
-        params0 = torch.cat([torch.zeros(starts.shape[0], 6, dtype=torch.float64), param.u_of(starts)], dim=1)
         warm = None
         if opts.adam_iterations > 0:  # Adam finds the basin (and the best θ start), Gauss-Newton the bottom
             warm_opts = replace(opts, solver="adam", iterations=opts.adam_iterations, early_stop=False)
-            warm = _Run(model, warm_opts, obs, camera, param, loss_fn, starts, start_time)
+            warm = _Run(model, warm_opts, obs, camera, param, loss_fn, params0, start_time)
             warm.should_stop = should_stop
             warm.optimise()
             choice = _final_choice(loss_fn, obs, camera, param, warm.adam.params, warm.best_params, warm.rng)
@@ -907,7 +1105,7 @@ def refine(
             run.recovered |= warm.recovered
         last = run.params
     else:
-        run = _Run(model, opts, obs, camera, param, loss_fn, starts, start_time)
+        run = _Run(model, opts, obs, camera, param, loss_fn, params0, start_time)
         run.should_stop = should_stop
         run.optimise()
         last = run.adam.params
@@ -929,17 +1127,21 @@ def _uncertainty(
     T: Tensor,
     theta: Tensor,
     uses_depth: bool,
+    problem=None,
+    rays: tuple[Tensor, Tensor, Tensor] | None = None,
 ) -> Uncertainty | None:
     """The covariance at ``(T [4,4], θ [k])``: one Gauss-Newton linearisation on the box's rays
     (narf_core/gauss_newton.py) plus the model's error and the options' floors on the diagonal;
-    ``None`` if it cannot be computed (a non-finite render)."""
+    ``None`` if it cannot be computed (a non-finite render). ``problem`` and ``rays``: a caller's
+    own (the tracker's frame: its rays, marched once; see ``gauss_newton.covariance``)."""
     from narf_core.gauss_newton import Problem, covariance
 
     aabb = model.aabb.detach().double().cpu()
     centre = (aabb[0] + aabb[1]) / 2
-    problem = Problem(model, opts, param.radius, uses_depth)
+    problem = problem or Problem(model, opts, param.radius, uses_depth)
     rng = torch.Generator().manual_seed(opts.seed + 1)
-    stat = covariance(problem, obs, camera, param, T, theta, centre, opts.uncertainty_rays, opts.uncertainty_patch, rng)
+    stat = covariance(problem, obs, camera, param, T, theta, centre, opts.uncertainty_rays, opts.uncertainty_patch, rng,
+                      rays)
     if not bool(torch.isfinite(stat.sigma).all()):
         return None
     depth = float(T[2, :3].double() @ centre + T[2, 3])
@@ -1042,13 +1244,13 @@ class _Run:
         camera: Pinhole,
         param: _Parameterisation,
         loss_fn: _Loss,
-        starts: Tensor,
+        params0: Tensor,
         start_time: float,
     ) -> None:
+        """``params0 [S, 6 + k]``: the starts' rows (:func:`_start_rows`)."""
         self.model, self.opts, self.obs, self.camera, self.param, self.loss_fn = model, opts, obs, camera, param, loss_fn
         self.start_time = start_time
-        params0 = torch.cat([torch.zeros(starts.shape[0], 6, dtype=torch.float64), param.u_of(starts)], dim=1)
-        k = starts.shape[1]
+        k = params0.shape[1] - 6
         self.adam = _Adam(params0, torch.tensor([opts.lr_pose] * 6 + [opts.lr_theta] * k, dtype=torch.float64))
         self.best_params, self.best_loss = params0, math.inf
         self.rng = torch.Generator().manual_seed(opts.seed)

@@ -18,8 +18,9 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
 from narf_core.checks import ROTATION_TOLERANCE, check_pose
-from narf_core.estimate import MODES, PRESETS, RAY_SAMPLINGS, ROBUST_LOSSES, SOLVERS, EstimateOptions
+from narf_core.estimate import MASK_TRUSTS, MODES, PRESETS, RAY_SAMPLINGS, ROBUST_LOSSES, SOLVERS, EstimateOptions
 from narf_core.geometry import pose_from_position_quaternion, pose_to_position_quaternion
+from narf_core.modes import RENDER_MODES
 from narf_core.track import TrackOptions
 from narf_service.registry import MODEL_NAME_MAX, MODEL_NAME_PATTERN
 
@@ -52,7 +53,12 @@ Joints = Annotated[
     ),
 ]
 RenderOutput = Literal["rgb", "depth", "opacity"]
-RenderMode = Literal["narf", "parts"]
+RenderMode = Literal[RENDER_MODES]
+RequestMode = Literal[MODES]
+_MODE_MEANING = ("'narf': the configuration field; 'parts': the composed part fields; 'auto': the one the model's "
+                 "training measured as better (the answer says which ran, and why)")
+_MODE_OUT = "The render mode that ran ('auto' resolved)"
+_MODE_REASON = "Why: 'requested', or the rule 'auto' followed (narf_core.modes)"
 
 
 class StrictModel(BaseModel):
@@ -174,7 +180,7 @@ class RenderRequest(StrictModel):
         max_length=3,
         description="Images to return; with 'Accept: image/png' exactly one.",
     )
-    mode: RenderMode = Field("narf", description="'narf': the configuration field; 'parts': the composed part fields")
+    mode: RequestMode = Field("auto", description=_MODE_MEANING)
 
     @field_validator("outputs")
     @classmethod
@@ -191,7 +197,8 @@ class RenderResponse(BaseModel):
     model: str
     width: int
     height: int
-    mode: RenderMode
+    mode: RenderMode = Field(description=_MODE_OUT)
+    mode_reason: str = Field(description=_MODE_REASON)
     pose: PoseOut
     joints: dict[str, float] = Field(description="The full configuration rendered (missing joints at mid-range)")
     rgb: str | None = None
@@ -208,7 +215,7 @@ _REFINE_OPTIONS: dict[str, tuple[str, dict[str, float]]] = {
     "lr_theta": ("Adam step on the joints' sine parameter", {"le": 10}),
     "lr_decay": ("Final over first learning rate", {}),
     "rays_per_iteration": ("Rays rendered per iteration", {"ge": 16, "le": 65536}),
-    "mode": ("'narf': the configuration field; 'parts': the composed part fields", {}),
+    "mode": (_MODE_MEANING, {}),
     "silhouette_weight": ("Weight of the silhouette term (opacity - mask)^2", {"le": 1e3}),
     "depth_weight": ("Weight of the depth term; used when a depth part is sent", {"le": 1e3}),
     "theta_starts": ("Configurations tried at first", {"le": 16}),
@@ -229,13 +236,19 @@ _REFINE_OPTIONS: dict[str, tuple[str, dict[str, float]]] = {
     "ray_sampling": ("Where each iteration's rays go", {}),
     "reference_box_px": ("Mask box side (px) above which more rays are drawn; 0 = off", {"le": 65536}),
     "band_m": ("Metres; march only this band around the model's surface; 0 = off", {}),
+    "mask_trust": ("How far the mask is trusted: full, partial, or auto (partial with depth in a large box)", {}),
+    "mask_band_px": ("Partial trust: pixels near the mask's edge that carry no mask residual", {}),
+    "outside_weight": ("Partial trust: weight of the rays outside the mask", {}),
+    "pose_starts": ("Pose starts scored before refining (1 = the given pose only)", {}),
+    "pose_spread_deg": ("Degrees the other pose starts are turned by", {}),
     "adam_iterations": ("gauss-newton: Adam iterations first", {"le": 100_000}),
     "uncertainty": ("Return the covariance of the estimate", {}),
     "sigma_floor_position": ("Model error added to Σ, metres", {"le": 10}),
     "sigma_floor_rotation": ("Model error added to Σ, radians", {"le": 10}),
     "sigma_floor_joint": ("Model error added to Σ, joint range fraction", {"le": 10}),
 }
-_OPTION_CHOICES = {"mode": MODES, "solver": SOLVERS, "robust_loss": ROBUST_LOSSES, "ray_sampling": RAY_SAMPLINGS}
+_OPTION_CHOICES = {"mode": MODES, "solver": SOLVERS, "robust_loss": ROBUST_LOSSES, "ray_sampling": RAY_SAMPLINGS,
+                   "mask_trust": MASK_TRUSTS}
 _OPTION_TYPES = {"int": int, "float": float, "bool": bool}
 
 
@@ -329,6 +342,8 @@ class EstimateResponse(BaseModel):
         description="Doubts about the input, as '<code>: <message>' (codes: clipped, mask_border, depth_unit, "
                     "depth_overlap); after depth_unit or depth_overlap the depth was not used",
     )
+    mode: RenderMode = Field(description=_MODE_OUT)
+    mode_reason: str = Field(description=_MODE_REASON)
 
 
 class ModelSummary(BaseModel):
@@ -336,6 +351,8 @@ class ModelSummary(BaseModel):
     links: list[str]
     joints: list[JointInfo]
     modes: list[RenderMode]
+    auto_mode: RenderMode = Field(description="The mode 'auto' renders this model in (narf_core.modes) ...")
+    auto_mode_reason: str = Field(description="... and why")
 
 
 class ModelList(BaseModel):
@@ -374,6 +391,7 @@ _TRACK_OPTIONS: dict[str, tuple[str, dict[str, float]]] = {
     "iterations": ("Refiner iterations per frame", {"le": 200}),
     "rays_per_iteration": ("Rays rendered per iteration", {"ge": 16, "le": 8192}),
     "solver": ("The per-frame solver", {}),
+    "mode": (_MODE_MEANING, {}),
 }
 
 TrackOptionsIn = _options_model(
@@ -417,4 +435,6 @@ class TrackResponse(BaseModel):
     overlap: float | None = Field(None, description="How well the estimate explains the mask, 0..1")
     iterations: int
     seconds: float = Field(description="Tracking time of this frame")
+    mode: RenderMode = Field(description=_MODE_OUT)
+    mode_reason: str = Field(description=_MODE_REASON)
     state: str = Field(description="Opaque, signed token: send it with the next frame")

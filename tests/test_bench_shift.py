@@ -108,6 +108,12 @@ def test_a_tiny_shifted_run(tmp_path: Path) -> None:
     again = shift.shifted_sets(source, shifted.root.parent, ids, conditions=("depth",), size=(96, 72), spp=2, seed=0,
                                progress=False)
     assert again["depth"].root == shifted.root and (shifted.root / "scene.json").stat().st_mtime_ns == stamp  # reused
+    fewer = shift.shifted_sets(source, shifted.root.parent, ids[1:], conditions=("depth",), size=(96, 72), spp=2,
+                               seed=0, progress=False)  # a subset (one split of a two-split run) is cached too
+    assert (shifted.root / "scene.json").stat().st_mtime_ns == stamp
+    frames = shift.source_frames(fewer["depth"], "test", set(ids[1:]))
+    origin = {f["id"]: f["source_id"] for f in shifted.generator["frames"]}
+    assert [origin[f.id] for f in frames] == ids[1:]
 
 
 def test_bench_shift_errors(tmp_path: Path, monkeypatch, capsys: pytest.CaptureFixture[str]) -> None:

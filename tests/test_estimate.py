@@ -9,7 +9,8 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict
+import re
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -307,6 +308,71 @@ def test_theta_starts_run_as_one_batch_and_keep_the_best(model, monkeypatch):
     assert_finite(parts)
 
 
+def turned(T: np.ndarray, axis: tuple[float, float, float], degrees: float) -> np.ndarray:
+    """``T`` turned by ``degrees`` about the camera-frame ``axis`` through the toy's middle."""
+    R = so3_exp(torch.tensor(axis, dtype=torch.float64) * math.radians(degrees)).numpy()
+    centre = T[:3, :3] @ np.array([0.0, 0.03, 0.0]) + T[:3, 3]
+    out = T.copy()
+    out[:3, :3] = R @ T[:3, :3]
+    out[:3, 3] = R @ (T[:3, 3] - centre) + centre
+    return out
+
+
+def test_pose_starts_widen_the_basin_at_the_cost_of_two_renders_without_gradients(model, monkeypatch):
+    """35 deg out of the image plane is outside one start's basin; five pose starts (the given pose
+    and four turned by 20 deg about the camera's x and y axes, each also moved onto the
+    observation) find the truth. They cost one render of every (turn, θ) pair to align them and one
+    of both versions to score them, on the same rays and without gradients; then the refinement
+    runs every θ start from the given pose and from its best other pose, in one render per
+    iteration, until the starts are pruned."""
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    start = turned(T, (0.0, -1.0, 0.0), 35.0)
+    options = EstimateOptions.robust(depth_weight=1.0, uncertainty=False, **FAST)
+    one = refine(model, image, mask, CAMERA, start, depth=depth, options=options, ground_truth=(T, TRUTH))
+    calls = spy_on_renders(model, monkeypatch)
+    wide = replace(options, pose_starts=5, pose_spread_deg=20.0)
+    five = refine(model, image, mask, CAMERA, start, depth=depth, options=wide, ground_truth=(T, TRUTH))
+    assert one.metrics["add"] > 0.008 and one.metrics["rotation_error_deg"] > 10
+    assert five.metrics["add"] < 0.003 and five.metrics["rotation_error_deg"] < 3
+
+    (n_aligned, theta_aligned, grad_a), (n_scored, theta_scored, grad_s) = calls[:2]
+    assert not grad_a and not grad_s and starts_in(theta_scored) == starts_in(theta_aligned) == wide.theta_starts
+    rays = n_aligned // (5 * wide.theta_starts)  # the same rays for every (turn, θ) pair ...
+    assert n_aligned == 5 * wide.theta_starts * rays and n_scored == 2 * n_aligned and rays <= 1024  # ... both versions
+    loop = [c for c in calls if c[2]]
+    assert starts_in(loop[0][1]) == wide.theta_starts and len(loop) == five.iterations
+    assert loop[0][0] == 2 * wide.theta_starts * (wide.rays_per_iteration // 2)  # two poses per θ, half the rays each
+    assert n_aligned + n_scored + sum(n for n, _, _ in loop) <= wide.max_rays()
+    loop_bound = wide.iterations * wide.rays_per_iteration * 4 * wide.theta_starts  # the robust preset's box scale: 4
+    assert wide.max_rays() == 2 * loop_bound + 3 * 5 * wide.theta_starts * 1024
+
+    calls.clear()  # one pose start: no scoring, the loop's first render is the first call
+    refine(model, image, mask, CAMERA, start, depth=depth, options=replace(options, iterations=2))
+    assert calls[0][2]
+
+
+@pytest.mark.parametrize("shift", [(0.03, 0.0, 0.0), (0.0, -0.02, 0.04), (0.02, 0.02, -0.03)])
+def test_a_pose_start_centimetres_off_is_moved_onto_the_mask_and_the_depth(model, shift):
+    """A pose start's alignment (the second candidate of every turn): its silhouette's centroid onto
+    the mask's and its median depth onto the observed one, which brings a start 3-5 cm off to
+    within 5 mm of the truth without changing its rotation."""
+    from narf_core.estimate import _aligned, _Loss, _mask_box, _observation, _Parameterisation
+
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    start = T.copy()
+    start[:3, 3] += shift
+    options = EstimateOptions.robust(depth_weight=1.0)
+    obs = _observation(image, mask, depth, _mask_box(mask, options.box_margin), 2, "cpu")
+    param = _Parameterisation.around(torch.from_numpy(start), model)
+    loss_fn = _Loss(model, options, param.radius, True, CAMERA)
+    row = torch.cat([torch.zeros(1, 6, dtype=torch.float64), param.u_of(model.joint_vector(TRUTH)[None].double())], 1)
+    moved = param.poses(_aligned(loss_fn, obs, CAMERA, param, row, torch.arange(len(obs.pixels)), CAMERA.rays(obs.pixels.float())))[0]
+    assert np.linalg.norm(moved[:3, 3].numpy() - T[:3, 3]) < 0.005 < np.linalg.norm(shift) / 5
+    assert torch.allclose(moved[:3, :3], torch.from_numpy(start[:3, :3]), atol=1e-9)
+
+
 @pytest.mark.parametrize("levels", [1, 2, 3, 6])
 @pytest.mark.parametrize("iterations", [1, 2, 7, 80, 150])
 def test_coarse_levels_come_before_the_fine_one(iterations, levels):
@@ -355,16 +421,18 @@ def test_options_round_trip_through_json():
     "kwargs, message",
     [
         (dict(iterations=-1), "options.iterations must be >= 0"),
-        (dict(mode="mesh"), "options.mode must be 'narf' or 'parts'"),
+        (dict(mode="mesh"), "options.mode must be one of auto, narf, parts"),
         (dict(lr_pose=0.0), "options.lr_pose must be > 0"),
         (dict(lr_theta=math.nan), "options.lr_theta must be finite"),
         (dict(rays_per_iteration=2.5), "options.rays_per_iteration must be an integer"),
         (dict(early_stop="yes"), "options.early_stop must be true or false"),
         (dict(theta_starts=0), "options.theta_starts must be in [1, 64]"),
+        (dict(pose_starts=0), "options.pose_starts must be in [1, 11]"),
+        (dict(pose_spread_deg=0.0), "options.pose_spread_deg must be in (0, 90] degrees"),
     ],
 )
 def test_bad_options_are_refused(kwargs, message):
-    with pytest.raises(EstimateInputError, match=message.replace("[", r"\[").replace("]", r"\]").replace(".", r"\.")):
+    with pytest.raises(EstimateInputError, match=re.escape(message)):
         EstimateOptions(**kwargs)
 
 

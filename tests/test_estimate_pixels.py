@@ -1,6 +1,7 @@
 """Which pixels the refiner looks at, and how it compares them (issue #15): stratified and edge rays,
-more rays for a larger box, gain/bias compensation, robust costs and
-occlusion gating in the Adam refiner's loss; on the analytic toy clamp of tests/test_estimate.py."""
+more rays for a larger box, gain/bias compensation, robust costs,
+occlusion gating and how far the mask is trusted (its boundary band, the rays outside it) in the
+Adam refiner's loss; on the analytic toy clamp of tests/test_estimate.py."""
 
 from __future__ import annotations
 
@@ -12,9 +13,11 @@ from narf_core.estimate import (
     EstimateInputError,
     EstimateOptions,
     _gain_bias,
+    _mask_band,
     _mask_box,
     _observation,
     _occluded,
+    _outside_weight,
     _box_scale,
     _ray_index,
     _robust,
@@ -148,3 +151,88 @@ def test_compensation_recovers_a_darker_view_with_adam(model):
                    options=EstimateOptions.robust(occlusion_margin=0.01, robust_loss="cauchy", robust_scale=0.3,
                                                   ray_sampling="stratified", **FAST))
     assert gated.metrics["add"] < 0.006, gated.metrics
+
+
+def test_the_mask_band_is_the_pixels_near_its_boundary():
+    """``_mask_band``: what a dilation by ``px`` adds and an erosion by ``px`` removes (chessboard
+    distance): a 2-pixel band is 4 pixels wide across a straight edge and leaves the inside alone."""
+    mask = torch.zeros(20, 30)
+    mask[5:15, 8:22] = 1
+    band = _mask_band(mask, 2)
+    assert band[10].nonzero().flatten().tolist() == [6, 7, 8, 9, 20, 21, 22, 23]
+    assert band[:, 15].nonzero().flatten().tolist() == [3, 4, 5, 6, 13, 14, 15, 16]
+    assert not band[7:13, 10:20].any() and not band[:3].any() and not band[:, :6].any()
+    obs = _observation(np.zeros((20, 30, 3), np.uint8), mask.numpy() > 0, None, (0, 0, 30, 20), 2, "cpu", 2)
+    assert torch.equal(obs.levels[-1].band, band.reshape(-1)) and obs.levels[-1].image is not None
+    assert obs.levels[0].image is None  # coarse levels keep the blurred mask everywhere
+    assert _observation(np.zeros((20, 30, 3), np.uint8), mask.numpy() > 0, None, (0, 0, 30, 20), 1, "cpu").levels[0].band is None
+
+
+def test_rays_outside_the_mask_weigh_less_unless_depth_sees_past_the_object():
+    """``_outside_weight``: inside the mask and on its band 1, outside ``weight``; but a ray whose
+    observed depth lies behind the rendered surface is background for sure (1), while one in front
+    of it (an occluder) or without a return keeps ``weight``."""
+    mask = torch.tensor([1.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    edge = torch.tensor([False, True, False, False, False, False])
+    opacity = torch.ones(1, 6)
+    rendered = 0.5 * opacity  # the render's surface at 0.5 m
+    depth = torch.tensor([0.5, 0.5, 0.0, 0.45, 0.505, 0.60])
+    w = _outside_weight(mask, edge, depth, rendered, opacity, 0.25)
+    assert w.tolist() == [[1.0, 1.0, 0.25, 0.25, 0.25, 1.0]]
+    assert _outside_weight(mask, None, None, None, opacity, 0.25).tolist() == [[1.0] + [0.25] * 5]
+    with pytest.raises(EstimateInputError, match="options.outside_weight"):
+        EstimateOptions(outside_weight=1.5)
+    with pytest.raises(EstimateInputError, match="options.mask_band_px"):
+        EstimateOptions(mask_band_px=-1)
+    with pytest.raises(EstimateInputError, match="options.mask_trust"):
+        EstimateOptions(mask_trust="some")
+
+
+def test_auto_mask_trust_is_partial_only_with_depth_in_a_box_above_the_reference(model, monkeypatch):
+    """``mask_trust = "auto"`` (the robust preset): the mask is trusted in full in a box up to
+    ``reference_box_px`` (the 160x120 protocol's exact masks) and without depth (nothing then tells
+    the background from an occluder, and a cheaper outside pulls the estimate nearer); partially
+    with depth in a larger box."""
+    import narf_core.estimate as estimate
+
+    bands = []
+    real = estimate._observation
+    monkeypatch.setattr(estimate, "_observation", lambda *a: bands.append(a[-1]) or real(*a))
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    run = dict(iterations=2, rays_per_iteration=64, theta_starts=1, uncertainty=False, mask_trust="auto", depth_weight=1.0)
+    for reference, given in ((0, depth), (1000, depth), (8, None), (8, depth)):
+        refine(model, image, mask, CAMERA, T, joints_init=TRUTH, depth=given,
+               options=EstimateOptions(reference_box_px=reference, **run))
+    assert bands == [0, 0, 0, 3]
+    assert EstimateOptions.robust().mask_trust == "auto"
+
+
+def test_a_band_at_the_mask_edge_undoes_a_bled_mask(model):
+    """A segmenter's mask grown by a pixel all round (4.5 mm at this size) pulls the estimate
+    towards the camera; ignoring a 1-pixel band about the mask's edge (the render compared with
+    the unmasked image there) gives most of that back."""
+    T = view()
+    image, mask, _ = observe(model, T, TRUTH)
+    grown = _mask_band(torch.tensor(mask, dtype=torch.float32), 1).numpy() | mask
+    T0 = perturbed(T, 5, 0.01, seed=0)
+    adds = [refine(model, image, grown, CAMERA, T0, ground_truth=(T, TRUTH),
+                   options=EstimateOptions.robust(mask_trust=trust, mask_band_px=1, outside_weight=1.0, **FAST)
+                   ).metrics["add"] for trust in ("full", "partial")]
+    assert adds[1] < min(0.01, adds[0] / 2), adds
+
+
+def test_rays_outside_the_mask_count_less_under_an_occluder(model):
+    """An occluder (grey) over the right quarter of the object, the mask its visible part: with
+    the full weight outside the mask the estimate shrinks away from the hidden part; with
+    ``outside_weight`` 0.3 it stays within a few millimetres."""
+    T = view()
+    image, mask, _ = observe(model, T, TRUTH)
+    occluder = np.zeros_like(mask)
+    occluder[:, int(np.percentile(np.nonzero(mask)[1], 75)):] = True
+    image[occluder & mask] = 128
+    T0 = perturbed(T, 5, 0.01, seed=1)
+    adds = [refine(model, image, mask & ~occluder, CAMERA, T0, ground_truth=(T, TRUTH),
+                   options=EstimateOptions.robust(mask_trust="partial", mask_band_px=0, outside_weight=w, **FAST)
+                   ).metrics["add"] for w in (1.0, 0.3)]
+    assert adds[1] < min(0.004, adds[0] / 2), adds
