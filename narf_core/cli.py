@@ -34,6 +34,9 @@ EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError)
 THREADS_ENV = "NARF_THREADS"
 SMALL_WORK_THREADS = 1  # 'auto' for rendering, refining and tracking: see _threads_for
 NOISE_PRESETS = ("none", "paper")  # generate.NOISE_PRESETS, named here so that --help imports no pybullet
+MODES = ("auto", "narf", "parts")  # narf_core.modes.MODES, named here so that --help imports no numpy
+MODE_HELP = ("render mode: narf (the configuration field), parts (the composed part fields) or auto (default: "
+             "the better one by the measurement training recorded in the bundle)")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -88,6 +91,20 @@ def _emit(args: argparse.Namespace, result: dict[str, Any], human: Callable[[dic
 
 def _add_json_flag(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print the result as one JSON object on stdout")
+
+
+def _mode_arg(model: Any, requested: str) -> tuple[str, str]:
+    """``(mode, reason)`` that ``--mode`` comes to for ``model`` (:func:`narf_core.modes.choose_mode`);
+    a mode the model lacks is an error naming the flag."""
+    from narf_core.modes import choose_mode
+
+    return choose_mode(model, requested, field="--mode")
+
+
+def _mode_line(result: dict[str, Any]) -> str:
+    """A second line saying why ``auto`` chose the result's mode (nothing for a mode asked by name)."""
+    reason = result.get("mode_reason")
+    return "" if reason in (None, "requested") else f"\nmode {result['mode']} (auto): {reason}"
 
 
 def _threads_for(args: argparse.Namespace) -> int:
@@ -156,7 +173,8 @@ def _add_synth(commands: argparse._SubParsersAction) -> None:
         ),
     )
     arg = parser.add_argument
-    arg("--tool", required=True, metavar="NAME|PATH.urdf", help="clamp, lineman-a, lineman-b, longnose or a URDF")
+    arg("--tool", required=True, metavar="NAME|PATH.urdf",
+        help="clamp, lineman-a, lineman-b, longnose, lamp, gripper, cabinet or a URDF")
     arg("--out", required=True, type=Path, metavar="DIR", help="dataset folder to create (new or empty)")
     arg("--size", nargs=2, type=_positive_int, default=(160, 120), metavar=("W", "H"), help="default: 160 120")
     arg("--views", type=_positive_int, default=200, metavar="N", help="train images (default: %(default)s); "
@@ -457,8 +475,10 @@ def _add_train(commands: argparse._SubParsersAction) -> None:
         help="train a model (part fields, then the configuration field) from a dataset",
         description=(
             "Stage 1 trains one radiance field per rigid part on the dataset's train split; stage 2 "
-            "distils their composition (through the URDF's forward kinematics) into one field "
-            "F(x, d, theta). Writes one .narf bundle. Resumable: an interrupted run leaves MODEL.narf.work/ "
+            "makes the configuration field F(x, d, theta): by default the articulated field (the part "
+            "fields' features looked up in each part's frame, posed by the URDF's forward kinematics inside "
+            "the field: seconds), or with --field distilled the paper's field, distilled from renders of "
+            "the composed parts. Writes one .narf bundle. Resumable: an interrupted run leaves MODEL.narf.work/ "
             "and running the same command again continues from its last checkpoint."
         ),
     )
@@ -466,6 +486,9 @@ def _add_train(commands: argparse._SubParsersAction) -> None:
     arg("dataset", type=Path, help="dataset folder written by narf synth")
     arg("--out", required=True, type=Path, metavar="MODEL.narf", help="bundle to write")
     arg("--arch", choices=("kplanes", "fastnerf"), default="kplanes", help="field architecture (default: %(default)s)")
+    arg("--field", choices=("articulated", "distilled"), default="articulated",
+        help="configuration field (default: %(default)s; articulated needs --arch kplanes and a joint, "
+             "else the distilled field is trained)")
     arg("--budget", type=_non_negative_float, metavar="SECONDS", help="total training time cap")
     arg("--part-steps", type=_positive_int, metavar="N", help="stage-1 steps per part")
     arg("--distill-steps", type=_positive_int, metavar="N", help="stage-2 steps")
@@ -480,14 +503,27 @@ def _add_train(commands: argparse._SubParsersAction) -> None:
 def _run_train(args: argparse.Namespace) -> int:
     from narf_core.train.pipeline import TrainConfig, train
 
-    config = TrainConfig(arch=args.arch, budget_s=args.budget, seed=args.seed, keep_parts=not args.no_parts)
+    config = TrainConfig(arch=args.arch, field=args.field, budget_s=args.budget, seed=args.seed, keep_parts=not args.no_parts)
     overrides = {"part_steps": args.part_steps, "distill_steps": args.distill_steps, "batch_rays": args.batch_rays,
                  "composites": args.composites}
     config = replace(config.for_arch(), **{k: v for k, v in overrides.items() if v is not None})
     start = time.perf_counter()
     out = train(args.dataset, args.out, config, command=shlex.join(["narf", *args.argv]), progress=True)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB) in {time.perf_counter() - start:.0f} s")
+    _print_auto_mode(out)
     return 0
+
+
+def _print_auto_mode(bundle: Path) -> None:
+    """The held-out measurement of each render mode in ``bundle`` and the mode ``auto`` takes, and why."""
+    from narf_core.bundle import load_bundle
+    from narf_core.modes import RECORD_KEY, choose_mode, describe_record
+
+    model = load_bundle(bundle)
+    for line in describe_record(model.metadata.get(RECORD_KEY)):
+        print(f"  {line}")
+    mode, reason = choose_mode(model)
+    print(f"mode auto renders {mode}: {reason}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -508,9 +544,12 @@ def _add_eval(commands: argparse._SubParsersAction) -> None:
     arg("model", type=Path, metavar="MODEL.narf")
     arg("dataset", type=Path)
     arg("--split", choices=("train", "test", "novel"), default="test")
-    arg("--mode", choices=("narf", "parts"), default="narf")
+    arg("--mode", choices=MODES, default="auto", help=MODE_HELP)
     arg("--limit", type=_positive_int, metavar="N", help="only the first N frames")
     arg("--clean", action="store_true", help="score against the clean ground truth of a noisy dataset")
+    arg("--record-modes", action="store_true",
+        help="first measure both render modes on the dataset's test and novel views as `narf train` does, and "
+             "write the measurement into MODEL.narf (for bundles trained before it existed); `auto` then uses it")
     _add_json_flag(parser)
     parser.set_defaults(run=_run_eval)
 
@@ -522,10 +561,24 @@ def _run_eval(args: argparse.Namespace) -> int:
 
     model = load_bundle(args.model)
     dataset = Dataset.open(args.dataset, clean=args.clean)
-    score = evaluate_render(model, dataset, split=args.split, mode=args.mode, limit=args.limit, progress=True)
-    _emit(args, score.summary(), lambda r: (
+    recorded = None
+    if args.record_modes:
+        from narf_core.bundle import save_bundle
+        from narf_core.modes import RECORD_KEY, describe_record, measure_modes
+
+        recorded = measure_modes(model, dataset)
+        if recorded is None:
+            raise ValueError(f"--record-modes: dataset {args.dataset} has no test or novel frames to measure on")
+        model.metadata[RECORD_KEY] = recorded
+        save_bundle(args.model, model)
+        if not args.json:
+            print("\n".join([f"recorded in {args.model}:", *(f"  {line}" for line in describe_record(recorded))]))
+    mode, reason = _mode_arg(model, args.mode)
+    score = evaluate_render(model, dataset, split=args.split, mode=mode, limit=args.limit, progress=True)
+    result = {**score.summary(), "mode_reason": reason, **({"mode_measurement": recorded} if recorded else {})}
+    _emit(args, result, lambda r: (
         f"{r['split']} ({r['mode']}, {r['width']}x{r['height']}): MSE {r['mse']:.5f}  PSNR {r['psnr']:.2f} dB  "
-        f"N {r['n']}  {r['ms_per_image']:.1f} ms/image"))
+        f"N {r['n']}  {r['ms_per_image']:.1f} ms/image" + _mode_line(r)))
     return 0
 
 
@@ -544,7 +597,7 @@ def _add_render(commands: argparse._SubParsersAction) -> None:
     arg("--joints", metavar="NAME=V,...|JSON", help="joint values (default: mid-range)")
     arg("--K", metavar="FX,FY,CX,CY|JSON", help="intrinsics (default: Primesense-like scaled to --size)")
     arg("--size", nargs=2, type=_positive_int, default=(160, 120), metavar=("W", "H"))
-    arg("--mode", choices=("narf", "parts"), default="narf")
+    arg("--mode", choices=MODES, default="auto", help=MODE_HELP)
     arg("--out", required=True, type=Path, metavar="PNG")
     arg("--depth", type=Path, metavar="PNG", help="also write depth (uint16 millimetres)")
     _add_json_flag(parser)
@@ -564,18 +617,20 @@ def _run_render(args: argparse.Namespace) -> int:
     camera = _camera_arg(args.K, width, height) if args.K else Pinhole.primesense(width, height)
     T = _pose_arg(args.pose, "--pose")
     model = load_bundle(args.model)
+    mode, reason = _mode_arg(model, args.mode)
     theta = model.joint_vector(_joints_arg(args.joints), field="--joints")
     outputs = ("rgb", "depth") if args.depth else ("rgb",)
     start = time.perf_counter()
-    images = model.render(torch.as_tensor(T, dtype=torch.float32), theta, camera, outputs=outputs, mode=args.mode)
+    images = model.render(torch.as_tensor(T, dtype=torch.float32), theta, camera, outputs=outputs, mode=mode)
     ms = 1000 * (time.perf_counter() - start)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray((images["rgb"].numpy() * 255 + 0.5).astype(np.uint8)).save(args.out)
     if args.depth:
         write_png_depth(args.depth, images["depth"].numpy())
     result = {"rgb": str(args.out), "depth": str(args.depth) if args.depth else None, "ms": round(ms, 2),
-              "joints": model.joint_dict(theta)}
-    _emit(args, result, lambda r: f"wrote {r['rgb']}" + (f" and {r['depth']}" if r["depth"] else "") + f" in {r['ms']:.1f} ms")
+              "joints": model.joint_dict(theta), "mode": mode, "mode_reason": reason}
+    _emit(args, result, lambda r: f"wrote {r['rgb']}" + (f" and {r['depth']}" if r["depth"] else "")
+          + f" in {r['ms']:.1f} ms ({r['mode']})" + _mode_line(r))
     return 0
 
 
@@ -602,7 +657,7 @@ def _add_estimate(commands: argparse._SubParsersAction) -> None:
     arg("--depth", type=Path, metavar="PNG", help="observed depth, uint16 millimetres (0 = none)")
     arg("--gt", metavar="JSON|FILE", help="ground truth {\"pose\": ..., \"joints\": {...}}: report ADD and joint error")
     arg("--iterations", type=_non_negative_int, metavar="N")
-    arg("--mode", choices=("narf", "parts"), default="narf")
+    arg("--mode", choices=MODES, default="auto", help=MODE_HELP)
     arg("--preset", choices=("paper", "robust", "gauss-newton"), default="paper",
         help="paper: the paper's loss and settings (default); robust: adds silhouette and depth (with --depth) "
              "terms, several joint starts and coarse-to-fine; gauss-newton: the same terms with a "
@@ -635,6 +690,7 @@ def _run_estimate(args: argparse.Namespace) -> int:
         args.preset, mode=args.mode, **({"iterations": args.iterations} if args.iterations is not None else {})
     )
     model = load_bundle(args.model)
+    _mode_arg(model, args.mode)  # a mode the model lacks, named as the flag
     result = refine(model, image, mask > 0, camera, T_init, joints_init=_joints_arg(args.init_joints, "--init-joints"),
                     depth=depth, options=options, ground_truth=ground_truth)
     out = {
@@ -645,11 +701,13 @@ def _run_estimate(args: argparse.Namespace) -> int:
         "recovered_non_finite": result.recovered_non_finite, "metrics": result.metrics,
         "warnings": list(result.warnings),
         "uncertainty": None if result.uncertainty is None else result.uncertainty.to_dict(),
+        "mode": result.mode, "mode_reason": result.mode_reason,
     }
 
     def human(r: dict[str, Any]) -> str:
         p = r["pose"]["position"]
-        lines = [f"{r['status']} after {r['iterations']} iterations in {r['seconds']:.2f} s, loss {r['loss']}",
+        lines = [f"{r['status']} after {r['iterations']} iterations in {r['seconds']:.2f} s ({r['mode']}), "
+                 f"loss {r['loss']}" + _mode_line(r),
                  f"position [{p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}] m, joints " +
                  ", ".join(f"{k}={v:.4f}" for k, v in r["joints"].items())]
         if r["metrics"]:
@@ -693,6 +751,7 @@ def _add_track(commands: argparse._SubParsersAction) -> None:
     arg("--limit", type=_positive_int, metavar="N", help="only the first N frames")
     arg("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame (default: 10)")
     arg("--solver", choices=("adam", "gauss-newton"), default="adam", help="refiner per frame (default: %(default)s)")
+    arg("--mode", choices=MODES, default="auto", help=MODE_HELP)
     arg("--video", type=Path, metavar="OUT.gif", help="write the frames with the model's silhouette over them")
     _add_json_flag(parser)
     parser.set_defaults(run=_run_track)
@@ -716,8 +775,12 @@ def _run_track(args: argparse.Namespace) -> int:
         T_first, joints_first = _pose_arg(args.init_pose, "--init-pose"), None
     if args.init_joints:
         joints_first = _joints_arg(args.init_joints, "--init-joints")
-    options = TrackOptions(solver=args.solver, **({"iterations": args.iterations} if args.iterations else {}))
+    options = TrackOptions(solver=args.solver, mode=args.mode,
+                           **({"iterations": args.iterations} if args.iterations else {}))
     model = load_bundle(args.model)
+    mode, reason = _mode_arg(model, args.mode)
+    if not args.json:
+        print(f"render mode {mode}" + ("" if reason == "requested" else f" (auto): {reason}"), flush=True)
     rows, pictures = [], []
     start = time.perf_counter()
     results = track(model, load_frames(dataset, frames, rgb_only=args.rgb_only), dataset.camera, T_first,
@@ -734,7 +797,7 @@ def _run_track(args: argparse.Namespace) -> int:
     seconds = time.perf_counter() - start
     held = [r["add_m"] for r in rows if r["status"] != "lost"]
     summary = {
-        "frames": len(rows), "seconds": round(seconds, 3),
+        "frames": len(rows), "seconds": round(seconds, 3), "mode": mode, "mode_reason": reason,
         "frames_per_second": round(len(rows) / sum(r["seconds"] for r in rows), 2),
         "statuses": {s: sum(r["status"] == s for r in rows) for s in ("tracking", "uncertain", "lost", "reinitialised")},
         "add_m": {"mean": float(np.mean(held)), "p95": float(np.percentile(held, 95)), "max": float(np.max(held))}
@@ -769,8 +832,8 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     )
     which = parser.add_subparsers(dest="bench", required=True, metavar="WHAT")
     for name, help_text in (
-        ("render", "Table I: render MSE/PSNR and ms per image per tool, split and mode"),
-        ("estimate", "Table II: ADD and configuration error per tool, with seconds per scene"),
+        ("render", "Table I: render MSE/PSNR and ms per image per object, split and mode"),
+        ("estimate", "Table II: ADD and per-joint error per object, split and mode, with seconds per scene"),
     ):
         sub = which.add_parser(name, help=help_text, description=help_text)
         sub.add_argument("--work", type=Path, default=Path("runs/bench"), help="folder for data, models and results")
@@ -850,6 +913,9 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame")
     sub.add_argument("--band-m", type=_non_negative_float, metavar="M",
                      help="march only this far around the model's surface (0: the whole box; default: the tracker's)")
+    sub.add_argument("--march", choices=("frame", "iteration"), default=None,
+                     help="find each ray's samples once per frame (no marching) or march at every iteration "
+                          "(default: the tracker's, frame)")
     sub.add_argument("--service-clients", type=_non_negative_int, default=0, metavar="N",
                      help="also N clients tracking at once through POST /v1/track on a loopback server")
     _add_json_flag(sub)
@@ -858,6 +924,12 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
         "--shift", action="store_true",
         help="on path-traced images with sensor, depth, mask and occlusion faults: `narf bench shift` with its defaults",
     )
+    which.choices["estimate"].add_argument("--presets", nargs="+", choices=("paper", "robust", "gauss-newton"),
+                                           metavar="PRESET", help="refiner presets (default: all)")
+    which.choices["estimate"].add_argument("--scenes", type=_positive_int, metavar="N",
+                                           help="scenes per split (default: 17, 3 with --quick)")
+    which.choices["estimate"].add_argument("--scales", type=_non_negative_float, nargs="+", metavar="X",
+                                           help="perturbation sweep, multiples of 10 deg / 2 cm (default: 1 2 3)")
     for sub in which.choices.values():  # last, so that it covers every benchmark declared above
         sub.set_defaults(run=_under_load(sub.get_default("run")))
 
@@ -886,7 +958,9 @@ def _bench_tools(args: argparse.Namespace) -> tuple[str, ...]:
         return tuple(args.tools)
     if args.quick:
         return tuple(sorted(p.stem for p in args.models.glob("*.narf")))
-    return ("clamp", "lineman-a", "lineman-b", "longnose")
+    from narf_benchmarks.render import all_tools
+
+    return all_tools()
 
 
 def _run_bench_render(args: argparse.Namespace) -> int:
