@@ -20,6 +20,7 @@ from narf_core.checks import InputError  # noqa: E402
 from narf_core.data.dataset import Dataset  # noqa: E402
 from narf_core.estimate import EstimateInputError, EstimateOptions, refine  # noqa: E402
 from narf_core.modes import RECORD_KEY, choose_mode, measure_modes  # noqa: E402
+from tests.test_cli_model import run  # noqa: E402
 
 ASSETS = Path(__file__).parent / "assets"
 
@@ -235,17 +236,6 @@ def test_the_api_and_the_client_report_the_chosen_mode(server, frame):
 
 # --------------------------------------------------------------------------------------------
 # the CLI
-
-
-def run(capsys, *argv) -> tuple[int, str, str]:
-    from narf_core.cli import main
-
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as e:  # argparse
-        code = e.code
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def test_the_cli_takes_auto_by_default_and_says_which_mode_ran(capsys, bundle_with, frame, tmp_path):
