@@ -400,8 +400,8 @@ def refine_frame(
     from narf_core.band import ray_band
     from narf_core.compositing import composite
     from narf_core.estimate import (
-        _Adam, _box_scale, _check_observation, _Loss, _mask_box, _object_rays, _observation, _overlaps,
-        _Parameterisation, _ray_index, _uncertainty,
+        _MAX_RECOVERIES, _Adam, _box_scale, _check_observation, _Loss, _mask_box, _object_rays, _observation,
+        _overlaps, _Parameterisation, _ray_index, _uncertainty,
     )
     from narf_core.gauss_newton import Problem, cluster_sample
     from narf_core.geometry import pose_to_position_quaternion
@@ -479,7 +479,7 @@ def refine_frame(
             adam.params = p0.clone() if last_finite is None else last_finite.clone()
             adam.reset()
             rate *= 0.5
-            if failures >= 8:
+            if failures >= _MAX_RECOVERIES:
                 break
             continue
         last_finite = adam.params.clone()

@@ -78,9 +78,9 @@ def describe(name: str, model: NarfModel, *, full: bool) -> ModelSummary | Model
     """The model as served under ``name``, from :meth:`NarfModel.describe` (plus, in full, its
     metadata less the URDF text)."""
     about = model.describe()
-    auto_mode, auto_mode_reason = check_mode(model, "auto", "name")
     summary = {"name": name, "links": about["links"], "joints": [JointInfo(**j) for j in about["joints"]],
-               "modes": about["modes"], "auto_mode": auto_mode, "auto_mode_reason": auto_mode_reason}
+               "modes": about["modes"], "auto_mode": about["auto_mode"]["mode"],
+               "auto_mode_reason": about["auto_mode"]["reason"]}
     if not full:
         return ModelSummary(**summary)
     metadata = _json_safe({k: v for k, v in model.metadata.items() if k != "urdf"})
@@ -132,7 +132,6 @@ def render_images(
     """
     start = time.perf_counter()
     device = model.aabb.device
-    mode, _ = check_mode(model, request.mode, "mode")
     theta = _theta(model, request.joints, "joints").to(device)
     T = torch.as_tensor(request.pose.as_matrix(), dtype=torch.float32, device=device)
     parts = []
@@ -146,7 +145,7 @@ def render_images(
                         "budget per request; ask for fewer pixels"
                     )
                     raise ApiError(422, message, field="camera", code=reason)
-                parts.append(model.render(T, theta, band, outputs=tuple(request.outputs), mode=mode))
+                parts.append(model.render(T, theta, band, outputs=tuple(request.outputs), mode=request.mode))
     except ValueError as e:
         raise ApiError(422, str(e)) from None
     out = {name: torch.cat([part[name] for part in parts]) for name in request.outputs}

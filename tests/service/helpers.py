@@ -22,6 +22,7 @@ import torch
 
 from narf_core.estimate import EstimateInputError, EstimateResult
 from narf_core.geometry import Pinhole, invert_pose, pose_to_position_quaternion
+from narf_core.modes import choose_mode
 from narf_service.app import create_app
 from narf_service.engine import Engine
 from narf_service.registry import ModelRegistry
@@ -79,6 +80,7 @@ class ToyModel:
         """Like ``NarfModel.describe`` (the service's /v1/models answers are built from it)."""
         return {"name": self.name, "links": list(self.links), "joints": [vars(j) for j in self.joints],
                 "bounds": self.aabb.tolist(), "modes": ["narf", "parts"] if self.has_parts else ["narf"],
+                "auto_mode": dict(zip(("mode", "reason"), choose_mode(self, "auto"))),
                 "metrics": self.metadata["metrics"]}
 
     def render(
