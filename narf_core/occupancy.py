@@ -39,6 +39,9 @@ class RayOccupancy(Protocol):
         """The same for the rays ``keep [m']`` (indices) only, as the marcher retires rays."""
         ...
 
+    # Optional: ``span() -> (near [m], far [m])``, distances along each ray outside which nothing is
+    # occupied (``near > far``: nothing at all); the marcher then marches each ray only there.
+
 
 class Occupancy(Protocol):
     """Which points may hold density, for a configuration ``theta`` (``[k]``, ``[n,k]`` or ``None``: any).

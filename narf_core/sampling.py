@@ -9,7 +9,9 @@ Sampling: every ray is clipped to the box (cut down to the occupancy's :meth:`~O
 and cut by a lattice of spacing ``step`` anchored at the ray origin (``t = 0``), so that the
 intervals tile ``[t_near, t_far]`` exactly (the first and last ones shorter) and their positions
 do not depend on how tightly the ray was clipped; each interval is represented by one sample, at its
-middle or (``jitter``) at one random offset per ray. Samples the occupancy calls empty are never
+middle or (``jitter``) at one random offset per ray. An occupancy that knows where along each ray it
+can be occupied at all (its :meth:`~narf_core.occupancy.RayOccupancy` has ``span()``: the
+articulated field's posed part grids) has each ray marched only there, on the same lattice. Samples the occupancy calls empty are never
 evaluated (their density counts as 0). Rays are marched together in rounds: each round looks ahead
 a window of intervals per ray, evaluates the field at the ray's next few occupied samples (its
 budget: 5 in the first round; then as many as its last round's optical depth per sample says it
@@ -185,9 +187,9 @@ class Marcher:
         retired_ids: list[Tensor] = []
         retired_tau: list[Tensor] = []
         while live.ids.numel() > 0:
-            most = int(live.budget.max())
-            with torch.no_grad():
-                t, delta, occ = _candidates(live, min(_LOOKAHEAD * most, _MAX_WINDOW))
+            most, left = int(live.budget.max()), int((live.n_steps - live.j).max())
+            with torch.no_grad():  # no window reaches past the last ray's end (those intervals are empty)
+                t, delta, occ = _candidates(live, max(1, min(_LOOKAHEAD * most, _MAX_WINDOW, left)))
                 rank = occ.to(torch.int32).cumsum(1, dtype=torch.int32)  # int32: many times faster than bool -> int64
                 take = occ & (rank <= live.budget[:, None])
                 full = rank[:, -1] >= live.budget
@@ -310,11 +312,26 @@ def _start(rays: Rays, aabb: Tensor, marcher: Marcher) -> _LiveRays:
             offset = torch.rand(ids.shape[0], generator=marcher.generator).to(o)
         else:
             offset = torch.full_like(t_near, 0.5)
-    return _LiveRays(
+        j, n_steps = _occupied_steps(occupancy, step_r, k0, torch.ceil(t_far / step_r) - k0)
+    live = _LiveRays(
         ids=ids, o=o, d=d, occupancy=occupancy, t0=t_near, t1=t_far,
-        step=step_r, k0=k0, n_steps=torch.ceil(t_far / step_r) - k0, offset=offset, j=torch.zeros_like(k0),
+        step=step_r, k0=k0, n_steps=n_steps, offset=offset, j=j,
         budget=torch.full(ids.shape, _FIRST_ROUND, dtype=torch.int32, device=ids.device), tau=origins.new_zeros(ids.shape[0]),
     )
+    return live if getattr(occupancy, "span", None) is None else live.select((live.j < live.n_steps).nonzero().squeeze(-1))
+
+
+def _occupied_steps(occupancy: RayOccupancy | None, step: Tensor, k0: Tensor, n_steps: Tensor) -> tuple[Tensor, Tensor]:
+    """The first interval (from ``k0``) and the end of each ray's march ``[m]``: the whole segment, or,
+    for an occupancy that knows where along each ray it can be occupied (a ``span() -> (near [m], far
+    [m])``), only the intervals there, with one more on each side (the lattice is unchanged, so the
+    samples are those of the full march; the intervals skipped hold no occupied sample)."""
+    span = getattr(occupancy, "span", None)
+    if span is None:
+        return torch.zeros_like(k0), n_steps
+    near, far = span()
+    j = (torch.floor(near.to(step) / step) - k0 - 1).clamp_min(0)
+    return j, torch.minimum(n_steps, torch.ceil(far.to(step) / step) - k0 + 1)
 
 
 def _candidates(live: _LiveRays, width: int) -> tuple[Tensor, Tensor, Tensor]:

@@ -16,6 +16,7 @@ from narf_core.fields.kplanes import total_variation
 from narf_core.geometry import Rays
 from narf_core.kinematics import KinematicTree
 from narf_core.render import render_rays
+from narf_core.sampling import ray_aabb
 
 pytest_plugins = ("conftest_model",)
 
@@ -334,6 +335,40 @@ def test_articulated_field_config_round_trip_and_errors(assets):
         make_field({**config, "chain": {**config["chain"], "theta_index": driven}})
     with pytest.raises(ValueError, match="theta must be \\[2\\] or \\[64, 2\\]"):
         field(x, torch.zeros_like(x), torch.zeros(3))
+
+
+def test_posed_grids_span_holds_every_occupied_point_along_a_ray(assets):
+    """Along each ray, every point the posed part grids call occupied lies within the ray's span (its
+    segments through the parts' occupied boxes, narrowed on coarse blocks of the grids), and a ray with
+    an empty span meets no occupied cell: the marcher starts and ends each ray there. The lookup along
+    rays (one pass per part and axis) is the pointwise occupancy."""
+    kin = KinematicTree.from_urdf(assets / "synth_articulated.urdf", load_meshes=False)
+    p = len(kin.part_names)
+    field = ArticulatedField(
+        AABB, kin.lower.tolist(), kin.upper.tolist(), chain=chain_spec(kin), part_aabbs=[AABB] * p,
+        grid_shapes=[[40, 20, 8]] * p, resolution=(8, 16), features=4, hidden=16,
+    )
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for i in range(p):  # a few small occupied clusters per part
+            grid = getattr(field, f"grid_{i}")
+            grid.copy_(F.max_pool3d((torch.rand(grid.shape, generator=g) < 0.0005).float()[None], 3, 1, 1)[0].to(torch.uint8))
+    theta = kin.lower.float() + (kin.upper - kin.lower).float() * 0.3
+    origins = torch.randn(400, 3, generator=g) * 0.05
+    directions = F.normalize(torch.randn(400, 3, generator=g), dim=-1)
+    occupancy = field.occupancy(theta)
+    rays = occupancy.along(origins, directions)
+    near, far = rays.span()
+    t = torch.linspace(0, 0.6, 6000).expand(400, -1)
+    occupied = rays(t)
+    assert occupied.any(1).sum() > 20 and (near > far).sum() > 50  # rays that meet parts and rays that miss them
+    assert not (occupied & ((t < near[:, None]) | (t > far[:, None]))).any()
+    box_near, box_far, box_hit = ray_aabb(rays.c, rays.cd, field.part_lookup().boxes)  # the occupied boxes alone
+    box_near, box_far = torch.where(box_hit, box_near, math.inf).amin(-1), torch.where(box_hit, box_far, -math.inf).amax(-1)
+    narrowed = (near > far) | (far - near < 0.8 * (box_far - box_near))
+    assert (box_hit.any(-1) & narrowed).sum() > 20  # the blocks narrow the spans of rays through the boxes
+    pointwise = occupancy.occupied((origins[:, None] + t[..., None] * directions[:, None]).reshape(-1, 3))
+    assert (pointwise.reshape(t.shape) != occupied).float().mean() < 1e-4  # cell faces may round either way
 
 
 @pytest.mark.slow

@@ -711,6 +711,31 @@ def test_the_bundled_clamp_loads_and_renders_in_both_modes(clamp):
     assert (seen[0] & seen[1]).sum() / (seen[0] | seen[1]).sum() > 0.9  # the distilled field and the parts agree
 
 
+def test_marching_an_articulated_field_only_along_its_parts_spans_renders_the_same(clamp, monkeypatch):
+    """The marcher starts and ends each ray where the posed part grids can be occupied (their span):
+    the same image as marching the whole box, from no more occupancy lookups (on the clamp the bar's
+    occupied box is the object's, so no fewer either; parts apart from each other, as a gripper's, save some)."""
+    from dataclasses import replace
+
+    from narf_core import sampling
+    from narf_core.fields import ArticulatedField
+    from narf_core.fields.articulated import PosedGridRays
+
+    field = ArticulatedField.from_parts(clamp.kinematics, clamp.part_fields, clamp.part_grids, clamp.aabb).eval().requires_grad_(False)
+    model = replace(clamp, field=field)
+    camera, T_cam_obj, theta = clamp_view(clamp)
+    looked_up = []
+    candidates = sampling._candidates
+    monkeypatch.setattr(sampling, "_candidates", lambda live, width: looked_up.append(live.ids.numel() * width) or candidates(live, width))
+    spans = model.render(T_cam_obj, theta, camera, outputs=("rgb", "opacity"), mode="narf")
+    with_spans, looked_up[:] = sum(looked_up), []
+    monkeypatch.delattr(PosedGridRays, "span")
+    box = model.render(T_cam_obj, theta, camera, outputs=("rgb", "opacity"), mode="narf")
+    assert (box["opacity"] > 0.5).sum() > 100 and 0 < with_spans <= sum(looked_up)
+    torch.testing.assert_close(spans["rgb"], box["rgb"], rtol=0, atol=2e-3)
+    torch.testing.assert_close(spans["opacity"], box["opacity"], rtol=0, atol=2e-3)
+
+
 def test_an_articulated_field_from_the_clamps_parts_renders_like_parts_mode_with_the_same_gradients(clamp):
     """Images equal to float rounding; the gradient of a rendered loss with respect to θ and the
     camera pose is the one parts mode gives (FK inside the field is differentiable like the URDF's)."""

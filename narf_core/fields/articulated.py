@@ -10,7 +10,10 @@ docs/design.md §4.2). Nothing is a product over joint axes, so the field is as 
 several joints as with one, and its occupancy (:class:`PosedGrids`: the part grids posed by FK at
 ``θ``) is tight at every configuration instead of a union over a bin of configurations. What makes
 it cheaper than composing separate part fields: one lookup table for all part grids, one atlas
-(one ``grid_sample``) for all parts' planes, one FK per configuration.
+(one ``grid_sample``) for all parts' planes, one FK per configuration, every lookup coordinate of a
+sample (cell units in each part grid, texel coordinates in each part's tiles) from one matrix product
+(they are affine in ``x`` at a given ``θ``), and each ray marched only from where it enters the
+first of the parts' occupied boxes to where it leaves the last (:meth:`PosedGridRays.span`).
 
 :meth:`ArticulatedField.from_parts` copies trained K-planes part fields into it (seconds, no
 distillation stage); :func:`chain_spec` turns a :class:`~narf_core.kinematics.KinematicTree` into
@@ -27,13 +30,17 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from narf_core.fields.base import RadianceField, trunc_exp
+from narf_core.fields.base import SIGMA_MAX_LOG, RadianceField, trunc_exp
 from narf_core.fields.encodings import _EDGE_SHRINK  # the same border shrink as K-planes' lookups
 from narf_core.fields.kplanes import KPlanesField
 from narf_core.geometry import box_corners, invert_pose, make_pose, skew, transform_points
 from narf_core.occupancy import OccupancyGrid
+from narf_core.sampling import ray_aabb
 
 JOINT_TYPES = ("fixed", "revolute", "continuous", "prismatic")
+_BOX_MARGIN = 0.01  # cells: a part's occupied box is grown by this, so float rounding never clips an occupied sample
+_BLOCK = 4  # cells per block (per axis) of the coarse part grids a ray's span is narrowed with
+_SPAN_SAMPLES = 128  # at most this many coarse samples per ray; a longer span keeps its boxes' bounds
 
 
 def chain_spec(kin) -> dict:
@@ -217,8 +224,32 @@ class ArticulatedField(RadianceField):
         state = self._grids_state
         if state is None or state[0] != key:
             grids = [OccupancyGrid(box, b.bool()) for box, b in zip(self.part_aabbs, buffers)]
-            state = self._grids_state = (key, grids, _PartLookup(grids))
+            lookup = _PartLookup(grids)
+            state = self._grids_state = (key, grids, lookup, self._lookup_coordinates(lookup))
         return state
+
+    def _lookup_coordinates(self, lookup: _PartLookup) -> Tensor:
+        """``C [p, 4, 3 + 2N]``: a point ``xp`` in part ``i``'s frame (homogeneous, ``[4]``) to, by ``xp @
+        C[i]``, its cell units in the part's padded grid (3) and its ``grid_sample`` coordinates in the
+        part's tile of each of the atlas's ``N`` planes (``N`` pairs ``(u, v)``). Both are affine in
+        ``xp``, so a sample's every lookup coordinate is one product with ``T_part_obj(θ)`` folded in."""
+        n_planes = self.atlas.shape[0]
+        scale, shift = lookup.scale.double(), lookup.shift.double()  # [p, 3]: metres -> cell units
+        axes = torch.tensor([[0, 1], [0, 2], [1, 2]] * (n_planes // 3))  # [N, 2]: the plane's (u, v) axes
+        # cell units -> normalised box coordinates -> shrunk -> the tile's grid coordinates, per (plane, u|v)
+        z_scale, z_shift = lookup.z_scale.double()[:, axes], lookup.z_shift.double()[:, axes]  # [p, N, 2]
+        tile_scale, tile_shift = self._tile_scale.double(), self._tile_shift.double()
+        gain = z_scale * _EDGE_SHRINK * tile_scale  # grid = cell * gain + bias
+        bias = (z_shift * _EDGE_SHRINK + 1) * tile_scale + tile_shift
+        p = lookup.scale.shape[0]
+        C = torch.zeros(p, 4, 3 + 2 * n_planes, dtype=torch.float64)
+        C[:, [0, 1, 2], [0, 1, 2]] = scale
+        C[:, 3, :3] = shift
+        for a in range(3):  # the columns of the planes' coordinates that follow axis a
+            on = (axes == a).reshape(-1)  # [2N]
+            C[:, a, 3:][:, on] = (scale[:, a, None] * gain.reshape(p, -1))[:, on]
+            C[:, 3, 3:][:, on] = (shift[:, a, None] * gain.reshape(p, -1) + bias.reshape(p, -1))[:, on]
+        return C.float().to(self.atlas.device)
 
     def part_from_object(self, theta: Tensor | None, n: int) -> Tensor:
         """``T_part_obj``: ``[p,4,4]`` for a shared ``θ`` (``[k]``, or rows that are one), else ``[n,p,4,4]``.
@@ -241,6 +272,11 @@ class ArticulatedField(RadianceField):
             self._pose_cache = (key, T)
         return T
 
+    def lookup_maps(self, theta: Tensor | None, n: int, dtype: torch.dtype, columns: slice = slice(None)) -> Tensor:
+        """``A [p, 4, K]`` (a shared ``θ``) or ``[n, p, 4, K]``: object-frame points ``[x, y, z, 1]`` to their
+        lookup coordinates in every part (:meth:`_lookup_coordinates`, its ``columns``) at ``θ``."""
+        return self.part_from_object(theta, n).to(dtype).transpose(-1, -2) @ self._grid_state()[3][..., columns].to(dtype)
+
     def occupancy(self, theta: Tensor) -> PosedGrids:
         """The object-frame occupancy at ``θ [k]`` (or ``[n,k]``, one per ray): the part grids posed by FK."""
         return PosedGrids(self, theta)
@@ -254,34 +290,26 @@ class ArticulatedField(RadianceField):
         weighted = x.new_zeros(n, 3) if color else None
         if n == 0:
             return sigma, weighted
-        T = self.part_from_object(theta, n).to(x.dtype)
-        lookup = self.part_lookup()
-        R, t = T[..., :3, :3], T[..., :3, 3]
-        if T.dim() == 3:  # shared θ: all parts in one product, [n, p, 3]
-            xp = (x @ R.transpose(-1, -2).permute(1, 0, 2).reshape(3, -1)).reshape(n, -1, 3) + t
-        else:
-            xp = torch.einsum("npij,nj->npi", R, x) + t
-        c = lookup.cell_units(xp)  # [n, p, 3], differentiable
-        occupied = lookup.occupied_cells(c)  # [n, p]
+        maps = self.lookup_maps(theta, n, x.dtype)  # [(n,) p, 4, 3 + 2N]
+        occupied = self.part_lookup().occupied_cells(_affine(x, maps[..., :3]))  # [n, p]
         part, sample = occupied.t().nonzero(as_tuple=True)  # (sample, part) pairs grouped by part
         if sample.numel() == 0:
             return sigma, weighted
-        z = c[sample, part] * lookup.z_scale[part] + lookup.z_shift[part]  # [m, 3]: [-1, 1] over the part's box
-        features = self._plane_features(z.to(self.atlas.dtype), part)  # [m, F * S]
+        features = self._plane_features(_affine(x, maps[..., 3:])[sample, part].to(self.atlas.dtype))  # [m, F * S]
         counts = occupied.sum(0).tolist()
         out = torch.cat([self.decoders[i](f) for i, f in enumerate(features.split(counts)) if f.shape[0]])
-        s = trunc_exp(out[:, 0]).to(x.dtype)
+        raw = out[:, 0]
+        s = (trunc_exp(raw) if torch.is_grad_enabled() else raw.clamp(max=SIGMA_MAX_LOG).exp_()).to(x.dtype)
         sigma = sigma.index_add(0, sample, s)
         if color:
             weighted = weighted.index_add(0, sample, s[:, None] * torch.sigmoid(out[:, 1:]).to(x.dtype))
         return sigma, weighted
 
-    def _plane_features(self, z: Tensor, part: Tensor) -> Tensor:
-        """K-planes features ``[m, F * S]`` of points ``z [m,3]`` (normalised in their part's box) of ``part [m]``."""
+    def _plane_features(self, uv: Tensor) -> Tensor:
+        """K-planes features ``[m, F * S]`` of samples at atlas coordinates ``uv [m, 2N]`` (their ``grid_sample``
+        coordinates in their part's tile of each plane, :meth:`_lookup_coordinates`)."""
         n_planes = self.atlas.shape[0]
-        z = z * _EDGE_SHRINK
-        uv = torch.stack([z[:, [0, 0, 1] * (n_planes // 3)], z[:, [1, 2, 2] * (n_planes // 3)]], -1)  # [m, N, 2]
-        grid = ((uv + 1) * self._tile_scale[part] + self._tile_shift[part]).transpose(0, 1)[:, None]  # [N, 1, m, 2]
+        grid = uv.reshape(-1, n_planes, 2).transpose(0, 1)[:, None]  # [N, 1, m, 2]
         atlas = self.atlas.permute(0, 3, 1, 2)  # [N, F, rows, width] over channels-last memory
         out = F.grid_sample(atlas, grid, mode="bilinear", padding_mode="border", align_corners=True)[:, :, 0]  # [N, F, m]
         out = out.reshape(-1, 3, self.features, out.shape[-1])  # [S, 3, F, m]
@@ -289,6 +317,8 @@ class ArticulatedField(RadianceField):
 
     def forward(self, x: Tensor, d: Tensor, theta: Tensor | None = None) -> tuple[Tensor, Tensor]:
         sigma, weighted = self._evaluate(x, theta, True)
+        if not torch.is_grad_enabled():  # where σ = 0 no part holds density, so the weighted sum is 0 too
+            return sigma, weighted.div_(sigma.clamp_min(1e-30)[:, None])
         return sigma, torch.where(sigma[:, None] > 0, weighted / sigma.clamp_min(1e-30)[:, None], 0.0)
 
     def density(self, x: Tensor, theta: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -346,8 +376,10 @@ class _PartLookup:
     empty cell after clamping (no separate inside test).
     """
 
-    def __init__(self, grids: Sequence[OccupancyGrid]) -> None:
+    def __init__(self, grids: Sequence[OccupancyGrid], coarse: bool = True) -> None:
         self.flat = torch.cat([F.pad(g.occupancy, (1, 1, 1, 1, 1, 1)).reshape(-1) for g in grids])
+        # blocks of _BLOCK^3 cells, occupied where any cell of theirs or of a neighbouring block is
+        self.coarse = _PartLookup([_blocks(g) for g in grids], coarse=False) if coarse else None
         cells = torch.tensor([g.resolution for g in grids], dtype=torch.float32)  # [p, 3]
         lo = torch.stack([g.aabb[0] for g in grids])  # [p, 3]
         self.scale = cells / (torch.stack([g.aabb[1] for g in grids]) - lo)
@@ -357,6 +389,12 @@ class _PartLookup:
         self.top = (padded - 1).int()
         self.strides = torch.stack([padded[:, 1] * padded[:, 2], padded[:, 2], torch.ones(len(grids), dtype=torch.long)], -1).int()
         self.offset = torch.cat([torch.zeros(1, dtype=torch.long), padded.prod(-1).cumsum(0)[:-1]]).int()  # [p]
+        if self.flat.numel() >= 1 << 24:
+            raise ValueError(f"at most 2^24 cells in all part grids together, got {self.flat.numel()}")
+        self._axes = [(top.tolist(), size.tolist(), int(o)) for top, size, o in zip(self.top, padded, self.offset)]
+        self.boxes = torch.stack([_occupied_cells_box(g.occupancy) for g in grids], 1)  # [2, p, 3], padded cell units
+        if self.coarse is not None:  # cell units -> the coarse grids' (block) units: c * ratio + offset, [p, 3]
+            self.to_coarse = (self.coarse.scale / self.scale, self.coarse.shift - self.shift * self.coarse.scale / self.scale)
 
     def cell_units(self, xp: Tensor) -> Tensor:
         """``xp [..., p, 3]`` (metres, each in its part's frame) in cell units of each part's padded grid."""
@@ -369,6 +407,49 @@ class _PartLookup:
 
     def occupied(self, xp: Tensor) -> Tensor:
         return self.occupied_cells(self.cell_units(xp))
+
+    def occupied_along(self, c: Tensor, cd: Tensor, t: Tensor) -> Tensor:
+        """``[m, w]``: the points ``c + t cd`` (``c``, ``cd [m, p, 3]`` rays in each part grid's cell units,
+        ``t [m, w]``) in an occupied cell of any part: one contiguous ``[m, w]`` pass per part and axis."""
+        hit = None
+        for i, (top, padded, offset) in enumerate(self._axes):
+            flat = None
+            for a in range(3):  # the flat index, row-major: ((i_x * n_y) + i_y) * n_z + i_z
+                cell = torch.addcmul(c[:, i, a : a + 1], t, cd[:, i, a : a + 1]).floor_().clamp_(0, top[a])
+                flat = cell if flat is None else flat.mul_(padded[a]).add_(cell)
+            occupied = self.flat[flat.add_(offset).int()]  # exact in float32: the table has fewer than 2^24 cells
+            hit = occupied if hit is None else hit.logical_or_(occupied)
+        return hit
+
+
+def _affine(x: Tensor, A: Tensor, translate: bool = True) -> Tensor:
+    """``x [n,3]`` mapped by each part's affine map ``A [p, 4, K]`` (or one per row, ``[n, p, 4, K]``; rows
+    ``x, y, z, 1``) -> ``[n, p, K]``; ``translate=False`` for directions. A shared map is one matrix product."""
+    if A.dim() == 3:
+        W = A[:, :3].transpose(0, 1).reshape(3, -1)  # [3, p * K]
+        out = torch.addmm(A[:, 3].reshape(-1), x, W) if translate else x @ W
+        return out.reshape(x.shape[0], A.shape[0], A.shape[-1])  # K explicit: x may have no rows
+    out = torch.einsum("nj,npjk->npk", x, A[..., :3, :])
+    return out + A[..., 3, :] if translate else out
+
+
+def _blocks(grid: OccupancyGrid) -> OccupancyGrid:
+    """``grid`` in blocks of :data:`_BLOCK` cells per axis, over its box grown to whole blocks and by one
+    more block on every side; a block is occupied where it or one of its 26 neighbours holds an occupied cell."""
+    occupancy = F.pad(F.max_pool3d(grid.occupancy[None, None].float(), _BLOCK, ceil_mode=True), (1, 1, 1, 1, 1, 1))
+    occupancy = F.max_pool3d(occupancy, 3, stride=1, padding=1)[0, 0] > 0
+    size = grid.cell_size * _BLOCK
+    lo = grid.aabb[0] - size
+    return OccupancyGrid(torch.stack([lo, lo + size * torch.tensor(occupancy.shape)]), occupancy)
+
+
+def _occupied_cells_box(occupancy: Tensor) -> Tensor:
+    """``[2, 3]``: the box around the occupied cells of ``occupancy [Rx, Ry, Rz]`` in cell units of the
+    grid padded by one cell, grown by :data:`_BOX_MARGIN` cells; empty (lower > upper) if none is occupied."""
+    nz = occupancy.nonzero()
+    if nz.shape[0] == 0:
+        return torch.tensor([[math.inf] * 3, [-math.inf] * 3])
+    return torch.stack([nz.amin(0) + 1 - _BOX_MARGIN, nz.amax(0) + 2 + _BOX_MARGIN]).float()
 
 
 def _check_chain(chain: dict, k: int) -> dict:
@@ -427,12 +508,10 @@ class PosedGrids:
         return torch.stack([corners.amin(0), corners.amax(0)])
 
     def along(self, origins: Tensor, directions: Tensor, theta: Tensor | None = None) -> PosedGridRays:
-        T = self._part_from_object(theta).to(origins.dtype)
-        equation = "pij,mj->mpi" if T.dim() == 3 else "mpij,mj->mpi"
-        o = torch.einsum(equation, T[..., :3, :3], origins) + T[..., :3, 3]  # [m, p, 3]
-        d = torch.einsum(equation, T[..., :3, :3], directions)
-        lookup = self.field.part_lookup()
-        return PosedGridRays(lookup, lookup.cell_units(o), d.float() * lookup.scale)
+        theta = self.theta if theta is None else theta.detach()
+        A = self.field.lookup_maps(theta, origins.shape[0], origins.dtype, slice(0, 3))  # to cell units
+        c, cd = _affine(origins, A), _affine(directions, A, translate=False)  # [m, p, 3]
+        return PosedGridRays(self.field.part_lookup(), c.float(), cd.float())
 
 
 class PosedGridRays:
@@ -442,9 +521,36 @@ class PosedGridRays:
     def __init__(self, lookup: _PartLookup, c: Tensor, cd: Tensor) -> None:
         self.lookup, self.c, self.cd = lookup, c, cd
 
+    def span(self) -> tuple[Tensor, Tensor]:
+        """``(near [m], far [m])``: each ray meets occupied cells only between these distances (``near >
+        far`` for a ray that meets none).
+
+        First the union of its segments through the parts' occupied boxes; then, within it, the first and
+        last of its samples that fall in occupied blocks of the coarse part grids (``_BLOCK`` cells a
+        side, each dilated by a block), taken so that no sample moves more than one block along any
+        axis of any part from the last: an occupied cell of the ray lies within half a sample spacing
+        of a sample in an occupied (dilated) block, so nothing occupied falls outside the span."""
+        near, far, hit = ray_aabb(self.c, self.cd, self.lookup.boxes)  # [m, p] each, every part's box in its grid
+        near = torch.where(hit, near, math.inf).amin(-1)
+        far = torch.where(hit, far, -math.inf).amax(-1)
+        coarse, (ratio, offset) = self.lookup.coarse, self.lookup.to_coarse
+        cd = self.cd * ratio  # the rays in the coarse grids' block units
+        spacing = 1 / cd.abs().flatten(1).amax(1).clamp_min(1e-12)  # [m]: at most one block per sample
+        count = torch.ceil((far - near) / spacing).nan_to_num(0, 0, 0).clamp_min(0)  # samples over each span
+        count = torch.where(count > _SPAN_SAMPLES, 0, count)  # a longer span keeps its boxes' bounds
+        most = int(count.max()) if count.numel() else 0
+        if most == 0:
+            return near, far
+        t = near[:, None] + (torch.arange(most, dtype=near.dtype) + 0.5) * spacing[:, None]  # [m, most]
+        blocks = coarse.occupied_along(self.c * ratio + offset, cd, t.nan_to_num(0, 0, 0))
+        blocks &= torch.arange(most) < count[:, None]
+        first = torch.where(blocks, t, math.inf).amin(1) - spacing / 2
+        last = torch.where(blocks, t, -math.inf).amax(1) + spacing / 2
+        refined = count > 0
+        return torch.where(refined, torch.maximum(near, first), near), torch.where(refined, torch.minimum(far, last), far)
+
     def __call__(self, t: Tensor) -> Tensor:
-        points = self.c[:, None] + t.float()[..., None, None] * self.cd[:, None]  # [m, w, p, 3]
-        return self.lookup.occupied_cells(points).any(-1)
+        return self.lookup.occupied_along(self.c, self.cd, t.float())
 
     def select(self, keep: Tensor) -> PosedGridRays:
         return PosedGridRays(self.lookup, self.c[keep], self.cd[keep])
