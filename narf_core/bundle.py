@@ -1,7 +1,9 @@
 """The model bundle: one safetensors file per object (docs/design.md §6), and the model it loads into.
 
 A bundle holds tensors only (never pickle):
-  ``field.*``              the configuration field F(x, d, θ)
+  ``field.*``              the configuration field F(x, d, θ), unless it is an articulated field copied
+                           from the part fields (``field_from_parts`` in the metadata): then it is
+                           rebuilt from them at load and the part fields are stored once
   ``grid``                 its occupancy grid, valid for every θ in the limits (bits, packed)
   ``part.<i>.*``           the part fields, if the bundle keeps them (render mode ``parts``)
   ``part_grid.<i>``        their occupancy grids (bits, packed)
@@ -33,7 +35,7 @@ from safetensors.torch import load_file, save_file
 from torch import Tensor
 
 from narf_core.checks import JointSpec
-from narf_core.fields import make_field
+from narf_core.fields import ArticulatedField, make_field
 from narf_core.fields.composed import ComposedField, compose_parts
 from narf_core.diameter import object_diameter
 from narf_core.geometry import Pinhole, Rays
@@ -42,7 +44,8 @@ from narf_core.modes import MODES, RECORD_KEY, choose_mode
 from narf_core.render import OccupancyGrid, RenderOutput, render_image, render_rays
 
 FORMAT = "narf-bundle"
-FORMAT_VERSION = 2  # 2: occupancy grids stored as packed bits, their shapes in the metadata
+FORMAT_VERSION = 3  # 3: an articulated field copied from the part fields is stored as those parts only
+READ_VERSIONS = (2, 3)  # 2 (occupancy grids as packed bits, their shapes in the metadata) still loads
 CHECKSUM_ALGORITHM = "sha256"
 STEPS_PER_DIAGONAL = 256
 
@@ -205,7 +208,8 @@ def save_bundle(path: str | Path, model: NarfModel) -> Path:
     """Write ``model`` to ``path`` atomically (a temporary file renamed into place)."""
     path = Path(path)
     tensors: dict[str, Tensor] = {}
-    for key, value in model.field.state_dict().items():
+    from_parts = _field_from_parts(model)
+    for key, value in ({} if from_parts else model.field.state_dict()).items():
         tensors[f"field.{key}"] = value
     tensors["grid"] = _pack_bits(model.grid.occupancy)
     part_meta = []
@@ -227,6 +231,7 @@ def save_bundle(path: str | Path, model: NarfModel) -> Path:
         "step": model.step,
         "diameter": model.diameter,
         "field": model.field.config(),
+        "field_from_parts": from_parts,
         "grid_aabb": model.grid.aabb.tolist(),
         "grid_shape": list(model.grid.occupancy.shape),
         "grid_theta_range": None if model.grid.theta_range is None else model.grid.theta_range.tolist(),
@@ -275,9 +280,10 @@ def read_metadata(path: str | Path) -> dict:
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         found = meta.get("format") if isinstance(meta, dict) else meta
         raise BundleError(f"{path}: not a NARF model bundle (format {found!r})")
-    if meta.get("version") != FORMAT_VERSION:
+    if meta.get("version") not in READ_VERSIONS:
         raise BundleError(
-            f"{path}: bundle format version {meta.get('version')!r} is not supported (this NARF reads {FORMAT_VERSION})"
+            f"{path}: bundle format version {meta.get('version')!r} is not supported "
+            f"(this NARF reads {FORMAT_VERSION} and the older {', '.join(map(str, READ_VERSIONS[:-1]))})"
         )
     return meta
 
@@ -292,7 +298,6 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> NarfMod
     verify_tensors(path, meta, tensors)
     try:
         kin = KinematicTree.from_urdf_string(meta["urdf"])
-        field = _load_module(meta["field"], tensors, "field.", device)
         theta_range = meta.get("grid_theta_range")
         grid = OccupancyGrid(
             torch.tensor(meta["grid_aabb"], device=device),
@@ -304,6 +309,10 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> NarfMod
             part_fields.append(_load_module(part["field"], tensors, f"part.{i}.", device))
             occupancy = _unpack_bits(tensors[f"part_grid.{i}"], part["grid_shape"])
             part_grids.append(OccupancyGrid(torch.tensor(part["grid_aabb"], device=device), occupancy))
+        if meta.get("field_from_parts"):
+            field = _articulated_from_parts(meta["field"], kin, part_fields, part_grids, device)
+        else:
+            field = _load_module(meta["field"], tensors, "field.", device)
         points = {k[len("points."):]: v.cpu().numpy() for k, v in tensors.items() if k.startswith("points.")}
         return NarfModel(
             name=str(meta["name"]),
@@ -365,6 +374,32 @@ def _unpack_bits(packed: Tensor, shape) -> Tensor:
 def _one_line(error: BaseException) -> str:
     """``Type: message`` on one line (torch's state-dict errors span several)."""
     return f"{type(error).__name__}: {' '.join(str(error).split())}"
+
+
+def _field_from_parts(model: NarfModel) -> bool:
+    """Whether ``model.field`` is the articulated field its part fields and grids rebuild, weight for weight
+    (as ``narf train`` makes it): then the bundle stores the parts only. A field changed after the copy
+    (or of another kind) is stored whole."""
+    if not model.has_parts or model.field.config().get("arch") != "articulated":
+        return False
+    try:
+        rebuilt = ArticulatedField.from_parts(model.kinematics, model.part_fields, model.part_grids, model.field.aabb.cpu())
+    except ValueError:  # parts of another architecture or hyper-parameters
+        return False
+    ours, theirs = rebuilt.state_dict(), model.field.state_dict()
+    return (
+        rebuilt.config() == model.field.config()
+        and ours.keys() == theirs.keys()
+        and all(torch.equal(ours[k], theirs[k].detach().cpu()) for k in ours)
+    )
+
+
+def _articulated_from_parts(config: dict, kin: KinematicTree, part_fields, part_grids, device) -> torch.nn.Module:
+    """The articulated field a bundle stores as its part fields (``field_from_parts``), checked against its ``config``."""
+    field = ArticulatedField.from_parts(kin, part_fields, part_grids, torch.tensor(config["aabb"], device=device))
+    if json.loads(json.dumps(field.config())) != config:
+        raise ValueError("the articulated field rebuilt from the part fields differs from the bundle's field config")
+    return field.to(device).eval().requires_grad_(False)
 
 
 def _load_module(config: dict, tensors: dict[str, Tensor], prefix: str, device) -> torch.nn.Module:

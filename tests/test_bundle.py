@@ -413,3 +413,73 @@ def test_a_bundle_saved_before_checksums_loads_with_the_finiteness_check_only(tm
     tensors[key].view(-1)[0] = float("inf")
     save_file(tensors, str(path), metadata=unchecked_metadata(BUNDLED))
     assert_refused(path, "non-finite weights in", key, "(1 of")
+
+
+# ---------------------------------------------------------------------------------------------
+# An articulated field copied from the part fields is stored once (as the parts)
+
+
+def articulated_clamp():
+    """The bundled clamp with the articulated field built from its parts (as ``narf train`` builds it)."""
+    from narf_core.fields import ArticulatedField
+
+    model = load_bundle(BUNDLED)
+    field = ArticulatedField.from_parts(model.kinematics, model.part_fields, model.part_grids, model.aabb)
+    return dataclasses.replace(model, field=field.eval().requires_grad_(False))
+
+
+def clamp_view(model):
+    from narf_core.geometry import Pinhole, invert_pose, look_at
+
+    center = ((model.aabb[0] + model.aabb[1]) / 2).double()
+    eye = center + torch.tensor([0.2, -0.25, 0.15], dtype=torch.float64)
+    T_cam_obj = invert_pose(look_at(eye, center, torch.tensor([0, 0, 1.0], dtype=torch.float64))).float()
+    return T_cam_obj, (model.lower + model.upper) / 2, Pinhole.primesense(64, 48)
+
+
+def test_an_articulated_bundle_stores_its_parts_once_and_renders_as_before(tmp_path, monkeypatch):
+    """The field is rebuilt from the stored part fields at load: the same weights, the same images in
+    both modes, and a file about the size of one copy of the parts (the legacy layout, still read,
+    stored the atlas beside them)."""
+    import narf_core.bundle as bundle
+
+    model = articulated_clamp()
+    path = save_bundle(tmp_path / "once.narf", model)
+    assert read_metadata(path)["field_from_parts"] is True and read_metadata(path)["version"] == FORMAT_VERSION
+    assert not any(key.startswith("field.") for key in load_file(str(path)))
+    monkeypatch.setattr(bundle, "_field_from_parts", lambda m: False)
+    monkeypatch.setattr(bundle, "FORMAT_VERSION", 2)
+    legacy = save_bundle(tmp_path / "twice.narf", model)
+    monkeypatch.undo()
+    assert read_metadata(legacy)["version"] == 2 and any(key.startswith("field.atlas") for key in load_file(str(legacy)))
+    field_bytes = sum(t.numel() * t.element_size() for t in model.field.state_dict().values())
+    assert path.stat().st_size < legacy.stat().st_size - 0.95 * field_bytes  # the atlas is not stored again
+    assert path.stat().st_size < 0.3 * legacy.stat().st_size
+
+    T_cam_obj, theta, camera = clamp_view(model)
+    before = {mode: model.render(T_cam_obj, theta, camera, outputs=("rgb", "opacity"), mode=mode) for mode in ("narf", "parts")}
+    assert float(before["parts"]["opacity"].max()) > 0.5
+    for saved in (path, legacy):
+        copy = load_bundle(saved)
+        ours, theirs = model.field.state_dict(), copy.field.state_dict()
+        assert ours.keys() == theirs.keys() and all(torch.equal(ours[k], theirs[k]) for k in ours)
+        for mode, images in before.items():
+            after = copy.render(T_cam_obj, theta, camera, outputs=("rgb", "opacity"), mode=mode)
+            assert all(torch.equal(images[k], after[k]) for k in images), (saved.name, mode)
+
+
+def test_an_articulated_field_changed_after_the_copy_is_stored_whole(tmp_path):
+    model = articulated_clamp()
+    with torch.no_grad():
+        model.field.atlas[0, 0, 0] += 1.0  # no longer what the parts rebuild
+    path = save_bundle(tmp_path / "tuned.narf", model)
+    assert read_metadata(path)["field_from_parts"] is False
+    copy = load_bundle(path)
+    assert torch.equal(copy.field.atlas, model.field.atlas)
+    assert not torch.equal(copy.field.atlas, articulated_clamp().field.atlas)
+
+
+def test_a_bundle_whose_parts_do_not_rebuild_its_field_config_is_refused(tmp_path):
+    path = save_bundle(tmp_path / "once.narf", articulated_clamp())
+    changed = rewrite_metadata(path, tmp_path / "changed.narf", lambda m: {**m, "field": {**m["field"], "hidden": 32}})
+    assert_refused(changed, "incomplete or inconsistent model bundle", "differs from the bundle's field config")
