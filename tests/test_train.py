@@ -178,6 +178,15 @@ def test_a_stage_resumes_from_its_checkpoint_to_the_same_weights(tmp_path):
     assert log == [4, 5, 6, 7, 8, 9] and result.steps == 10 and torch.equal(again.weight, reference.weight)
 
 
+def test_stage_one_rebuilds_the_grid_early_in_the_warm_up_then_every_200_steps():
+    def rebuilt(steps: int) -> list[int]:
+        return [i for i in range(1, steps + 1) if pipeline.refreshes_grid(i, steps)]
+
+    assert rebuilt(800) == [50, 100, 150, 200, 400, 600, 800]
+    assert rebuilt(400) == [50, 100, 300]
+    assert rebuilt(30) == [7]  # a warm-up shorter than the early interval: one rebuild, where it ends
+
+
 def test_a_zero_budget_runs_no_step(tmp_path):
     module = nn.Linear(1, 1)
     result = run_stage("s", module, torch.optim.SGD(module.parameters(), lr=1.0), lambda i: pytest.fail("stepped"),

@@ -253,16 +253,33 @@ def _fit_step(field, optimizer, batch: RayTargets, theta, box, grid, step: float
     return loss.item()
 
 
+EARLY_REFRESH_STEPS = 50
+
+
+def refreshes_grid(step: int, steps: int) -> bool:
+    """Whether stage 1 rebuilds a part's occupancy grid after ``step`` of ``steps``: every
+    :data:`EARLY_REFRESH_STEPS` steps during the warm-up (the first quarter), then every 200.
+
+    Until its first rebuild the grid is full and every ray is marched through the whole box, which
+    makes a warm-up step several times dearer than a later one. The grid keeps every cell where the
+    field reaches 1 % opacity, dilated by a cell, so a young field's surfaces stay in it, and each
+    rebuild evaluates every cell again.
+    """
+    warmup = steps // 4
+    if step < warmup:
+        return step % EARLY_REFRESH_STEPS == 0
+    return step % 200 == warmup % 200
+
+
 def _train_part(field, box, targets: RayTargets, config: TrainConfig, ckpt: Path, budget_s, progress: bool, name: str):
     generator = torch.Generator().manual_seed(config.seed)
     optimizer = torch.optim.Adam(field.parameters(), lr=config.lr, eps=1e-15)
     step = march_step(box)
     grid = OccupancyGrid.full(box, config.grid_resolution)
-    warmup = config.part_steps // 4
 
     def refresh(i: int) -> None:
         nonlocal grid
-        if i >= warmup and i % 200 == warmup % 200:
+        if refreshes_grid(i, config.part_steps):
             grid = OccupancyGrid.from_field(field, box, config.grid_resolution)
 
     def step_fn(i: int) -> float:
