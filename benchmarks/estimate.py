@@ -264,6 +264,7 @@ def run(
     seed: int = 0,
     quick: bool = False,
     progress: bool = True,
+    overrides: Mapping[str, object] | None = None,
 ) -> dict:
     """Run the protocol; writes ``estimate.json``, ``estimate.md`` and ``estimate_*.png`` into ``out_dir``.
 
@@ -273,20 +274,22 @@ def run(
     ``perturbation * scale``) use the first split and the first mode the model renders.
     ``perturbation`` is ``(degrees, metres)``; ``scenes`` defaults to the paper's 17 (3 with
     ``quick``); ``quick`` runs the first split and the first mode only and the sweep at its smallest
-    and largest scale. Modes a model cannot render
+    and largest scale. ``overrides`` (option fields such as ``pose_starts``) apply to every preset.
+    Modes a model cannot render
     (``parts`` without part fields) and splits a dataset lacks are skipped and listed under ``skipped``.
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     scenes = scenes if scenes is not None else (3 if quick else 17)
+    overrides = dict(overrides or {})
     if quick:
         modes, splits = modes[:1], splits[:1]
         scale_sweep = tuple(sorted({min(scale_sweep), max(scale_sweep)}))
     config = {
         "splits": list(splits), "scenes": scenes, "perturbation_deg_m": list(perturbation),
         "scale_sweep": list(scale_sweep), "iterations": iterations, "modes": list(modes), "presets": list(presets),
-        "seed": seed, "quick": quick,
-        "options": {name: asdict(_preset_options(name, iterations)) for name in presets},
+        "seed": seed, "quick": quick, "overrides": overrides,
+        "options": {name: asdict(_preset_options(name, iterations, **overrides)) for name in presets},
     }
     table, curves, sweep, skipped = [], {}, [], []
     jacobian: dict[str, dict] = {}  # tool -> CPU seconds per Gauss-Newton Jacobian, by method
@@ -306,7 +309,8 @@ def run(
                     continue
                 sweep_frames, sweep_mode = (frames, mode) if sweep_mode is None else (sweep_frames, sweep_mode)
                 for preset in presets:
-                    options = _preset_options(preset, iterations, mode=mode, record_every=RECORD_EVERY, seed=seed)
+                    options = _preset_options(preset, iterations, **overrides, mode=mode, record_every=RECORD_EVERY,
+                                              seed=seed)
                     rows = run_scenes(model, dataset, frames, options, perturbation=perturbation, seed=seed, progress=progress)
                     table.append({"tool": tool, "split": split, "mode": mode, "preset": preset, **summarise(model, rows),
                                   "scenes_detail": rows})
@@ -315,7 +319,7 @@ def run(
                         if mode == sweep_mode:
                             first[preset] = rows
         for preset in presets if sweep_mode else ():
-            options = _preset_options(preset, iterations, mode=sweep_mode, seed=seed)
+            options = _preset_options(preset, iterations, **overrides, mode=sweep_mode, seed=seed)
             for scale in scale_sweep:
                 if scale == 1:
                     rows = first[preset]  # the same runs as the table's (same starts and seeds)
@@ -365,7 +369,8 @@ def markdown(result: dict) -> str:
         f"θ at mid-range, {c['iterations']} iterations. Presets: `paper` = the paper's masked photometric loss "
         "and settings; `robust` = plus silhouette and depth terms, 4 joint starts, coarse-to-fine; "
         "`gauss-newton` = the same terms, Levenberg-Marquardt with Huber weights, its own iteration count. "
-        "'inside 95 % region': share of scenes whose true error lies inside the estimate's χ² 95 % region.",
+        "'inside 95 % region': share of scenes whose true error lies inside the estimate's χ² 95 % region."
+        + "".join(f" Every preset with `{k}: {v}`." for k, v in c.get("overrides", {}).items()),
         "",
         "| tool | split | mode | preset | N | ADD (cm) | per-joint error | ADD < 1 cm | ADD < 10% d "
         "| s/scene | iterations | inside 95 % region | NEES median |",
@@ -479,9 +484,22 @@ def _prepare(args: argparse.Namespace, tool: str, noise: bool) -> tuple[NarfMode
     return load_bundle(path), Dataset.open(root)
 
 
+def run_arguments(args: argparse.Namespace) -> dict:
+    """The keyword arguments of :func:`run` that the command line chose (the rest keep their defaults)."""
+    chosen = {k: v for k, v in (("presets", tuple(getattr(args, "presets", None) or ())),
+                                ("scale_sweep", tuple(getattr(args, "scales", None) or ())),
+                                ("scenes", getattr(args, "scenes", None))) if v}
+    if getattr(args, "seed", None) is not None:
+        chosen["seed"] = args.seed
+    if getattr(args, "pose_starts", None) is not None:
+        chosen["overrides"] = {"pose_starts": args.pose_starts}
+    return chosen
+
+
 def main(args: argparse.Namespace) -> int:
     """``narf bench estimate``: ``args`` has ``work``, ``tools``, ``noise``, ``quick``, ``models``, ``json``
-    and optionally ``presets``, ``scales`` (the perturbation sweep) and ``scenes`` (per split)."""
+    and optionally ``presets``, ``scales`` (the perturbation sweep), ``scenes`` (per split), ``seed`` (the
+    frames, the starts and the refiner's) and ``pose_starts`` (every preset's option)."""
     if args.tools:
         tools = tuple(args.tools)
     elif args.quick:
@@ -504,9 +522,6 @@ def main(args: argparse.Namespace) -> int:
         raise ValueError(f"no model to benchmark: {args.models} has no bundled model for {names}")
     if missing:
         print(f"narf bench estimate: skipping {', '.join(missing)}: no bundled model in {args.models}", file=sys.stderr)
-    chosen = {k: v for k, v in (("presets", tuple(getattr(args, "presets", None) or ())),
-                                ("scale_sweep", tuple(getattr(args, "scales", None) or ())),
-                                ("scenes", getattr(args, "scenes", None))) if v}
-    result = run(models, datasets, out_dir=args.work / "estimate", quick=args.quick, **chosen)
+    result = run(models, datasets, out_dir=args.work / "estimate", quick=args.quick, **run_arguments(args))
     print(json.dumps(result, indent=1) if args.json else markdown(result))
     return 0

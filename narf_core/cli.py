@@ -930,6 +930,11 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
                                            help="scenes per split (default: 17, 3 with --quick)")
     which.choices["estimate"].add_argument("--scales", type=_non_negative_float, nargs="+", metavar="X",
                                            help="perturbation sweep, multiples of 10 deg / 2 cm (default: 1 2 3)")
+    which.choices["estimate"].add_argument("--pose-starts", type=_positive_int, metavar="N",
+                                           help="every preset's pose_starts: the given pose and N - 1 turned by 30 deg "
+                                                "(at most 11; default: each preset's, 1)")
+    which.choices["estimate"].add_argument("--seed", type=_non_negative_int, metavar="S",
+                                           help="the scenes, their perturbed starts and the refiner's rays (default: 0)")
     for sub in which.choices.values():  # last, so that it covers every benchmark declared above
         sub.set_defaults(run=_under_load(sub.get_default("run")))
 

@@ -65,7 +65,11 @@ that near the mask's boundary carry no silhouette, masked-colour or depth residu
 is compared with the unmasked image where it draws the object (a render over a pixel of another
 colour costs; the unknown background does not). ``outside_weight`` weighs the rays outside the
 mask less (a render of the object there may be right: an occluder or a missed blob), except where
-the observed depth lies behind the rendered surface. Both act on the Adam solver's fine level.
+the observed depth lies behind the rendered surface (1) or in front of it (0: an occluder's ray is
+no evidence). Both act on the Adam solver's fine level; ``partial_theta_starts`` raises the
+configuration starts there (a hidden part lets a wrong configuration fit from more places).
+``mask_trust = "auto"`` trusts the mask partially where the depth contradicts it
+(:func:`narf_core.observation.mask_evidence`: an occluder beside it, its edge on a continuous surface).
 
 ``theta_starts = S`` runs S configurations (the given one and S-1 spread over the joint box) as
 ONE batch of ``S * rays_per_iteration / 2`` rays for the first third of the iterations (in
@@ -108,7 +112,7 @@ from narf_core.geometry import (
 )
 from narf_core.metrics import add, add_s, joint_errors, success_rates
 from narf_core.modes import MODES, choose_mode
-from narf_core.observation import check_observation, usable_depth
+from narf_core.observation import check_observation, mask_evidence, usable_depth
 from narf_core.render import ray_aabb
 
 if TYPE_CHECKING:
@@ -181,7 +185,7 @@ class EstimateOptions:
     occlusion_margin: float = 0.0  # metres; observed depth this far in front of the render = occluder (0 = off)
     depth_sigma: float = 0.0  # sensor depth noise at 1 m (σ = depth_sigma z²); 0: depth residuals in object radii
     # How far the given mask is trusted (Adam's loss; a segmenter's mask is not the truth): "full",
-    # "partial" or "auto" (partial with a depth image in a box larger than reference_box_px). Partial: no
+    # "partial" or "auto" (partial where a depth image contradicts the mask: _partial_trust). Partial: no
     # silhouette, masked-colour or depth residual within mask_band_px pixels of the mask's boundary
     # (its edge is uncertain by a few pixels; there the render is compared with the unmasked image
     # where it draws the object), and the rays outside the mask weigh outside_weight (an occluder or
@@ -189,6 +193,9 @@ class EstimateOptions:
     mask_trust: str = "full"
     mask_band_px: int = 3
     outside_weight: float = 0.3
+    # With partial trust, at least this many configuration starts (0: theta_starts): an occluder or a
+    # wrong mask edge hides part of the object, and a wrong configuration then fits from more places.
+    partial_theta_starts: int = 0
     # Rays of an iteration: "uniform" (independent draws over the box), "stratified" (one per cell of a
     # grid over the box), "edges" (half drawn on silhouette edges and texture, half uniform) or
     # "auto" (uniform in a box up to reference_box_px, edges in a larger one).
@@ -208,6 +215,11 @@ class EstimateOptions:
     # (twice the starts in the first third of the iterations). 1 = the given pose only.
     pose_starts: int = 1
     pose_spread_deg: float = 30.0
+    # Every θ start's given pose replaced by its copy moved onto the mask's centroid and the observed depth
+    # (_aligned) where that copy scores lower on the pose starts' rays: for a start centimetres off along
+    # the line of sight, which Gauss-Newton's narrower basin does not pull back; off in every preset, as
+    # it also sent a clamp scene to a wrong jaw (docs/benchmarks.md).
+    align_start: bool = False
     uncertainty: bool = True  # a covariance of the estimate (one linearisation at the optimum)
     uncertainty_rays: int = 4096  # rays of the box used for it
     uncertainty_patch: int = 4  # pixels per side of the squares whose residuals count as correlated
@@ -243,6 +255,7 @@ class EstimateOptions:
         need(self.mask_trust in MASK_TRUSTS, "mask_trust", f"must be one of {', '.join(MASK_TRUSTS)}")
         need(0 <= self.mask_band_px <= 32, "mask_band_px", "must be in [0, 32] pixels (0 = trust the mask's edge)")
         need(0 <= self.outside_weight <= 1, "outside_weight", "must be in [0, 1] (1 = trust the mask outside it)")
+        need(0 <= self.partial_theta_starts <= 64, "partial_theta_starts", "must be in [0, 64] (0 = theta_starts)")
         need(self.reference_box_px >= 0, "reference_box_px", "must be >= 0 (0 = off)")
         need(self.ray_sampling in RAY_SAMPLINGS, "ray_sampling", f"must be one of {', '.join(RAY_SAMPLINGS)}")
         need(self.uncertainty_rays >= 16, "uncertainty_rays", "must be >= 16")
@@ -262,12 +275,13 @@ class EstimateOptions:
         well-determined distance (see the module docstring for measurements). A mask box larger
         than ``ROBUST_BOX_PX`` (a camera finer than the model was trained at, a near object) draws
         proportionally more rays, half of them on the silhouette's edges (``reference_box_px``,
-        ``ray_sampling = "auto"``) and, with a depth image, trusts the mask only partially
-        (``mask_trust = "auto"``: a segmenter's mask at a camera's native size); up to that size
-        nothing changes."""
+        ``ray_sampling = "auto"``); up to that size nothing changes. Where a depth image contradicts
+        the mask (an occluder beside it, its edge on a continuous surface: a segmenter's mask), the
+        mask is trusted only partially (``mask_trust = "auto"``)."""
         return cls(**{
             "silhouette_weight": 1.0, "depth_weight": 1.0, "theta_starts": 4, "coarse_to_fine": 2, "lr_pose": 0.02,
-            "reference_box_px": ROBUST_BOX_PX, "ray_sampling": "auto", "mask_trust": "auto", **overrides,
+            "reference_box_px": ROBUST_BOX_PX, "ray_sampling": "auto", "mask_trust": "auto", "partial_theta_starts": 8,
+            **overrides,
         })
 
     @classmethod
@@ -294,8 +308,10 @@ class EstimateOptions:
         (Adam's first with ``adam_iterations``) at the largest box scale, for every start, and the
         scoring of the pose starts."""
         scale = _MAX_BOX_SCALE if self.reference_box_px else 1
-        starts = self.theta_starts * (1 + _POSES_KEPT) if self.pose_starts > 1 else self.theta_starts
-        scoring = 3 * self.pose_starts * self.theta_starts * _SCORE_RAYS if self.pose_starts > 1 else 0  # _start_rows
+        theta_starts = max(self.theta_starts, self.partial_theta_starts)
+        starts = theta_starts * (1 + _POSES_KEPT) if self.pose_starts > 1 else theta_starts
+        scoring = 3 * self.pose_starts * theta_starts * _SCORE_RAYS if self.pose_starts > 1 else 0  # _start_rows
+        scoring += 3 * theta_starts * _SCORE_RAYS if self.align_start else 0
         return (self.iterations + self.adam_iterations) * self.rays_per_iteration * scale * starts + scoring
 
     @classmethod
@@ -598,6 +614,17 @@ def _observation(
     return _Observation(pixels.to(device), targets, _importance(masked), (v1 - v0, u1 - u0))
 
 
+def _partial_trust(opts: EstimateOptions, mask: np.ndarray, depth: np.ndarray | None) -> bool:
+    """Whether the mask is trusted only partially (``opts.mask_trust`` "partial"; "auto": where a
+    depth image used by the loss contradicts it as the object's whole silhouette, an occluder
+    beside it or its edge on a continuous surface, :func:`~narf_core.observation.mask_evidence`).
+    An exact mask keeps full trust at any size; without depth nothing tells the background from an
+    occluder (and a cheaper outside pulls the estimate nearer), so "auto" trusts the mask in full."""
+    if opts.mask_trust != "auto":
+        return opts.mask_trust == "partial"
+    return depth is not None and opts.depth_weight > 0 and mask_evidence(mask, depth).doubtful
+
+
 def _mask_band(mask: Tensor, px: int) -> Tensor:
     """``[h, w]`` bool: pixels within ``px`` (chessboard distance) of the boundary of ``mask [h, w]``
     (0/1): those the mask's dilation by ``px`` adds or its erosion by ``px`` removes. A segmenter's
@@ -712,21 +739,29 @@ def _start_rows(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Para
     stays whatever the score: from a small error its own start is the best, and a start's score is
     a rough guide (the refinement compares the starts again after a third of its iterations).
     The pose starts: the turns of :func:`_pose_turns` about the object's centre, each also moved
-    onto the observation (:func:`_aligned`)."""
+    onto the observation (:func:`_aligned`). With ``options.align_start`` the given pose of each θ
+    start is first that pose or its moved copy, whichever scores lower on the same rays."""
     opts = loss_fn.options
     u = param.u_of(thetas)
     rows = torch.cat([torch.zeros(len(u), 6, dtype=torch.float64), u], dim=1)
+    if opts.pose_starts == 1 and not opts.align_start:
+        return rows
+    n_pixels = obs.pixels.shape[0]
+    g = torch.Generator().manual_seed(opts.seed + 2)
+    index = torch.arange(n_pixels) if n_pixels <= _SCORE_RAYS else torch.randperm(n_pixels, generator=g)[:_SCORE_RAYS]
+    index = index.to(obs.pixels.device)
+    rays = camera.rays(obs.pixels[index].to(torch.float32))
+    if opts.align_start:
+        both = torch.cat([rows, _aligned(loss_fn, obs, camera, param, rows, index, rays)])
+        losses = loss_fn(rays, obs.levels[0], index, param.poses(both), param.thetas(both)).cpu()
+        losses = torch.where(torch.isfinite(losses), losses, math.inf).reshape(2, -1)  # [given, moved] per θ start
+        rows = both.reshape(2, len(rows), -1)[losses.argmin(0), torch.arange(len(rows))]
     if opts.pose_starts == 1:
         return rows
     turns = _pose_turns(opts.pose_starts, opts.pose_spread_deg)
     n_turns, n_starts = len(turns), len(rows)
     turned = rows.repeat(n_turns, 1)  # turn-major: row t * S + s is θ start s under turn t
     turned[:, 3:6] = turns.repeat_interleave(n_starts, 0)
-    n_pixels = obs.pixels.shape[0]
-    g = torch.Generator().manual_seed(opts.seed + 2)
-    index = torch.arange(n_pixels) if n_pixels <= _SCORE_RAYS else torch.randperm(n_pixels, generator=g)[:_SCORE_RAYS]
-    index = index.to(obs.pixels.device)
-    rays = camera.rays(obs.pixels[index].to(torch.float32))
     candidates = torch.cat([turned, _aligned(loss_fn, obs, camera, param, turned, index, rays)])
     losses = loss_fn(rays, obs.levels[0], index, param.poses(candidates), param.thetas(candidates)).cpu()
     losses = torch.where(torch.isfinite(losses), losses, math.inf).reshape(-1, n_starts)[1:]  # all but the given pose
@@ -906,15 +941,18 @@ def _outside_weight(
     """``[S, n]`` weights of the rays: ``weight`` outside the mask ``[n]`` (and off its boundary band
     ``edge [n]``), 1 elsewhere. The mask is the object's *visible* part as a segmenter saw it: where
     it says background, an occluder or a missed blob may hide the object, so a render of the
-    object there is weak evidence against it. Unless the observed depth ``[n]`` lies
-    :data:`_BEHIND_M` behind the rendered surface (``rendered_depth / opacity [S, n]``): then the
-    sensor sees past the object, which is not there."""
+    object there is weak evidence against it. Where the observed depth ``[n]`` lies
+    :data:`_BEHIND_M` behind the rendered surface (``rendered_depth / opacity [S, n]``), the
+    sensor sees past the object, which is not there: 1. Where it lies that far in front outside
+    the mask, something stands before the object: 0, no evidence either way (a part hidden there
+    costs nothing, as it would not if it were moved elsewhere)."""
     outside = mask <= 0.5 if edge is None else (mask <= 0.5) & ~edge
     w = torch.where(outside, weight, 1.0)[None].expand_as(opacity)
     if depth is not None and rendered_depth is not None:
         surface = rendered_depth.detach() / opacity.detach().clamp_min(1e-6)
-        behind = (depth > 0) & (opacity.detach() > 0.5) & (depth > surface + _BEHIND_M)
-        w = torch.where(behind, 1.0, w)
+        seen = (depth > 0) & (opacity.detach() > 0.5)
+        w = torch.where(seen & (depth > surface + _BEHIND_M), 1.0, w)
+        w = torch.where(seen & outside & (depth < surface - _BEHIND_M), 0.0, w)
     return w
 
 
@@ -1032,9 +1070,10 @@ def refine(
     box = _mask_box(mask, opts.box_margin)
     scale = _box_scale(box, opts)
     opts = replace(opts, rays_per_iteration=round(scale * opts.rays_per_iteration)) if scale > 1 else opts
-    with_depth = depth is not None and opts.depth_weight > 0
-    partial = opts.mask_trust == "partial" or (opts.mask_trust == "auto" and scale > 1 and with_depth)
+    partial = _partial_trust(opts, mask, depth)
     opts = replace(opts, mask_trust="partial" if partial else "full")
+    if partial:
+        opts = replace(opts, theta_starts=max(opts.theta_starts, opts.partial_theta_starts))
     obs = _observation(image, mask, depth, box, opts.coarse_to_fine, device, opts.mask_band_px if partial else 0)
     obs.scale = scale
     param = _Parameterisation.around(T0, model)

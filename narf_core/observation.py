@@ -13,6 +13,8 @@ Conventions as everywhere (docs/design.md §2): ``image`` sRGB uint8 ``[H, W, 3]
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from narf_core.geometry import Pinhole
@@ -25,6 +27,13 @@ DEPTH_RANGE_M = (0.02, 20.0)  # object distances a camera sees it at, without an
 
 # warnings after which the depth is not used
 DEPTH_UNUSABLE = ("depth_unit", "depth_overlap")
+
+# What the depth says about a segmenter's mask (mask_evidence)
+RING_PX = 4  # how far outside the mask an occluder is looked for
+OCCLUDER_STEP_M = 0.015  # nearer than the object beside it by this much: something in front of it
+SEAM_STEP_M = 0.005  # across the mask's edge the depth changes less than this: the surface goes on
+OCCLUDED_SHARE = 0.01  # of the ring outside the mask in front of the object: an occluder touches the mask
+SEAM_SHARE = 0.30  # of the pixels next to the mask on the object's surface: the edge is not the object's
 
 
 def check_observation(
@@ -89,3 +98,62 @@ def usable_depth(depth: np.ndarray | None, warnings: list[str]) -> np.ndarray | 
     if depth is None or any(w.split(":", 1)[0] in DEPTH_UNUSABLE for w in warnings):
         return None
     return depth
+
+
+@dataclass(frozen=True)
+class MaskEvidence:
+    """What a depth image says about a mask (:func:`mask_evidence`); shares in [0, 1].
+
+    ``occluded``: of the pixels outside the mask within :data:`RING_PX` of it (with a return), the
+    share lying :data:`OCCLUDER_STEP_M` in front of the nearest object pixel around them: an
+    occluder touches the mask, so the mask is the object's visible part only. ``seam``: of the
+    pixels just outside the mask (one pixel; those without a return count as no seam, since a
+    stereo sensor loses many at a depth step), the share whose depth is within :data:`SEAM_STEP_M`
+    of the object's beside them: the surface goes on across the mask's edge, which is therefore not
+    the object's silhouette (an eroded or grown mask, a missed or an extra blob). An exact mask's
+    edge is a depth step (the object in front of what lies behind it) except where the object
+    touches a surface; a view without background depth (a render) gives 0 for both.
+    """
+
+    occluded: float
+    seam: float
+
+    @property
+    def doubtful(self) -> bool:
+        """Whether the mask should not be taken as the object's whole silhouette."""
+        return self.occluded > OCCLUDED_SHARE or self.seam > SEAM_SHARE
+
+
+def _min_filter(values: np.ndarray, radius: int) -> np.ndarray:
+    """The minimum of ``values [h, w]`` over the ``(2 radius + 1)^2`` square about each pixel (inf outside)."""
+    window = 2 * radius + 1
+    padded = np.pad(values, radius, constant_values=np.inf)
+    rows = np.lib.stride_tricks.sliding_window_view(padded, window, axis=0).min(-1)
+    return np.lib.stride_tricks.sliding_window_view(rows, window, axis=1).min(-1)
+
+
+def _around(mask: np.ndarray, radius: int) -> np.ndarray:
+    """``[h, w]`` bool: the pixels outside ``mask`` within ``radius`` of it (chessboard distance)."""
+    return ~mask & (_min_filter(np.where(mask, 0.0, 1.0), radius) == 0)
+
+
+def mask_evidence(mask: np.ndarray, depth: np.ndarray) -> MaskEvidence:
+    """How far ``depth [H, W]`` (metres, 0 or NaN = no return) contradicts ``mask [H, W]`` (nonzero
+    = object) as the object's whole silhouette (:class:`MaskEvidence`). Looks only at the mask's
+    box grown by :data:`RING_PX`."""
+    mask = np.asarray(mask) != 0
+    if not mask.any():
+        return MaskEvidence(0.0, 0.0)
+    rows, cols = np.nonzero(mask.any(1))[0], np.nonzero(mask.any(0))[0]
+    r0, c0 = max(0, rows[0] - RING_PX), max(0, cols[0] - RING_PX)
+    box = (slice(r0, rows[-1] + RING_PX + 1), slice(c0, cols[-1] + RING_PX + 1))
+    mask, depth = mask[box], np.asarray(depth, dtype=np.float64)[box]
+    valid = np.isfinite(depth) & (depth > 0)
+    object_depth = np.where(mask & valid, depth, np.inf)
+    nearest = _min_filter(object_depth, RING_PX)
+    ring = valid & _around(mask, RING_PX) & np.isfinite(nearest)
+    occluded = ring & (depth < nearest - OCCLUDER_STEP_M)
+    beside = _min_filter(object_depth, 1)
+    edge = _around(mask, 1)
+    seam = edge & valid & (np.abs(depth - beside) < SEAM_STEP_M)
+    return MaskEvidence(float(occluded.sum() / max(ring.sum(), 1)), float(seam.sum() / max(edge.sum(), 1)))

@@ -236,7 +236,7 @@ _REFINE_OPTIONS: dict[str, tuple[str, dict[str, float]]] = {
     "ray_sampling": ("Where each iteration's rays go", {}),
     "reference_box_px": ("Mask box side (px) above which more rays are drawn; 0 = off", {"le": 65536}),
     "band_m": ("Metres; march only this band around the model's surface; 0 = off", {}),
-    "mask_trust": ("How far the mask is trusted: full, partial, or auto (partial with depth in a large box)", {}),
+    "mask_trust": ("How far the mask is trusted: full, partial, or auto (partial where the depth contradicts the mask)", {}),
     "mask_band_px": ("Partial trust: pixels near the mask's edge that carry no mask residual", {}),
     "outside_weight": ("Partial trust: weight of the rays outside the mask", {}),
     "pose_starts": ("Pose starts scored before refining (1 = the given pose only)", {}),

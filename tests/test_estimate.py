@@ -344,8 +344,9 @@ def test_pose_starts_widen_the_basin_at_the_cost_of_two_renders_without_gradient
     assert starts_in(loop[0][1]) == wide.theta_starts and len(loop) == five.iterations
     assert loop[0][0] == 2 * wide.theta_starts * (wide.rays_per_iteration // 2)  # two poses per θ, half the rays each
     assert n_aligned + n_scored + sum(n for n, _, _ in loop) <= wide.max_rays()
-    loop_bound = wide.iterations * wide.rays_per_iteration * 4 * wide.theta_starts  # the robust preset's box scale: 4
-    assert wide.max_rays() == 2 * loop_bound + 3 * 5 * wide.theta_starts * 1024
+    most = max(wide.theta_starts, wide.partial_theta_starts)  # a partially trusted mask raises the θ starts
+    loop_bound = wide.iterations * wide.rays_per_iteration * 4 * most  # the robust preset's box scale: 4
+    assert wide.max_rays() == 2 * loop_bound + 3 * 5 * most * 1024
 
     calls.clear()  # one pose start: no scoring, the loop's first render is the first call
     refine(model, image, mask, CAMERA, start, depth=depth, options=replace(options, iterations=2))
@@ -371,6 +372,30 @@ def test_a_pose_start_centimetres_off_is_moved_onto_the_mask_and_the_depth(model
     moved = param.poses(_aligned(loss_fn, obs, CAMERA, param, row, torch.arange(len(obs.pixels)), CAMERA.rays(obs.pixels.float())))[0]
     assert np.linalg.norm(moved[:3, 3].numpy() - T[:3, 3]) < 0.005 < np.linalg.norm(shift) / 5
     assert torch.allclose(moved[:3, :3], torch.from_numpy(start[:3, :3]), atol=1e-9)
+
+
+def test_align_start_begins_each_joint_start_from_the_moved_pose_where_it_scores_lower(model):
+    """``align_start`` (an option of any preset, off in all): a given pose 4 cm off along the line of sight is
+    replaced, for every θ start, by its copy moved onto the mask and the depth; without it the
+    given pose stays."""
+    from narf_core.estimate import _Loss, _mask_box, _observation, _Parameterisation, _start_rows, _theta_starts
+
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    start = T.copy()
+    start[:3, 3] *= 1 + 0.04 / np.linalg.norm(T[:3, 3])
+    options = EstimateOptions.gauss_newton()
+    assert not any(EstimateOptions.preset(name).align_start for name in ("paper", "robust", "gauss-newton"))
+    obs = _observation(image, mask, depth, _mask_box(mask, options.box_margin), 2, "cpu")
+    param = _Parameterisation.around(torch.from_numpy(start), model)
+    thetas = _theta_starts(model.joint_vector(TRUTH).double(), param, options.theta_starts)
+    for align, error in ((True, lambda e: e < 0.01), (False, lambda e: abs(e - 0.04) < 1e-9)):
+        loss_fn = _Loss(model, replace(options, align_start=align), param.radius, True, CAMERA)
+        rows = _start_rows(loss_fn, obs, CAMERA, param, thetas)
+        assert rows.shape == (options.theta_starts, 7)
+        assert torch.equal(param.thetas(rows), thetas)  # the configurations stay
+        distance = np.linalg.norm(param.poses(rows)[:, :3, 3].numpy() - T[:3, 3], axis=1)
+        assert all(error(e) for e in distance), (align, distance)
 
 
 @pytest.mark.parametrize("levels", [1, 2, 3, 6])
@@ -543,6 +568,29 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     paper = EstimateOptions.preset("paper")
     assert paper.max_rays() == paper.iterations * paper.rays_per_iteration * paper.theta_starts
     robust = EstimateOptions.preset("robust")  # a box larger than the reference draws up to 4x the rays
-    assert robust.max_rays() == robust.iterations * robust.rays_per_iteration * 4 * robust.theta_starts
+    most = max(robust.theta_starts, robust.partial_theta_starts)  # a partially trusted mask raises the θ starts
+    assert robust.max_rays() == robust.iterations * robust.rays_per_iteration * 4 * most
     warm = EstimateOptions.preset("gauss-newton", adam_iterations=20)
     assert warm.max_rays() == (warm.iterations + 20) * warm.rays_per_iteration * warm.theta_starts
+    assert replace(warm, align_start=True).max_rays() == warm.max_rays() + 3 * 4 * 1024  # the alignment, then 2 x 4 scored
+
+
+def test_bench_estimate_takes_pose_starts_and_seed_from_the_command_line(model, tmp_path):
+    from benchmarks.estimate import run, run_arguments
+    from narf_core.cli import build_parser
+    from narf_core.data.dataset import DatasetWriter, FrameImages, read_urdf
+
+    args = build_parser().parse_args(["bench", "estimate", "--pose-starts", "3", "--seed", "2", "--scales", "1"])
+    chosen = run_arguments(args)
+    assert chosen == {"scale_sweep": (1.0,), "seed": 2, "overrides": {"pose_starts": 3}}
+    assert run_arguments(build_parser().parse_args(["bench", "estimate"])) == {}
+    root = tmp_path / "toy"
+    with DatasetWriter(root, read_urdf(ASSETS / "estimate_slider.urdf"), CAMERA) as writer:
+        T = view((0.08, -0.15, 0.18))
+        image, mask, _ = observe(model, T, TRUTH)
+        writer.add("test", FrameImages(image, None, mask.astype(np.uint8)), T, TRUTH)
+    result = run({"toy": model}, {"toy": root}, out_dir=tmp_path / "out", scenes=1, iterations=2, modes=("narf",),
+                 presets=("paper", "gauss-newton"), progress=False, **chosen)
+    assert result["config"]["seed"] == 2 and result["config"]["overrides"] == {"pose_starts": 3}
+    assert {name: o["pose_starts"] for name, o in result["config"]["options"].items()} == {"paper": 3, "gauss-newton": 3}
+    assert "Every preset with `pose_starts: 3`." in (tmp_path / "out" / "estimate.md").read_text()

@@ -170,42 +170,60 @@ def test_the_mask_band_is_the_pixels_near_its_boundary():
 
 def test_rays_outside_the_mask_weigh_less_unless_depth_sees_past_the_object():
     """``_outside_weight``: inside the mask and on its band 1, outside ``weight``; but a ray whose
-    observed depth lies behind the rendered surface is background for sure (1), while one in front
-    of it (an occluder) or without a return keeps ``weight``."""
-    mask = torch.tensor([1.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-    edge = torch.tensor([False, True, False, False, False, False])
-    opacity = torch.ones(1, 6)
+    observed depth lies behind the rendered surface is background for sure (1), one outside the
+    mask whose depth lies in front of it is an occluder's (0: no evidence either way), and one
+    without a return or near the surface keeps ``weight``. In front inside the mask or on its
+    band: 1 (the mask says the object is seen there)."""
+    mask = torch.tensor([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+    edge = torch.tensor([False, True, False, False, False, False, False, True])
+    opacity = torch.ones(1, 8)
     rendered = 0.5 * opacity  # the render's surface at 0.5 m
-    depth = torch.tensor([0.5, 0.5, 0.0, 0.45, 0.505, 0.60])
+    depth = torch.tensor([0.5, 0.5, 0.0, 0.45, 0.505, 0.60, 0.45, 0.45])
     w = _outside_weight(mask, edge, depth, rendered, opacity, 0.25)
-    assert w.tolist() == [[1.0, 1.0, 0.25, 0.25, 0.25, 1.0]]
-    assert _outside_weight(mask, None, None, None, opacity, 0.25).tolist() == [[1.0] + [0.25] * 5]
+    assert w.tolist() == [[1.0, 1.0, 0.25, 0.0, 0.25, 1.0, 1.0, 1.0]]
+    assert _outside_weight(mask, None, None, None, opacity, 0.25).tolist() == [[1.0] + [0.25] * 5 + [1.0, 0.25]]
     with pytest.raises(EstimateInputError, match="options.outside_weight"):
         EstimateOptions(outside_weight=1.5)
     with pytest.raises(EstimateInputError, match="options.mask_band_px"):
         EstimateOptions(mask_band_px=-1)
     with pytest.raises(EstimateInputError, match="options.mask_trust"):
         EstimateOptions(mask_trust="some")
+    with pytest.raises(EstimateInputError, match="options.partial_theta_starts"):
+        EstimateOptions(partial_theta_starts=65)
 
 
-def test_auto_mask_trust_is_partial_only_with_depth_in_a_box_above_the_reference(model, monkeypatch):
-    """``mask_trust = "auto"`` (the robust preset): the mask is trusted in full in a box up to
-    ``reference_box_px`` (the 160x120 protocol's exact masks) and without depth (nothing then tells
-    the background from an occluder, and a cheaper outside pulls the estimate nearer); partially
-    with depth in a larger box."""
+def test_auto_mask_trust_is_partial_where_the_depth_contradicts_the_mask(model, monkeypatch):
+    """``mask_trust = "auto"`` (the robust preset): an exact mask is trusted in full whatever the
+    box size, with or without depth; partially where the depth shows an occluder beside the mask
+    or a grown mask (its edge on the background surface behind); without depth (nothing then tells
+    the background from an occluder) in full."""
     import narf_core.estimate as estimate
 
-    bands = []
-    real = estimate._observation
+    bands, starts = [], []
+    real, real_starts = estimate._observation, estimate._theta_starts
     monkeypatch.setattr(estimate, "_observation", lambda *a: bands.append(a[-1]) or real(*a))
+    monkeypatch.setattr(estimate, "_theta_starts", lambda *a: starts.append(a[-1]) or real_starts(*a))
     T = view()
     image, mask, depth = observe(model, T, TRUTH)
-    run = dict(iterations=2, rays_per_iteration=64, theta_starts=1, uncertainty=False, mask_trust="auto", depth_weight=1.0)
-    for reference, given in ((0, depth), (1000, depth), (8, None), (8, depth)):
-        refine(model, image, mask, CAMERA, T, joints_init=TRUTH, depth=given,
+    behind = float(depth[mask].max()) + 0.05
+    wall = np.where(mask, depth, behind).astype(np.float32)  # a flat background behind the object
+    occluded = wall.copy()
+    cols = np.nonzero(mask.any(0))[0]
+    hand = np.zeros_like(mask)
+    hand[:, cols[int(0.7 * len(cols))]:] = True
+    occluded[hand] = float(depth[mask].min()) - 0.05
+    grown = _mask_band(torch.tensor(mask, dtype=torch.float32), 2).numpy() | mask
+    run = dict(iterations=2, rays_per_iteration=64, theta_starts=2, partial_theta_starts=3, uncertainty=False,
+               mask_trust="auto", depth_weight=1.0)
+    cases = ((mask, depth, 0), (mask, wall, 1000), (mask, None, 8), (mask & ~hand, occluded, 0),
+             (mask & ~hand, None, 0), (grown, wall, 0))
+    for given_mask, given_depth, reference in cases:
+        refine(model, image, given_mask, CAMERA, T, joints_init=TRUTH, depth=given_depth,
                options=EstimateOptions(reference_box_px=reference, **run))
-    assert bands == [0, 0, 0, 3]
-    assert EstimateOptions.robust().mask_trust == "auto"
+    assert bands == [0, 0, 0, 3, 0, 3]
+    assert starts == [2, 2, 2, 3, 2, 3]  # more configuration starts where the mask is trusted partially
+    robust = EstimateOptions.robust()
+    assert robust.mask_trust == "auto" and robust.partial_theta_starts > robust.theta_starts
 
 
 def test_a_band_at_the_mask_edge_undoes_a_bled_mask(model):

@@ -13,7 +13,7 @@ import torch
 from PIL import Image
 
 from narf_core.geometry import Pinhole
-from narf_core.observation import check_observation, usable_depth
+from narf_core.observation import MaskEvidence, check_observation, mask_evidence, usable_depth
 
 ROOT = Path(__file__).resolve().parent.parent
 MODEL = ROOT / "models" / "clamp.narf"
@@ -79,6 +79,43 @@ def test_mask_that_does_not_overlap_the_depth() -> None:
     assert usable_depth(elsewhere, warnings) is None
     nan = np.full_like(depth, np.nan)
     assert _codes(check_observation(image, mask, nan, CAMERA)) == ["depth_overlap"]
+
+
+def _grown(mask: np.ndarray, px: int) -> np.ndarray:
+    """``mask`` grown (``px > 0``) or shrunk by ``|px|`` pixels (chessboard distance)."""
+    out = mask.copy()
+    for _ in range(abs(px)):
+        padded = np.pad(out, 1, constant_values=px < 0)
+        shifts = [padded[1 + dy : 61 + dy, 1 + dx : 81 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
+        out = np.logical_or.reduce(shifts) if px > 0 else np.logical_and.reduce(shifts)
+    return out
+
+
+def test_an_exact_mask_agrees_with_the_depth() -> None:
+    _, mask, depth = _clean()
+    noisy = depth + np.random.default_rng(1).normal(0, 0.002, depth.shape).astype(np.float32)
+    holes = np.where(np.random.default_rng(2).random(depth.shape) < 0.2, np.nan, noisy)
+    for d in (depth, noisy, holes, np.where(mask, depth, 0.0)):  # the last: no background depth (a render)
+        evidence = mask_evidence(mask, d)
+        assert evidence.occluded == 0 and evidence.seam < 0.05 and not evidence.doubtful, evidence
+
+
+@pytest.mark.parametrize("px", [-2, 2])
+def test_an_eroded_or_grown_mask_has_its_edge_on_a_continuous_surface(px: int) -> None:
+    _, mask, depth = _clean()
+    evidence = mask_evidence(_grown(mask, px), depth)
+    assert evidence.seam > 0.9 and evidence.doubtful, evidence
+
+
+def test_an_occluder_beside_the_mask_is_seen_in_front() -> None:
+    _, mask, depth = _clean()
+    hand = np.zeros_like(mask)
+    hand[:, 47:] = True  # over the right part of the disc, 10 cm in front of it
+    evidence = mask_evidence(mask & ~hand, np.where(hand, 0.6, depth).astype(np.float32))
+    assert evidence.occluded > 0.2 and evidence.doubtful, evidence
+    behind = mask_evidence(mask & ~hand, np.where(hand & ~mask, 1.5, depth).astype(np.float32))
+    assert behind.occluded == 0, behind  # a surface behind the object is no occluder
+    assert mask_evidence(np.zeros_like(mask), depth) == MaskEvidence(0.0, 0.0)
 
 
 # ------------------------------------------------------------------------------------------------
