@@ -743,8 +743,9 @@ def _add_track(commands: argparse._SubParsersAction) -> None:
     arg = parser.add_argument
     arg("model", type=Path, metavar="MODEL.narf")
     arg("sequence", type=Path, metavar="SEQUENCE", help="a dataset whose frames carry times (narf synth --sequence)")
-    arg("--init-pose", required=True, metavar="JSON|FILE|label",
-        help="T_cam_obj at the first frame (rough is fine), or 'label' for the first frame's label")
+    arg("--init-pose", required=True, metavar="JSON|FILE|label|detect",
+        help="T_cam_obj at the first frame (rough is fine), 'label' for the first frame's label, or 'detect' to "
+             "find it in the first frame (its mask, and depth unless --rgb-only)")
     arg("--init-joints", metavar="NAME=V,...|JSON", help="joints at the first frame (default: the label with "
         "--init-pose label, else mid-range)")
     arg("--rgb-only", action="store_true", help="ignore the sequence's depth")
@@ -769,15 +770,21 @@ def _run_track(args: argparse.Namespace) -> int:
         raise ValueError(f"--video: {args.video.name}: only .gif is supported (no video codec is installed)")
     dataset = Dataset.open(args.sequence)
     frames = sequence_frames(dataset, limit=args.limit)
+    model = load_bundle(args.model)
     if args.init_pose == "label":
         T_first, joints_first = frames[0].T_cam_obj, frames[0].joints
+    elif args.init_pose == "detect":  # no pose: found in the first frame (narf_core/detect.py)
+        from narf_core.detect import detect
+
+        first = next(load_frames(dataset, frames[:1], rgb_only=args.rgb_only))
+        found = detect(model, dataset.camera, first.image, first.mask, first.depth)
+        T_first, joints_first = found.T_cam_obj, found.joints
     else:
         T_first, joints_first = _pose_arg(args.init_pose, "--init-pose"), None
     if args.init_joints:
         joints_first = _joints_arg(args.init_joints, "--init-joints")
     options = TrackOptions(solver=args.solver, mode=args.mode,
                            **({"iterations": args.iterations} if args.iterations else {}))
-    model = load_bundle(args.model)
     mode, reason = _mode_arg(model, args.mode)
     if not args.json:
         print(f"render mode {mode}" + ("" if reason == "requested" else f" (auto): {reason}"), flush=True)

@@ -1172,7 +1172,11 @@ def _uncertainty(
     """The covariance at ``(T [4,4], θ [k])``: one Gauss-Newton linearisation on the box's rays
     (narf_core/gauss_newton.py) plus the model's error and the options' floors on the diagonal;
     ``None`` if it cannot be computed (a non-finite render). ``problem`` and ``rays``: a caller's
-    own (the tracker's frame: its rays, marched once; see ``gauss_newton.covariance``)."""
+    own (the tracker's frame: its rays, marched once; see ``gauss_newton.covariance``).
+
+    The model's error is in footprints of a pixel at the object, but never of a pixel finer than the
+    reference box's (``obs.scale``): a camera finer than the views the model was trained on does
+    not make the model itself more exact."""
     from narf_core.gauss_newton import Problem, covariance
 
     aabb = model.aabb.detach().double().cpu()
@@ -1184,7 +1188,7 @@ def _uncertainty(
     if not bool(torch.isfinite(stat.sigma).all()):
         return None
     depth = float(T[2, :3].double() @ centre + T[2, 3])
-    pixel = depth / float(camera.K[0, 0])
+    pixel = depth / float(camera.K[0, 0]) * obs.scale
     span = (2 * param.half).cpu()
     floor = torch.cat([
         torch.full((3,), opts.sigma_floor_position), torch.full((3,), opts.sigma_floor_rotation), opts.sigma_floor_joint * span

@@ -227,29 +227,41 @@ def test_march_option_is_validated_and_band_or_parts_march_per_iteration(clamp, 
         assert used[-1] == expected and result.status == "tracking"
 
 
+def _box_rays_and_band(clamp, clamp_sequence: Path, index: int):
+    """Frame ``index``'s label ``T [4,4]``, ``θ [k]``, the camera rays of its box and their band
+    ``(near, far)`` at the label (as a warm-started frame takes it at the prediction)."""
+    import torch
+
+    from narf_core.band import ray_band
+    from narf_core.data.dataset import Dataset
+    from narf_core.render import box_pixels
+    from narf_core.track import _FRAME_MARGIN_M
+
+    dataset = Dataset.open(clamp_sequence)
+    camera = dataset.camera
+    frame = dataset.frames()[index]
+    T = torch.tensor(frame.T_cam_obj)
+    theta = clamp.kinematics.joint_vector(frame.joints).float()
+    rays_cam = camera.rays(box_pixels(camera, T.float(), clamp.aabb))
+    with torch.no_grad():
+        near, far = ray_band(clamp, camera, rays_cam, T[None], theta[None].double(), _FRAME_MARGIN_M)
+    return T, theta, rays_cam, near.double(), far.double()
+
+
 def test_frame_band_renders_what_the_march_renders(clamp, clamp_sequence: Path) -> None:
     """A frame's samples (the lattice in the band around the surface points at the prediction, kept
     where the occupancy holds at the pose) render what a full march renders, at the prediction and at
     poses moved by the prediction's error and more, where the march takes other samples."""
     import torch
 
-    from narf_core.band import ray_band
     from narf_core.compositing import composite
-    from narf_core.data.dataset import Dataset
     from narf_core.estimate import _object_rays
     from narf_core.geometry import se3_exp
-    from narf_core.render import box_pixels
-    from narf_core.track import _FRAME_MARGIN_M, frame_band, occupied
+    from narf_core.track import frame_band, occupied
 
-    dataset = Dataset.open(clamp_sequence)
-    camera = dataset.camera
-    frame = dataset.frames()[3]
-    T = torch.tensor(frame.T_cam_obj)
-    theta = clamp.kinematics.joint_vector(frame.joints).float()
-    rays_cam = camera.rays(box_pixels(camera, T.float(), clamp.aabb))
+    T, theta, rays_cam, near, far = _box_rays_and_band(clamp, clamp_sequence, 3)
     with torch.no_grad():
-        near, far = ray_band(clamp, camera, rays_cam, T[None], theta[None].double(), _FRAME_MARGIN_M)
-        band = frame_band(near.double(), far.double(), clamp.step)
+        band = frame_band(near, far, clamp.step)
         assert len(band) < 0.25 * len(rays_cam) * float((clamp.aabb[1] - clamp.aabb[0]).norm()) / clamp.step
         outputs = ("rgb", "opacity", "depth")
         for move in (0.0, 0.001, 0.003):  # metres along each camera axis
@@ -263,7 +275,99 @@ def test_frame_band_renders_what_the_march_renders(clamp, clamp_sequence: Path) 
             assert float((kept.rgb - full.rgb).abs().mean()) < 1e-3
             solid = full.opacity > 0.99
             assert float((kept.depth[solid] - full.depth[solid]).abs().max()) < 0.01 * float(full.depth[solid].max())
-        assert len(frame_band(near.double()[:4], near.double()[:4], clamp.step)) == 0  # an empty band: no sample
+        assert len(frame_band(near[:4], near[:4], clamp.step)) == 0  # an empty band: no sample
+
+
+def test_visible_samples_render_what_every_sample_renders(clamp, clamp_sequence: Path) -> None:
+    """The samples light reaches (the field evaluated at every other one, without a graph) are far
+    fewer than the frame's band holds and render the same (a few thousandths at most)."""
+    import torch
+
+    from narf_core.compositing import composite
+    from narf_core.estimate import _object_rays
+    from narf_core.sampling import Samples
+    from narf_core.track import frame_band, occupied, visible
+
+    T, theta, rays_cam, near, far = _box_rays_and_band(clamp, clamp_sequence, 2)
+    with torch.no_grad():
+        rays = _object_rays(rays_cam, T[None])
+        every = occupied(clamp.grid, rays, frame_band(near, far, clamp.step), theta)
+        seen = visible(clamp.field, rays, every, theta)
+        outputs = ("rgb", "opacity", "depth")
+        full = composite(clamp.field, rays, every, theta=theta, outputs=outputs)
+        kept = composite(clamp.field, rays, seen, theta=theta, outputs=outputs)
+    assert float(full.opacity.max()) > 0.99
+    assert len(seen) < 0.8 * len(every)  # the samples behind the surface go
+    assert set(seen.ray.tolist()) <= set(every.ray.tolist())
+    for name in outputs:
+        assert float((getattr(kept, name) - getattr(full, name)).abs().max()) < 5e-3, name
+    empty = Samples(every.ray[:0], every.t[:0], every.delta[:0])
+    assert len(visible(clamp.field, rays, empty, theta)) == 0
+
+
+def test_first_frame_warm_and_sigma_scale(clamp, clamp_sequence: Path) -> None:
+    """``first_frame = "warm"`` tracks the first frame from the given pose like any other (no
+    multi-start); a warm-started frame's Σ is the refiner's times ``sigma_scale``² (RGB-D) or
+    ``sigma_scale_rgb``² (RGB only), the estimate unchanged; the options are validated."""
+    from narf_core.data.dataset import Dataset
+    from narf_core.track import FIRST_FRAMES, TrackFrame, TrackInputError, TrackOptions, TrackState, step, track
+    from narf_core.track_io import load_frames, score, sequence_frames
+
+    with pytest.raises(TrackInputError, match=r"options\.first_frame must be one of multi-start, warm"):
+        TrackOptions(first_frame="label")
+    for name in ("sigma_scale", "sigma_scale_rgb"):
+        with pytest.raises(TrackInputError, match=rf"options\.{name} must be > 0"):
+            TrackOptions(**{name: 0.0})
+    assert TrackOptions().first_frame == "multi-start" and FIRST_FRAMES == ("multi-start", "warm")
+    dataset = Dataset.open(clamp_sequence)
+    frames = sequence_frames(dataset)[:3]
+    options = TrackOptions(first_frame="warm", iterations=3, rays_per_iteration=256, uncertainty_rays=64)
+    results = list(track(clamp, load_frames(dataset, frames), dataset.camera, frames[0].T_cam_obj, frames[0].joints,
+                         options))
+    assert [r.status for r in results] == ["tracking"] * 3
+    assert all(r.iterations == options.iterations for r in results)  # the first frame too: no multi-start
+    assert all(score(clamp, f, r)["add_m"] < 0.01 for f, r in zip(frames, results))
+
+    images = dataset.load(frames[1])
+    for depth, field in ((images.depth, "sigma_scale"), (None, "sigma_scale_rgb")):
+        observed = TrackFrame(images.rgb, images.labels > 0, frames[1].time, depth)
+        answers = []
+        for scale in (1.0, 2.0):
+            state = TrackState.initial(clamp, frames[1].T_cam_obj, frames[1].joints, frames[0].time, status="tracking")
+            answers.append(step(clamp, dataset.camera, observed, state, TrackOptions(
+                iterations=2, rays_per_iteration=128, uncertainty_rays=64, **{field: scale}))[0])
+        np.testing.assert_allclose(answers[1].T_cam_obj, answers[0].T_cam_obj)
+        np.testing.assert_allclose(answers[1].covariance, 4 * answers[0].covariance)
+        np.testing.assert_allclose(answers[1].uncertainty["position_sigma_m"],
+                                   2 * np.asarray(answers[0].uncertainty["position_sigma_m"]))
+
+
+def test_model_error_footprint_is_never_finer_than_the_reference_box(clamp, clamp_sequence: Path, monkeypatch) -> None:
+    """A box larger than ``reference_box_px`` (a finer camera) scales the pixel footprint of the
+    model's error by the box's scale: the model is no more exact than the views it was fitted on."""
+    from dataclasses import replace
+
+    from narf_core import estimate
+    from narf_core.data.dataset import Dataset
+    from narf_core.track import TrackOptions, refine_frame
+
+    dataset = Dataset.open(clamp_sequence)
+    frame = dataset.frames()[1]
+    images = dataset.load(frame)
+    mask = images.labels > 0
+    seen = []
+    real = estimate.model_error
+    monkeypatch.setattr(estimate, "model_error", lambda *a: seen.append(a[2]) or real(*a))
+    base = replace(TrackOptions(iterations=1, rays_per_iteration=64, uncertainty_rays=64).step_options(True),
+                   reference_box_px=0)
+    for reference in (0, 20):
+        options = replace(base, reference_box_px=reference)
+        result = refine_frame(clamp, dataset.camera, images.rgb, mask, images.depth, frame.T_cam_obj, frame.joints,
+                              options)
+        assert result.uncertainty is not None
+    expected = estimate._box_scale(estimate._mask_box(mask, base.box_margin), replace(base, reference_box_px=20))
+    assert expected > 1
+    assert seen[1] == pytest.approx(seen[0] * expected, rel=0.05)  # (the estimates differ a little)
 
 
 def test_frame_and_iteration_marching_give_the_same_step(clamp, clamp_sequence: Path) -> None:
