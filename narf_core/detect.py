@@ -41,7 +41,6 @@ import time
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from types import SimpleNamespace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -55,6 +54,7 @@ from narf_core.estimate import (
     EstimateOptions,
     EstimateResult,
     _check_observation,
+    _Parameterisation,
     _theta_starts,
     refine,
 )
@@ -470,9 +470,8 @@ def _theta_grid(model: NarfModel, theta0: torch.Tensor, count: int) -> list[torc
     """``count`` configurations: ``theta0``, then others spread over the joint box (the refiner's starts)."""
     if theta0.shape[0] == 0:
         return [theta0]
-    lower, upper = model.kinematics.lower.double(), model.kinematics.upper.double()
-    box = SimpleNamespace(mid=(lower + upper) / 2, half=(upper - lower) / 2)  # what _theta_starts reads
-    return list(_theta_starts(theta0, box, count))
+    param = _Parameterisation.around(torch.eye(4, dtype=torch.float64), model)  # (only its joint box is read)
+    return list(_theta_starts(theta0, param, count))
 
 
 # --------------------------------------------------------------------------------------------
