@@ -396,17 +396,10 @@ class _PartLookup:
         if self.coarse is not None:  # cell units -> the coarse grids' (block) units: c * ratio + offset, [p, 3]
             self.to_coarse = (self.coarse.scale / self.scale, self.coarse.shift - self.shift * self.coarse.scale / self.scale)
 
-    def cell_units(self, xp: Tensor) -> Tensor:
-        """``xp [..., p, 3]`` (metres, each in its part's frame) in cell units of each part's padded grid."""
-        return xp.float() * self.scale + self.shift
-
     def occupied_cells(self, c: Tensor) -> Tensor:
         """``c [..., p, 3]`` in cell units -> ``[..., p]``: in an occupied cell of the part's grid."""
         cell = torch.minimum(c.floor().clamp_(min=0).int(), self.top)
         return self.flat[(cell * self.strides).sum(-1, dtype=torch.int32) + self.offset]
-
-    def occupied(self, xp: Tensor) -> Tensor:
-        return self.occupied_cells(self.cell_units(xp))
 
     def occupied_along(self, c: Tensor, cd: Tensor, t: Tensor) -> Tensor:
         """``[m, w]``: the points ``c + t cd`` (``c``, ``cd [m, p, 3]`` rays in each part grid's cell units,
@@ -491,10 +484,9 @@ class PosedGrids:
         return self.field.part_from_object(theta, theta.shape[0] if theta.dim() == 2 else 1)
 
     def occupied(self, x: Tensor, theta: Tensor | None = None) -> Tensor:
-        T = self._part_from_object(theta).to(x.dtype)
-        equation = "pij,mj->mpi" if T.dim() == 3 else "mpij,mj->mpi"
-        xp = torch.einsum(equation, T[..., :3, :3], x) + T[..., :3, 3]
-        return self.field.part_lookup().occupied(xp).any(-1)
+        theta = self.theta if theta is None else theta.detach()
+        A = self.field.lookup_maps(theta, x.shape[0], x.dtype, slice(0, 3))  # to cell units, as the field looks up
+        return self.field.part_lookup().occupied_cells(_affine(x, A)).any(-1)
 
     def bounds(self, theta: Tensor | None = None) -> Tensor | None:
         """The object-frame box around the posed parts' tight boxes (over every ray's ``θ`` if per ray)."""
