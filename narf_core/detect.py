@@ -58,7 +58,8 @@ from narf_core.estimate import (
     _theta_starts,
     refine,
 )
-from narf_core.geometry import Pinhole
+from narf_core.geometry import Pinhole, so3_exp
+from narf_core.observation import dilate
 
 if TYPE_CHECKING:
     from narf_core.bundle import NarfModel
@@ -146,12 +147,7 @@ def facing_to_R_cam_obj(direction_obj: np.ndarray) -> np.ndarray:
     s, c = np.linalg.norm(axis, axis=-1), v @ target
     # Facing away (c = -1): any axis normal to v turns it half round; the x axis is normal to ±z.
     axis = np.where((s < 1e-9)[:, None], np.array([1.0, 0.0, 0.0]), axis / np.maximum(s, 1e-12)[:, None])
-    angle = np.arctan2(s, c)
-    k = np.zeros((len(v), 3, 3))
-    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
-    k = k - k.transpose(0, 2, 1)
-    eye = np.eye(3)[None]
-    return eye + np.sin(angle)[:, None, None] * k + (1 - np.cos(angle))[:, None, None] * (k @ k)
+    return so3_exp(torch.from_numpy(axis * np.arctan2(s, c)[:, None])).numpy()
 
 
 def orientations(views: int, rolls: int) -> np.ndarray:
@@ -295,15 +291,13 @@ def _scores(x: np.ndarray, visible: np.ndarray, view: _View, options: DetectOpti
     """``[M]`` scores in [0, 1] of the candidates' visible points ``x [M, N, 3]`` (camera frame)
     against the view (the module docstring, step 3)."""
     h, w = view.mask.shape
-    uv = x @ view.K.T
-    uv = uv[..., :2] / uv[..., 2:3].clip(min=1e-6)
-    px = np.floor(uv).astype(np.int64)
+    px = np.floor(_project(x, view.K)).astype(np.int64)
     inside = visible & (x[..., 2] > 1e-3) & (px[..., 0] >= 0) & (px[..., 0] < w) & (px[..., 1] >= 0) & (px[..., 1] < h)
     u, v = np.clip(px[..., 0], 0, w - 1), np.clip(px[..., 1], 0, h - 1)
     n_mask = int(view.mask.sum())
     n_in = inside.sum(1).clip(min=1)
     spacing = np.clip(np.ceil(np.sqrt(n_mask / n_in)), 1, 8).astype(np.int64)  # pixels between points
-    grown = _dilate(view.mask, 1)
+    grown = dilate(view.mask, 1)
     on_mask = inside & grown[v, u]
     explained = on_mask.copy()
     agree = np.ones(len(x))
@@ -335,20 +329,8 @@ def _covered(mask: np.ndarray, inside: np.ndarray, u: np.ndarray, v: np.ndarray,
             hits = np.zeros((len(rows), h, w), dtype=bool)
             m, i = np.nonzero(keep[rows])
             hits[m, v[rows][m, i] - v0, u[rows][m, i] - u0] = True
-            out[rows] = (_dilate(hits, int(r)) & crop).sum((1, 2)) / max(int(crop.sum()), 1)
+            out[rows] = (dilate(hits, int(r)) & crop).sum((1, 2)) / max(int(crop.sum()), 1)
     return out
-
-
-def _dilate(image: np.ndarray, r: int) -> np.ndarray:
-    """Boolean ``[..., H, W]`` dilated by a ``(2r + 1)^2`` square (integral image over the last two axes)."""
-    if r <= 0:
-        return image.copy()
-    h, w = image.shape[-2:]
-    pad = [(0, 0)] * (image.ndim - 2) + [(r + 1, r), (r + 1, r)]
-    s = np.pad(image.astype(np.int32), pad).cumsum(-2).cumsum(-1)
-    k = 2 * r + 1
-    total = s[..., k:, k:] - s[..., :h, k:] - s[..., k:, :w] + s[..., :h, :w]
-    return total > 0
 
 
 @dataclass

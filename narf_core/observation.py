@@ -132,9 +132,21 @@ def _min_filter(values: np.ndarray, radius: int) -> np.ndarray:
     return np.lib.stride_tricks.sliding_window_view(rows, window, axis=1).min(-1)
 
 
+def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Boolean ``mask [..., H, W]`` dilated by a ``(2 radius + 1)^2`` square over the last two axes
+    (an integral image: the cost does not grow with ``radius``)."""
+    if radius <= 0:
+        return mask.astype(bool, copy=True)
+    h, w = mask.shape[-2:]
+    pad = [(0, 0)] * (mask.ndim - 2) + [(radius + 1, radius), (radius + 1, radius)]
+    s = np.pad(mask.astype(np.int32), pad).cumsum(-2).cumsum(-1)
+    k = 2 * radius + 1
+    return (s[..., k:, k:] - s[..., :h, k:] - s[..., k:, :w] + s[..., :h, :w]) > 0
+
+
 def _around(mask: np.ndarray, radius: int) -> np.ndarray:
     """``[h, w]`` bool: the pixels outside ``mask`` within ``radius`` of it (chessboard distance)."""
-    return ~mask & (_min_filter(np.where(mask, 0.0, 1.0), radius) == 0)
+    return ~mask & dilate(mask, radius)
 
 
 def mask_evidence(mask: np.ndarray, depth: np.ndarray) -> MaskEvidence:

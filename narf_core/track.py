@@ -46,6 +46,7 @@ from narf_core.estimate import (
 )
 from narf_core.geometry import Pinhole, Rays, so3_exp, so3_log
 from narf_core.modes import MODES, choose_mode
+from narf_core.observation import dilate
 from narf_core.sampling import Samples
 
 if TYPE_CHECKING:
@@ -329,16 +330,6 @@ def _velocity(model: NarfModel, before: TrackState, T: np.ndarray, dt: float) ->
 # overlap: the model's surface points against the mask
 
 
-def _box_dilate(image: np.ndarray, r: int) -> np.ndarray:
-    """Boolean ``[H, W]`` dilated by a ``(2r+1)^2`` square (integral image)."""
-    if r <= 0:
-        return image.copy()
-    h, w = image.shape
-    s = np.pad(image.astype(np.int32), ((r + 1, r), (r + 1, r))).cumsum(0).cumsum(1)
-    total = s[2 * r + 1 :, 2 * r + 1 :] - s[: h, 2 * r + 1 :] - s[2 * r + 1 :, : w] + s[: h, : w]
-    return total > 0
-
-
 def surface_pixels(model: NarfModel, camera: Pinhole, T_cam_obj: np.ndarray, joints: Mapping[str, float]) -> np.ndarray:
     """Pixels ``[N, 2]`` (u, v, float) of the model's surface points in front of the camera."""
     x = _surface_points_cam(model, T_cam_obj, joints)
@@ -382,11 +373,11 @@ def overlap(model: NarfModel, camera: Pinhole, mask: np.ndarray, T_cam_obj: np.n
     u0, v0 = max(0, min(u.min(), px[:, 0].min()) - spacing - 1), max(0, min(v.min(), px[:, 1].min()) - spacing - 1)
     u1, v1 = min(w, max(u.max(), px[:, 0].max()) + spacing + 2), min(h, max(v.max(), px[:, 1].max()) + spacing + 2)
     mask, px = mask[v0:v1, u0:u1], px - np.array([u0, v0])
-    grown = _box_dilate(mask, max(1, spacing // 2))
+    grown = dilate(mask, max(1, spacing // 2))
     inside = float(grown[px[:, 1], px[:, 0]].sum()) / len(px)  # the image shows no more
     splat = np.zeros_like(mask)
     splat[px[:, 1], px[:, 0]] = True
-    covered = float((_box_dilate(splat, spacing) & mask).sum()) / n_mask
+    covered = float((dilate(splat, spacing) & mask).sum()) / n_mask
     return min(inside, covered)
 
 
