@@ -662,6 +662,9 @@ def _add_estimate(commands: argparse._SubParsersAction) -> None:
         help="paper: the paper's loss and settings (default); robust: adds silhouette and depth (with --depth) "
              "terms, several joint starts and coarse-to-fine; gauss-newton: the same terms with a "
              "Levenberg-Marquardt solver and Huber weights")
+    arg("--pose-starts", type=_positive_int, metavar="N",
+        help="the given pose and N - 1 turned by 30 deg, scored before refining (at most 11; default: the "
+             "preset's, 1); robust with 9 finds the pose from 30 deg / 6 cm off")
     _add_json_flag(parser)
     parser.set_defaults(run=_run_estimate)
 
@@ -686,9 +689,8 @@ def _run_estimate(args: argparse.Namespace) -> int:
         if not isinstance(gt, dict) or "pose" not in gt:
             raise ValueError("--gt: expected {\"pose\": ..., \"joints\": {...}}")
         ground_truth = (_pose_arg(json.dumps(gt["pose"]), "--gt pose"), _joints_arg(json.dumps(gt.get("joints", {})), "--gt joints"))
-    options = EstimateOptions.preset(
-        args.preset, mode=args.mode, **({"iterations": args.iterations} if args.iterations is not None else {})
-    )
+    chosen = {"iterations": args.iterations, "pose_starts": args.pose_starts}
+    options = EstimateOptions.preset(args.preset, mode=args.mode, **{k: v for k, v in chosen.items() if v is not None})
     model = load_bundle(args.model)
     _mode_arg(model, args.mode)  # a mode the model lacks, named as the flag
     result = refine(model, image, mask > 0, camera, T_init, joints_init=_joints_arg(args.init_joints, "--init-joints"),

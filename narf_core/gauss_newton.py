@@ -29,7 +29,10 @@ one configuration per call, the ``θ`` columns are forward differences.
 Step. Levenberg-Marquardt on the iteratively reweighted normal equations ``(JᵀWJ + λ diag(JᵀWJ)) δ
 = -JᵀWr``, with Huber or Cauchy weights ``W`` (``robust_loss``, scale ``robust_scale`` in residual
 units); the step and 2x and 4x it are tried on the same rays and the lowest robust cost is kept if it
-is lower than the current one, else ``λ`` grows. Coarse pyramid levels average ``_GROUP`` jittered
+is lower than the current one, else ``λ`` grows, by a factor that doubles with every rejection in a
+row (4, 8, 16, ...: Nielsen's rule, so a run stuck at a tiny ``λ`` reaches a useful one in a few
+iterations). After a rejection at the fine level the rays and the parameters are those of the last
+iteration, so its residuals and Jacobian serve again and only the trial step is rendered. Coarse pyramid levels average ``_GROUP`` jittered
 rays per pixel (the render blurred like the target); the fine level keeps one set of rays, so the
 last iterations are a deterministic LM that can converge.
 
@@ -69,6 +72,7 @@ if TYPE_CHECKING:
 
 _CHANNELS = 5  # rgb, opacity, depth
 _LAMBDA_UP, _LAMBDA_DOWN = 4.0, 3.0
+_LAMBDA_UP_GROWTH = 2.0  # each further rejection in a row multiplies λ by this much more (Nielsen's rule)
 _LAMBDA_MIN, _LAMBDA_MAX = 1e-6, 1e8
 _FD_THETA = 1e-3  # forward-difference step for θ in parts mode, as a fraction of the joint's range
 _FD_POSE = 1e-5  # central-difference step of the pose columns (object radii, radians)
@@ -394,6 +398,7 @@ class GaussNewtonRun:
         self.params = params0.clone()
         self.best_params = params0.clone()
         self.lam = torch.full((params0.shape[0],), self.opts.damping, dtype=torch.float64)
+        self.lam_up = torch.full_like(self.lam, _LAMBDA_UP)  # λ's factor at the next rejection
         self.rng = torch.Generator().manual_seed(seed)
         self.start_time = start_time
         self.iteration, self.status, self.recovered = 0, "max_iterations", False
@@ -401,6 +406,9 @@ class GaussNewtonRun:
         self.history: list = []
         self.small_steps = 0
         self.fine_index: Tensor | None = None  # the fine level keeps one set of rays: a deterministic LM
+        # The last linearisation ``(index, params, residuals)``: after a rejected step the fine level's
+        # next iteration has the same rays and parameters, so its residuals and Jacobian are these.
+        self.linearised: tuple[Tensor, Tensor, Residuals] | None = None
         self.timing = {"jacobian_s": 0.0, "trial_s": 0.0, "solve_s": 0.0}
 
     def _rays(self, target: _Target, several: bool) -> tuple[Tensor, Rays, int]:
@@ -438,7 +446,7 @@ class GaussNewtonRun:
             self.iteration += 1
             index, rays, group = self._rays(target, self.params.shape[0] > 1)
             t0 = time.perf_counter()
-            res = self.problem.residuals(self.chain, self.params, rays, target, index, True, group)
+            res = self._linearise(rays, target, index, group)
             t1 = time.perf_counter()
             self.timing["jacobian_s"] += t1 - t0
             if not (bool(torch.isfinite(res.r).all()) and bool(torch.isfinite(res.J).all())):
@@ -478,7 +486,8 @@ class GaussNewtonRun:
             before = self.params
             self.params = torch.where(better[:, None], trial_params, self.params)
             self.best_params = self.params.clone()
-            self.lam = torch.where(better, self.lam / _LAMBDA_DOWN, self.lam * _LAMBDA_UP).clamp(_LAMBDA_MIN, _LAMBDA_MAX)
+            self.lam = torch.where(better, self.lam / _LAMBDA_DOWN, self.lam * self.lam_up).clamp(_LAMBDA_MIN, _LAMBDA_MAX)
+            self.lam_up = torch.where(better, _LAMBDA_UP, self.lam_up * _LAMBDA_UP_GROWTH)
             n_res = max(int(res.used.sum()) // S, 1)
             current = torch.where(better, trial_cost, cost) / n_res
             elapsed = time.perf_counter() - self.start_time
@@ -495,6 +504,17 @@ class GaussNewtonRun:
             if opts.early_stop and level == n_levels - 1 and S == 1 and self.small_steps >= opts.patience:
                 self.status = "converged"
                 return
+
+    def _linearise(self, rays: Rays, target: _Target, index: Tensor, group: int) -> Residuals:
+        """The residuals and Jacobian at ``params`` on this iteration's rays; the last ones again where
+        neither changed (a rejected step at the fine level, whose rays are fixed: only ``λ`` differs)."""
+        last = self.linearised
+        if last is not None and last[0] is index and torch.equal(last[1], self.params):
+            return last[2]
+        res = self.problem.residuals(self.chain, self.params, rays, target, index, True, group)
+        finite = bool(torch.isfinite(res.r).all()) and bool(torch.isfinite(res.J).all())
+        self.linearised = (index, self.params.clone(), res) if finite else None
+        return res
 
     def _solve(self, H: Tensor, g: Tensor) -> Tensor:
         """LM steps ``[S, d]`` from ``H [S, d, d]``, ``g [S, d, 1]`` and the per-row damping."""
@@ -517,7 +537,7 @@ class GaussNewtonRun:
             res = self.problem.residuals(self.chain, self.params, self.camera.rays(self.obs.pixels[index]), target, index, False)
         cost = robust_cost(res.r * res.used, self.opts.robust_loss, self.opts.robust_scale)
         keep = torch.where(torch.isfinite(cost), cost, math.inf).argmin().reshape(1)
-        self.params, self.lam = self.params[keep], self.lam[keep]
+        self.params, self.lam, self.lam_up = self.params[keep], self.lam[keep], self.lam_up[keep]
         self.best_params = self.params.clone()
 
 

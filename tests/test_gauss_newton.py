@@ -31,6 +31,8 @@ from narf_core.estimate import (
 from narf_core.geometry import Pinhole
 from tests.test_estimate import ASSETS, CAMERA, TRUTH, SliderField, make_model, observe, perturbed, view
 
+pytest_plugins = ("conftest_model",)  # tiny_bundle, tiny_dataset (the CLI test)
+
 GN = dict(adam_iterations=0, iterations=25, rays_per_iteration=512)  # Levenberg-Marquardt alone
 NO_FLOOR = dict(sigma_floor_position=0.0, sigma_floor_rotation=0.0, sigma_floor_joint=0.0)  # the statistical Σ only
 
@@ -469,3 +471,91 @@ def test_the_pose_jacobian_matches_autograd() -> None:
     torch.testing.assert_close(T_obj_cam, invert_pose(chain.poses(p)), rtol=0, atol=1e-12)
     torch.testing.assert_close(dT, exact.reshape(-1, 3, 4, 6), rtol=0, atol=1e-8)
     assert float(exact.abs().max()) > 0.1  # not trivially zero
+
+
+def _overshooting_run(model, monkeypatch, cache: bool) -> tuple[object, list[float], int]:
+    """The toy refined with steps 64 times the LM step (most are rejected, so λ climbs); the answer, λ
+    before every solve at the fine level, and how many Jacobians were rendered."""
+    monkeypatch.setattr(gauss_newton, "_STEP_FACTORS", (64.0,))
+    if not cache:
+        monkeypatch.setattr(gauss_newton.GaussNewtonRun, "_linearise", lambda self, rays, target, index, group:
+                            self.problem.residuals(self.chain, self.params, rays, target, index, True, group))
+    lams, jacobians = [], [0]
+    solve, residuals = gauss_newton.GaussNewtonRun._solve, gauss_newton.Problem.residuals
+
+    def counted(self, chain, p, rays, target, index, jacobian, group=1):
+        jacobians[0] += int(jacobian)
+        return residuals(self, chain, p, rays, target, index, jacobian, group)
+
+    def logged(self, H, g):
+        lams.append(float(self.lam[0]))
+        return solve(self, H, g)
+
+    monkeypatch.setattr(gauss_newton.Problem, "residuals", counted)
+    monkeypatch.setattr(gauss_newton.GaussNewtonRun, "_solve", logged)
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    options = EstimateOptions.preset("gauss-newton", **{**GN, "iterations": 12}, coarse_to_fine=1, theta_starts=1,
+                                     early_stop=False, uncertainty=False)
+    result = refine(model, image, mask, CAMERA, perturbed(T, 10, 0.02, seed=1), depth=depth, options=options)
+    return result, lams, jacobians[0]
+
+
+def test_a_rejected_step_reuses_the_linearisation_and_changes_nothing_else(model, monkeypatch):
+    """After a rejected step the fine level's rays and parameters are the same, so the next iteration
+    takes the last residuals and Jacobian instead of rendering them again: the same answer, fewer
+    Jacobians."""
+    cached, lams, cached_jacobians = _overshooting_run(model, monkeypatch, cache=True)
+    monkeypatch.undo()
+    fresh, fresh_lams, fresh_jacobians = _overshooting_run(model, monkeypatch, cache=False)
+    assert lams == fresh_lams and cached.iterations == fresh.iterations == 12
+    np.testing.assert_array_equal(cached.T_cam_obj, fresh.T_cam_obj)
+    assert cached.joints == fresh.joints
+    rejected = sum(b > a for a, b in zip(lams, lams[1:]))
+    assert rejected >= 3, lams  # the overshoot is rejected
+    assert cached_jacobians == fresh_jacobians - rejected
+
+
+def test_lambda_grows_faster_with_every_rejection_in_a_row(model, monkeypatch):
+    """Nielsen's rule: λ's factor doubles with each further rejection in a row (4, 8, 16, ...) and
+    falls back to 4 after an accepted step, so a run stuck at a tiny λ reaches a useful one in a few
+    iterations instead of one factor of 4 per iteration."""
+    _, lams, _ = _overshooting_run(model, monkeypatch, cache=True)
+    expected, streak = [], 0
+    for a, b in zip(lams, lams[1:]):
+        if b > a:  # a rejection: λ times 4, 8, 16, ... (unless at the cap)
+            want = gauss_newton._LAMBDA_UP * gauss_newton._LAMBDA_UP_GROWTH ** streak
+            expected.append((b / a, min(want, gauss_newton._LAMBDA_MAX / a)))
+            streak += 1
+        else:
+            assert b == pytest.approx(a / gauss_newton._LAMBDA_DOWN) or a == gauss_newton._LAMBDA_MIN
+            streak = 0
+    assert len(expected) >= 3 and max(want for _, want in expected) >= 8, lams
+    for got, want in expected:
+        assert got == pytest.approx(want, rel=1e-9), lams
+
+
+@pytest.mark.slow
+def test_narf_estimate_takes_pose_starts(capsys, monkeypatch, tiny_bundle, tiny_dataset, tmp_path_factory):
+    """``narf estimate --pose-starts N`` reaches the refiner's options (what a user picks for a start up to
+    30 deg / 6 cm off); a count outside [1, 11] is one error line naming it."""
+    import narf_core.estimate as estimate
+    from tests.test_cli_model import assert_error, estimate_argv, run
+    from tests.test_cli_model import view as view_files
+
+    files = view_files.__wrapped__(tiny_dataset, tmp_path_factory)
+    seen, real = [], estimate.refine
+
+    def spy(*args, options, **kwargs):
+        seen.append(options)
+        return real(*args, options=options, **kwargs)
+
+    monkeypatch.setattr(estimate, "refine", spy)
+    argv = estimate_argv(tiny_bundle, files, **{"--iterations": "1"})
+    code, _, err = run(capsys, *argv, "--preset", "robust", "--pose-starts", "3", "--json")
+    assert code == 0, err
+    assert seen[-1].pose_starts == 3 and seen[-1].theta_starts == 4 and seen[-1].iterations == 1
+    code, _, err = run(capsys, *argv, "--json")
+    assert code == 0 and seen[-1].pose_starts == 1, err
+    assert_error(capsys, "estimate", [*argv, "--pose-starts", "0"], "--pose-starts")
+    assert_error(capsys, "estimate", [*argv, "--pose-starts", "12"], "pose_starts")
