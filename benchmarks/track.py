@@ -12,7 +12,8 @@ per frame (mean, 95th percentile, max, over frames whose status is not ``lost``)
 covariance whose normalised error lies inside the 95% region: 0.95 when Σ is calibrated). The
 per-frame settings head the table; ``--band-m`` marches only a band around the model's surface
 (``EstimateOptions.band_m``), to compare with the whole box, and ``--march iteration`` marches at
-every iteration instead of sampling the band found once per frame (``TrackOptions.march``). With
+every iteration instead of sampling the band found once per frame (``TrackOptions.march``);
+``--no-depth-align`` leaves the prediction where the motion model puts it (``TrackOptions.depth_align``). With
 ``--events`` the sequence with a glance away and an occluding bar is tracked as well. The error
 against time is plotted per run (``<work>/track/<tool>-<size>-<modality>.png``) and every per-frame row is kept in
 ``<work>/track/result.json``. With ``--service-clients N``, N clients track the 160x120 sequence at
@@ -154,7 +155,8 @@ def markdown(result: dict) -> str:
     lines = [
         f"Tracking, {result['frames']}-frame sequences (30 fps), from the first frame's label "
         f"({'as exact' if o.get('first_frame') == 'warm' else 'refined by the multi-start refiner'}); per frame "
-        f"{o['iterations']} {o['solver']} iterations of {o['rays_per_iteration']} rays {band}",
+        f"{o['iterations']} {o['solver']} iterations of {o['rays_per_iteration']} rays {band}"
+        + ("" if o.get("depth_align", True) else ", the prediction not aligned to the depth"),
         "",
         "| tool | size | input | events | frames/s (all / after the 1st) | frames per CPU second (after the 1st) "
         "| ADD mean / p95 / max (cm) | joint error mean / p95 / max | lost | re-init. | NEES 95% coverage |",
@@ -187,7 +189,8 @@ def markdown(result: dict) -> str:
 
 def main(args: argparse.Namespace) -> int:
     """``narf bench track``: ``args`` has ``work``, ``models``, ``tools``, ``frames``, ``sizes``,
-    ``modalities``, ``events``, ``iterations``, ``band_m``, ``march``, ``service_clients``, ``json``."""
+    ``modalities``, ``events``, ``iterations``, ``band_m``, ``march``, ``depth_align``, ``service_clients``,
+    ``json``."""
     tools = args.tools or sorted(p.stem for p in args.models.glob("*.narf"))
     models, missing = {}, []
     for tool in tools:
@@ -202,7 +205,7 @@ def main(args: argparse.Namespace) -> int:
         print(f"narf bench track: skipping {', '.join(missing)}: no model in {args.models}", file=sys.stderr)
     sizes = tuple(tuple(s) for s in args.sizes) if args.sizes else SIZES
     overrides = {"iterations": args.iterations, "band_m": getattr(args, "band_m", None),
-                 "march": getattr(args, "march", None)}
+                 "march": getattr(args, "march", None), "depth_align": getattr(args, "depth_align", None)}
     options = TrackOptions(first_frame="warm", **{k: v for k, v in overrides.items() if v is not None})
     result = run(models, args.work, frames=args.frames, sizes=sizes, modalities=tuple(args.modalities),
                  events=args.events, options=options)

@@ -925,6 +925,9 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--march", choices=("frame", "iteration"), default=None,
                      help="find each ray's samples once per frame (no marching) or march at every iteration "
                           "(default: the tracker's, frame)")
+    sub.add_argument("--no-depth-align", dest="depth_align", action="store_false",
+                     help="with depth, do not first move the prediction along the line of sight onto the observed "
+                          "depth (TrackOptions.depth_align; to compare)")
     sub.add_argument("--service-clients", type=_non_negative_int, default=0, metavar="N",
                      help="also N clients tracking at once through POST /v1/track on a loopback server")
     _add_json_flag(sub)

@@ -59,6 +59,11 @@ _MIN_VELOCITY_GAP_S = 1e-3  # velocities are measured over at least this long
 # A frame's band reaches this far beyond the model's surface points at the prediction (refine_frame):
 # the prediction's error is a few millimetres.
 _FRAME_MARGIN_M = 0.006
+# depth_offset's mode of (observed - model) depth: the median again over the differences this close to
+# the last one, this many times (the far side's points, where no near one lands, lie centimetres off).
+_DEPTH_WINDOW_M = 0.005
+_DEPTH_ROUNDS = 3
+_DEPTH_CELL = 0.7  # its cells' side over the mean spacing of the projected points (a pixel at least)
 
 
 class TrackInputError(EstimateInputError):
@@ -92,6 +97,10 @@ class TrackOptions:
     # the silhouette's scale alone lets it wander; in a larger box it pins the distance well enough.
     distance_prior_rgb: float = 3.0
     solver: str = "adam"
+    # With depth, the prediction is first moved along the line of sight so that the model's surface
+    # points meet the observed depth (depth_aligned): the iterations' fixed step sizes alone let the
+    # track lag behind the object's motion in depth.
+    depth_align: bool = True
     mode: str = "auto"  # the render mode (narf_core/modes.py)
     # "frame": where a ray can meet the object is found once per frame, from the model's surface
     # points at the prediction, and no iteration marches (refine_frame; narf mode, band_m 0);
@@ -332,9 +341,12 @@ def _velocity(model: NarfModel, before: TrackState, T: np.ndarray, dt: float) ->
 
 def surface_pixels(model: NarfModel, camera: Pinhole, T_cam_obj: np.ndarray, joints: Mapping[str, float]) -> np.ndarray:
     """Pixels ``[N, 2]`` (u, v, float) of the model's surface points in front of the camera."""
-    x = _surface_points_cam(model, T_cam_obj, joints)
-    K = camera.K.detach().double().cpu().numpy()
-    uv = x @ K.T
+    return _pixels(camera, _surface_points_cam(model, T_cam_obj, joints))
+
+
+def _pixels(camera: Pinhole, x_cam: np.ndarray) -> np.ndarray:
+    """The pixels ``[N, 2]`` (u, v, float) of camera-frame points ``x_cam [N, 3]`` in front of the camera."""
+    uv = x_cam @ camera.K.detach().double().cpu().numpy().T
     return uv[:, :2] / uv[:, 2:3]
 
 
@@ -379,6 +391,59 @@ def overlap(model: NarfModel, camera: Pinhole, mask: np.ndarray, T_cam_obj: np.n
     splat[px[:, 1], px[:, 0]] = True
     covered = float((dilate(splat, spacing) & mask).sum()) / n_mask
     return min(inside, covered)
+
+
+# --------------------------------------------------------------------------------------------
+# the prediction's distance, from the depth image
+
+
+def depth_offset(model: NarfModel, camera: Pinhole, T_cam_obj: np.ndarray, joints: Mapping[str, float],
+                 mask: np.ndarray, depth: np.ndarray, min_cells: int = 20) -> float | None:
+    """How far (m, along z) the observed surface lies behind the model's at ``T_cam_obj``, over the
+    image's cells (square, a pixel unless the mask has more pixels than surface points project into
+    the image) where both the mask's depth and a surface point lie: the nearest observed depth minus
+    the nearest point's, its median taken again (``_DEPTH_ROUNDS`` times) over the differences within
+    ``_DEPTH_WINDOW_M`` of the last one. None where fewer than ``min_cells`` cells have both.
+
+    The surface points stand in for a render (no field evaluation); they are sparse, so in some
+    cells only a point of the far side lands, centimetres behind: a tail that would pull a plain
+    median towards the camera, and that the window leaves out; the cells keep that tail small on a
+    fine camera, where the points are fewer than the object's pixels."""
+    x = _surface_points_cam(model, T_cam_obj, joints)
+    h, w = mask.shape
+    px = np.floor(_pixels(camera, x)).astype(np.int64)
+    inside = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
+    cell = max(1, math.ceil(_DEPTH_CELL * math.sqrt(int(mask.sum()) / max(1, int(inside.sum())))))
+    rows, cols = -(-h // cell), -(-w // cell)
+    nearest = np.full(rows * cols, np.inf)
+    np.minimum.at(nearest, (px[inside, 1] // cell) * cols + px[inside, 0] // cell, x[inside, 2])
+    observed = np.where(mask & np.isfinite(depth) & (depth > 0), depth, np.inf)
+    observed = np.pad(observed, ((0, rows * cell - h), (0, cols * cell - w)), constant_values=np.inf)
+    observed = observed.reshape(rows, cell, cols, cell).min(axis=(1, 3)).reshape(-1)
+    both = np.isfinite(nearest) & np.isfinite(observed)
+    if int(both.sum()) < min_cells:
+        return None
+    difference = observed[both] - nearest[both]
+    offset = float(np.median(difference))
+    for _ in range(_DEPTH_ROUNDS):
+        near = difference[np.abs(difference - offset) < _DEPTH_WINDOW_M]
+        offset = float(np.median(near)) if len(near) else offset
+    return offset
+
+
+def depth_aligned(model: NarfModel, camera: Pinhole, T_cam_obj: np.ndarray, joints: Mapping[str, float],
+                  mask: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """``T_cam_obj [4,4]`` moved along the line of sight to the object's box centre by
+    :func:`depth_offset` (unchanged where there is none, or the centre is behind the camera). A few Adam steps move the pose by a
+    fixed rate each, so a prediction off by more along the line of sight than they reach leaves the
+    track lagging behind the depth; this closes that gap before they start."""
+    dz = depth_offset(model, camera, T_cam_obj, joints, mask, depth)
+    centre = T_cam_obj[:3, :3] @ _centre(model) + T_cam_obj[:3, 3]
+    if dz is None or not math.isfinite(dz) or centre[2] <= 0:
+        return T_cam_obj
+    out = np.array(T_cam_obj, dtype=np.float64)
+    out[:3, 3] += dz * centre / centre[2]
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -590,8 +655,7 @@ def _recentred(model: NarfModel, camera: Pinhole, T: np.ndarray, joints: Mapping
     if len(x) == 0:
         return T
     K = camera.K.detach().double().cpu().numpy()
-    uv = x @ K.T
-    uv = uv[:, :2] / uv[:, 2:3]
+    uv = _pixels(camera, x)
     z = float(np.median(x[:, 2]))
     target_z = z
     v, u = np.nonzero(mask)
@@ -690,6 +754,8 @@ def _step(
     iterations = 0
     if state.status != "lost" and gap <= opts.max_gap_s:
         T_pred, joints_pred = predict(model, state, t)
+        if depth is not None and opts.depth_align:
+            T_pred = depth_aligned(model, camera, T_pred, joints_pred, mask, depth)
         step_options = opts.step_options(depth is not None)
         if opts.march == "frame" and opts.band_m == 0 and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf":
             result = refine_frame(model, camera, frame.image, mask, depth, T_pred, joints_pred, step_options,
