@@ -371,6 +371,43 @@ def test_posed_grids_span_holds_every_occupied_point_along_a_ray(assets):
     assert (pointwise.reshape(t.shape) != occupied).float().mean() < 1e-4  # cell faces may round either way
 
 
+def test_posed_grids_bounds_are_the_box_of_the_posed_occupied_cells_at_each_configuration(assets):
+    """The posed grids' box is the object-frame box around every part's occupied cells posed by FK, at
+    each θ asked (a render asks twice for the same θ and gets the same box; another θ gets its own),
+    and per ray the box over every ray's θ."""
+    kin = KinematicTree.from_urdf(assets / "synth_articulated.urdf", load_meshes=False)
+    p = len(kin.part_names)
+    shape = [20, 10, 4]
+    field = ArticulatedField(
+        AABB, kin.lower.tolist(), kin.upper.tolist(), chain=chain_spec(kin), part_aabbs=[AABB] * p,
+        grid_shapes=[shape] * p, resolution=(8, 16), features=4, hidden=16,
+    )
+    lo, size = torch.tensor(AABB[0]), (torch.tensor(AABB[1]) - torch.tensor(AABB[0])) / torch.tensor(shape)
+    cells = [torch.tensor([3 + 5 * i, 2 + 3 * i, i % 4]) for i in range(p)]  # one occupied cell per part
+    with torch.no_grad():
+        for i, cell in enumerate(cells):
+            grid = getattr(field, f"grid_{i}")
+            grid.zero_()
+            grid[tuple(cell)] = 1
+
+    def expected(theta):
+        corners = torch.stack([lo + (cell + torch.tensor([i >> 2 & 1, i >> 1 & 1, i & 1])) * size for cell in cells for i in range(8)])
+        T = kin.part_poses(theta.double()).float().reshape(-1, p, 4, 4)  # [m, p, 4, 4]
+        posed = (T[:, :, None, :3, :3] @ corners.reshape(p, 8, 3, 1))[..., 0] + T[:, :, None, :3, 3]
+        return torch.stack([posed.reshape(-1, 3).amin(0), posed.reshape(-1, 3).amax(0)])
+
+    thetas = [(kin.lower + (kin.upper - kin.lower) * a).float() for a in (0.1, 0.9)]
+    occupancy = field.occupancy(thetas[0])
+    for theta in (thetas[0], thetas[1], thetas[0]):
+        box = occupancy.bounds(theta)
+        torch.testing.assert_close(box, expected(theta), atol=1e-5, rtol=0)
+        assert torch.equal(occupancy.bounds(theta.clone()), box)
+    assert torch.equal(occupancy.bounds(), occupancy.bounds(thetas[0]))
+    assert not torch.allclose(expected(thetas[0]), expected(thetas[1]), atol=1e-3)
+    per_ray = torch.stack(thetas)
+    torch.testing.assert_close(occupancy.bounds(per_ray), expected(per_ray), atol=1e-5, rtol=0)
+
+
 @pytest.mark.slow
 def test_articulated_field_renders_what_the_composed_parts_render(tiny_model, tiny_dataset):
     """Built from the trained model's part fields, the articulated field gives the composition's

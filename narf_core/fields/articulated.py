@@ -477,6 +477,7 @@ class PosedGrids:
     def __init__(self, field: ArticulatedField, theta: Tensor) -> None:
         self.field = field
         self.theta = theta.detach()
+        self._bounds: tuple[tuple, Tensor] | None = None  # (shared θ, its box): a render asks twice for it
 
     def _part_from_object(self, theta: Tensor | None) -> Tensor:
         """``T_part_obj`` ``[p,4,4]`` (a shared θ) or ``[m,p,4,4]`` (one per point or ray)."""
@@ -490,14 +491,22 @@ class PosedGrids:
 
     def bounds(self, theta: Tensor | None = None) -> Tensor | None:
         """The object-frame box around the posed parts' tight boxes (over every ray's ``θ`` if per ray)."""
+        shared = (self.theta if theta is None else theta).detach()
+        key = tuple(shared.tolist()) if shared.dim() == 1 else None
+        if key is not None and self._bounds is not None and self._bounds[0] == key:
+            return self._bounds[1]
         grids = self.field.part_grids()
         boxes = [(i, grid.bounds()) for i, grid in enumerate(grids)]
         boxes = [(i, box) for i, box in boxes if box is not None]
         if not boxes:
             return None
         T = invert_pose(self._part_from_object(theta)).reshape(-1, len(grids), 4, 4)
-        corners = torch.cat([transform_points(T[:, i, None], box_corners(box)[None]).reshape(-1, 3) for i, box in boxes])
-        return torch.stack([corners.amin(0), corners.amax(0)])
+        index = [i for i, _ in boxes]
+        corners = transform_points(T[:, index, None], torch.stack([box_corners(box) for _, box in boxes])).reshape(-1, 3)
+        box = torch.stack([corners.amin(0), corners.amax(0)])
+        if key is not None:
+            self._bounds = (key, box)
+        return box
 
     def along(self, origins: Tensor, directions: Tensor, theta: Tensor | None = None) -> PosedGridRays:
         theta = self.theta if theta is None else theta.detach()

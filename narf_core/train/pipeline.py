@@ -254,6 +254,7 @@ def _fit_step(field, optimizer, batch: RayTargets, theta, box, grid, step: float
 
 
 EARLY_REFRESH_STEPS = 50
+GRID_PASSES = (1, 3)  # density evaluations per cell: the grids stage 1 rebuilds while training, its final grid
 
 
 def refreshes_grid(step: int, steps: int) -> bool:
@@ -263,8 +264,11 @@ def refreshes_grid(step: int, steps: int) -> bool:
     Until its first rebuild the grid is full and every ray is marched through the whole box, which
     makes a warm-up step several times dearer than a later one. The grid keeps every cell where the
     field reaches 1 % opacity, dilated by a cell, so a young field's surfaces stay in it, and each
-    rebuild evaluates every cell again.
+    rebuild evaluates every cell again. Never after the last step: the part's final grid is built
+    then anyway (:data:`GRID_PASSES`).
     """
+    if step >= steps:
+        return False
     warmup = steps // 4
     if step < warmup:
         return step % EARLY_REFRESH_STEPS == 0
@@ -280,7 +284,7 @@ def _train_part(field, box, targets: RayTargets, config: TrainConfig, ckpt: Path
     def refresh(i: int) -> None:
         nonlocal grid
         if refreshes_grid(i, config.part_steps):
-            grid = OccupancyGrid.from_field(field, box, config.grid_resolution)
+            grid = OccupancyGrid.from_field(field, box, config.grid_resolution, passes=GRID_PASSES[0])
 
     def step_fn(i: int) -> float:
         idx = torch.randint(len(targets), (config.batch_rays,), generator=generator)
@@ -290,7 +294,7 @@ def _train_part(field, box, targets: RayTargets, config: TrainConfig, ckpt: Path
         f"part {name}", field, optimizer, step_fn, steps=config.part_steps, budget_s=budget_s, checkpoint=ckpt,
         on_step=refresh, progress=progress, generator=generator,
     )
-    return OccupancyGrid.from_field(field, box, config.grid_resolution), result.seconds
+    return OccupancyGrid.from_field(field, box, config.grid_resolution, passes=GRID_PASSES[1]), result.seconds
 
 
 def distill(
