@@ -594,3 +594,28 @@ def test_bench_estimate_takes_pose_starts_and_seed_from_the_command_line(model, 
     assert result["config"]["seed"] == 2 and result["config"]["overrides"] == {"pose_starts": 3}
     assert {name: o["pose_starts"] for name, o in result["config"]["options"].items()} == {"paper": 3, "gauss-newton": 3}
     assert "Every preset with `pose_starts: 3`." in (tmp_path / "out" / "estimate.md").read_text()
+
+
+def test_theta_starts_with_several_joints_of_mixed_units_form_a_latin_hypercube():
+    """With k joints (radians and metres mixed), every joint's start values fall one per stratum of its
+    range (the given value's stratum included), the given configuration comes first, and the
+    parameterisation maps every start back to itself inside the limits."""
+    from narf_core.estimate import _U_LIMIT, _Parameterisation, _theta_starts
+
+    lower = torch.tensor([-0.5, -0.2, 0.0, 0.0], dtype=torch.float64)  # two revolute (rad), two prismatic (m)
+    upper = torch.tensor([0.5, 0.8, 0.16, 0.04], dtype=torch.float64)
+    param = _Parameterisation(torch.eye(4, dtype=torch.float64), torch.eye(4, dtype=torch.float64), 0.3,
+                              (lower + upper) / 2, (upper - lower) / 2)
+    theta0 = torch.tensor([-0.45, 0.62, 0.01, 0.02], dtype=torch.float64)
+    for count in (2, 4, 8):
+        starts = _theta_starts(theta0, param, count)
+        assert starts.shape == (count, 4)
+        assert torch.equal(starts[0], theta0)
+        strata = ((starts - lower) / (upper - lower) * count).floor().clamp(0, count - 1).long()
+        for j in range(4):
+            assert sorted(strata[:, j].tolist()) == list(range(count)), (count, j, strata[:, j])
+        assert len({tuple(row.tolist()) for row in starts}) == count
+        back = param.thetas(torch.cat([torch.zeros(count, 6, dtype=torch.float64), param.u_of(starts)], 1))
+        # u keeps _U_LIMIT inside ±π/2, so a start within half_range * (1 - cos _U_LIMIT) of a limit moves there
+        assert bool(((back - starts).abs() <= (upper - lower) / 2 * (1 - math.cos(_U_LIMIT)) + 1e-12).all())
+        assert bool(((back >= lower) & (back <= upper)).all())
