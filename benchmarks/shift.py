@@ -66,7 +66,8 @@ def shifted_sets(
 ) -> dict[str, Dataset]:
     """The restyled datasets of ``frame_ids``, one per condition, made (or remade) in ``out`` unless
     ``out/<condition>`` already holds these frames (and maybe more: pick yours with
-    :func:`source_frames`) rendered with the same settings."""
+    :func:`source_frames`) rendered with the same settings and faults (:data:`faults.VERSION`)."""
+    from narf_core.data.synth import faults
     from narf_core.data.synth.restyle import restyle
 
     def current(name: str) -> bool:
@@ -75,7 +76,7 @@ def shifted_sets(
         except (ValueError, OSError):
             return False
         return (set(frame_ids) <= set(g.get("source_frames") or []) and g.get("size") == list(size)
-                and g.get("spp") == spp and g.get("seed") == seed)
+                and g.get("spp") == spp and g.get("seed") == seed and g.get("faults_version", 1) == faults.VERSION)
 
     missing = tuple(name for name in conditions if not current(name))
     if missing:

@@ -82,8 +82,9 @@ def test_the_error_is_split_along_and_across_the_line_of_sight() -> None:
 
 @pytest.mark.slow
 @pytest.mark.skipif(not MODEL.exists(), reason="no bundled demo model")
-def test_a_tiny_shifted_run(tmp_path: Path) -> None:
+def test_a_tiny_shifted_run(tmp_path: Path, monkeypatch) -> None:
     from narf_core.bundle import load_bundle
+    from narf_core.data.synth import faults
     from narf_core.data.synth.generate import synthesize
 
     source = Dataset.open(synthesize("clamp", tmp_path / "src", size=(96, 72), views=4, seed=0))
@@ -114,6 +115,12 @@ def test_a_tiny_shifted_run(tmp_path: Path) -> None:
     frames = shift.source_frames(fewer["depth"], "test", set(ids[1:]))
     origin = {f["id"]: f["source_id"] for f in shifted.generator["frames"]}
     assert [origin[f.id] for f in frames] == ids[1:]
+    assert shifted.generator["restyle"]["faults_version"] == faults.VERSION
+    monkeypatch.setattr(faults, "VERSION", faults.VERSION + 1)  # the faults changed: the cached set is stale
+    remade = shift.shifted_sets(source, shifted.root.parent, ids, conditions=("depth",), size=(96, 72), spp=2, seed=0,
+                                progress=False)
+    assert (shifted.root / "scene.json").stat().st_mtime_ns != stamp
+    assert remade["depth"].generator["restyle"]["faults_version"] == faults.VERSION
 
 
 def test_bench_shift_errors(tmp_path: Path, monkeypatch, capsys: pytest.CaptureFixture[str]) -> None:

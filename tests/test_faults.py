@@ -73,6 +73,20 @@ def test_composited_occluder_is_in_front_of_the_tool() -> None:
     assert not np.allclose(out[region], 0.3)
 
 
+def test_occluder_is_in_front_of_every_part_it_hides_on_an_oblique_tool() -> None:
+    # a long tool seen obliquely: its near end 30 cm nearer than its median, the occluder placed anywhere
+    mask = np.zeros((60, 80), bool)
+    mask[25:35, 5:75] = True
+    depth = np.where(mask, np.linspace(0.6, 1.2, 80)[None], 1.5).astype(np.float32)
+    linear = np.full((60, 80, 3), 0.3, np.float32)
+    labels = mask.astype(np.uint8)
+    for seed in range(12):
+        f = faults.apply_faults(linear, depth, labels, faults.condition("occlusion-40"), (seed, 0), fx=60.0)
+        hidden = mask & (f.labels == 0)
+        assert hidden.any()
+        assert (f.depth[hidden] < depth[hidden] - 0.005).all(), f"seed {seed}: the occluder lies behind a part it hides"
+
+
 def test_mask_erosion_and_dilation_by_the_asked_pixels() -> None:
     mask = np.zeros((40, 40), bool)
     mask[10:30, 10:30] = True

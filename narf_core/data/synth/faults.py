@@ -289,6 +289,10 @@ CONDITIONS: dict[str, FaultOptions] = {
     "all": FaultOptions(sensor=True, depth=True, mask=True, occlusion=0.2),
 }
 
+# Bumped when a condition's faults change for the same seed, so that cached sets are remade
+# (2: the occluder lies in front of every part it hides, not only of the tool's median depth).
+VERSION = 2
+
 # independent random streams per effect, so that conditions share the draws of the effects they share
 _STREAMS = {"exposure": 1, "blur": 2, "noise": 3, "jpeg": 4, "depth": 5, "holes": 6, "mask": 7, "occluder": 8}
 
@@ -324,6 +328,9 @@ def apply_faults(
     if o.occlusion > 0:
         region = occluder_region(mask, rng("occluder"), o.occlusion)
         tool_z = float(np.median(depth[mask & (depth > 0)])) if (mask & (depth > 0)).any() else 1.0
+        hidden = region & mask & (depth > 0)
+        if hidden.any():  # in front of every part it hides, also of a tool seen obliquely (nearer than its median)
+            tool_z = min(tool_z, float(depth[hidden].min()))
         linear, z = composite_occluder(linear, z, region, rng("occluder"), tool_z)
         info["occluded"] = float((region & mask).sum() / max(mask.sum(), 1))
         visible = mask & ~region

@@ -515,7 +515,7 @@ def restyle(
     fx = float(camera.K[0, 0])
     generator = {"restyle": {"source": str(dataset.root), "renderer": f"mitsuba {_mitsuba_version()} ({VARIANT})",
                              "spp": spp, "seed": seed, "size": [camera.width, camera.height],
-                             "source_frames": [f.id for f in frames]}}
+                             "source_frames": [f.id for f in frames], "faults_version": faults.VERSION}}
     writers = {}
     for name, root in targets.items():
         source_generator = {k: v for k, v in dataset.generator.items() if k != "clean_frames"}
