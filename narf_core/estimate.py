@@ -277,11 +277,12 @@ class EstimateOptions:
         proportionally more rays, half of them on the silhouette's edges (``reference_box_px``,
         ``ray_sampling = "auto"``); up to that size nothing changes. Where a depth image contradicts
         the mask (an occluder beside it, its edge on a continuous surface: a segmenter's mask), the
-        mask is trusted only partially (``mask_trust = "auto"``)."""
+        mask is trusted only partially (``mask_trust = "auto"``), with a 2-pixel band: a segmenter's
+        edge is off by about that much, and a wider band leaves a small visible part no evidence."""
         return cls(**{
             "silhouette_weight": 1.0, "depth_weight": 1.0, "theta_starts": 4, "coarse_to_fine": 2, "lr_pose": 0.02,
             "reference_box_px": ROBUST_BOX_PX, "ray_sampling": "auto", "mask_trust": "auto", "partial_theta_starts": 8,
-            **overrides,
+            "mask_band_px": 2, **overrides,
         })
 
     @classmethod
