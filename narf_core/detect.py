@@ -53,6 +53,7 @@ from narf_core.estimate import (
     EstimateInputError,
     EstimateOptions,
     EstimateResult,
+    _check_call,
     _check_observation,
     _Parameterisation,
     _theta_starts,
@@ -485,15 +486,8 @@ def detect(
         DetectInputError: an empty or tiny mask, sizes that do not match, bad options or joints.
     """
     start = time.perf_counter()
-    opts = options if options is not None else DetectOptions()
-    if not isinstance(opts, DetectOptions):
-        raise DetectInputError(f"options must be DetectOptions, got {type(opts).__name__}")
-    if not isinstance(camera, Pinhole):
-        raise DetectInputError(f"camera must be a narf_core.geometry.Pinhole, got {type(camera).__name__}")
-    try:
-        image, mask, depth = _check_observation(image, mask, depth, camera)
-    except EstimateInputError as e:
-        raise DetectInputError(str(e), e.field, e.reason) from None
+    opts = _check_call(options, DetectOptions, camera, DetectInputError)
+    image, mask, depth = _check_observation(image, mask, depth, camera, DetectInputError)
     for i, (T, _) in enumerate(hints):
         check_pose(T, f"hints[{i}].T_cam_obj", error=DetectInputError)
     found = candidates(model, camera, mask, depth, joints, opts, hints)

@@ -487,49 +487,63 @@ class EstimateResult:
 # Input checks
 
 
+def _check_call(options, options_type: type, camera: Pinhole, error: type[EstimateInputError]):
+    """``options`` (``options_type()`` where None) once checked to be an ``options_type``, and
+    ``camera`` a :class:`Pinhole`: the opening checks of :func:`refine` and of the detector;
+    ``error`` is the caller's error class."""
+    opts = options if options is not None else options_type()
+    if not isinstance(opts, options_type):
+        raise error(f"options must be {options_type.__name__}, got {type(opts).__name__}")
+    if not isinstance(camera, Pinhole):
+        raise error(f"camera must be a narf_core.geometry.Pinhole, got {type(camera).__name__}")
+    return opts
+
+
 def _check_observation(
-    image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, camera: Pinhole
+    image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None, camera: Pinhole,
+    error: type[EstimateInputError] = EstimateInputError,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Validated ``image [H,W,3]`` uint8, ``mask [H,W]`` bool and ``depth [H,W]`` (0 = none)."""
+    """Validated ``image [H,W,3]`` uint8, ``mask [H,W]`` bool and ``depth [H,W]`` (0 = none);
+    ``error`` is the caller's error class."""
     image, mask = np.asarray(image), np.asarray(mask)
     if image.ndim != 3 or image.shape[2] != 3:
-        raise EstimateInputError(f"image must be an RGB array [H, W, 3], got shape {image.shape}")
+        raise error(f"image must be an RGB array [H, W, 3], got shape {image.shape}")
     if image.dtype != np.uint8:
-        raise EstimateInputError(f"image must be uint8 sRGB, got dtype {image.dtype}")
+        raise error(f"image must be uint8 sRGB, got dtype {image.dtype}")
     if mask.ndim != 2:
-        raise EstimateInputError(f"mask must be a 2-D array [H, W], got shape {mask.shape}")
+        raise error(f"mask must be a 2-D array [H, W], got shape {mask.shape}")
     if mask.dtype != bool and not np.issubdtype(mask.dtype, np.integer):
-        raise EstimateInputError(f"mask must be boolean (or integer, nonzero = object), got dtype {mask.dtype}")
+        raise error(f"mask must be boolean (or integer, nonzero = object), got dtype {mask.dtype}")
     height, width = image.shape[:2]
     if mask.shape != (height, width):
-        raise EstimateInputError(f"mask is {mask.shape[1]}x{mask.shape[0]} but image is {width}x{height} (WxH)")
+        raise error(f"mask is {mask.shape[1]}x{mask.shape[0]} but image is {width}x{height} (WxH)")
     if (camera.width, camera.height) != (width, height):
-        raise EstimateInputError(
+        raise error(
             f"camera is {camera.width}x{camera.height} but image is {width}x{height} (WxH)"
         )
     K = camera.K.detach().double().cpu().numpy()
     if not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]):
-        raise EstimateInputError(f"camera K must be finite with fx, fy > 0 and last row [0, 0, 1], got {K.tolist()}")
+        raise error(f"camera K must be finite with fx, fy > 0 and last row [0, 0, 1], got {K.tolist()}")
     if not (0 <= K[0, 2] <= width and 0 <= K[1, 2] <= height):
-        raise EstimateInputError(
+        raise error(
             f"camera K's principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the {width}x{height} image: "
             "K is probably for another resolution"
         )
     mask = mask != 0
     count = int(mask.sum())
     if count == 0:
-        raise EstimateInputError("mask is empty: no object pixel to fit")
+        raise error("mask is empty: no object pixel to fit")
     if count < MIN_MASK_PIXELS:
-        raise EstimateInputError(f"mask has only {count} object pixel(s); at least {MIN_MASK_PIXELS} are needed")
+        raise error(f"mask has only {count} object pixel(s); at least {MIN_MASK_PIXELS} are needed")
     if depth is not None:
         depth = np.asarray(depth)
         if depth.shape != (height, width):
-            raise EstimateInputError(f"depth must be [H, W] = {(height, width)} like the image, got shape {depth.shape}")
+            raise error(f"depth must be [H, W] = {(height, width)} like the image, got shape {depth.shape}")
         if not np.issubdtype(depth.dtype, np.floating):
-            raise EstimateInputError(f"depth must be float metres, got dtype {depth.dtype}")
+            raise error(f"depth must be float metres, got dtype {depth.dtype}")
         depth = np.where(np.isfinite(depth), depth, 0.0).astype(np.float32)
         if (depth < 0).any():
-            raise EstimateInputError("depth has negative values; expected metres with 0 (or NaN) = no return")
+            raise error("depth has negative values; expected metres with 0 (or NaN) = no return")
     return image, mask, depth
 
 
@@ -1044,11 +1058,7 @@ def refine(
             non-finite or non-rigid pose, unknown or out-of-limit joints, bad options.
     """
     start_time = time.perf_counter()
-    opts = options if options is not None else EstimateOptions()
-    if not isinstance(opts, EstimateOptions):
-        raise EstimateInputError(f"options must be EstimateOptions, got {type(opts).__name__}")
-    if not isinstance(camera, Pinhole):
-        raise EstimateInputError(f"camera must be a narf_core.geometry.Pinhole, got {type(camera).__name__}")
+    opts = _check_call(options, EstimateOptions, camera, EstimateInputError)
     image, mask, depth = _check_observation(image, mask, depth, camera)
     T0 = torch.from_numpy(check_pose(T_init, "T_init", error=EstimateInputError))
     warnings = check_observation(image, mask, depth, camera, expected_depth_m=float(T0[2, 3]))
