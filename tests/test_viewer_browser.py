@@ -373,7 +373,9 @@ def test_touch_orbits_with_one_finger_and_zooms_with_two(browser, server: str, s
         orbited = page.locator("#camera-pose").text_content()
         assert orbited != pose, "one finger orbits the camera"
 
-        zooms = page.evaluate("window.narfViewer.frames.filter((f) => f.input === 'pointermove').length")
+        zooms = page.evaluate(  # counted as waited for below: the narf pane's frames only, not the parts pane's
+            "window.narfViewer.frames.filter((f) => f.view === 'model' && f.mode === 'narf' && f.input === 'pointermove').length"
+        )
         touch("touchStart", (x - 20, y), (x + 20, y))
         for step in range(1, 5):
             touch("touchMove", (x - 20 - 10 * step, y), (x + 20 + 10 * step, y))
