@@ -32,9 +32,15 @@ units); the step and 2x and 4x it are tried on the same rays and the lowest robu
 is lower than the current one, else ``λ`` grows, by a factor that doubles with every rejection in a
 row (4, 8, 16, ...: Nielsen's rule, so a run stuck at a tiny ``λ`` reaches a useful one in a few
 iterations). After a rejection at the fine level the rays and the parameters are those of the last
-iteration, so its residuals and Jacobian serve again and only the trial step is rendered. Coarse pyramid levels average ``_GROUP`` jittered
-rays per pixel (the render blurred like the target); the fine level keeps one set of rays, so the
-last iterations are a deterministic LM that can converge.
+iteration, so its residuals and Jacobian serve again and only the trial step is rendered. Once one
+start is left at the fine level of a pyramid (the polish), the origins' derivatives along each ray
+are replaced by the render's change over a sample spacing (:func:`along_ray_exact`) and the trial
+steps go on to 32x the LM step: autograd through a render of fixed samples sees a sharp surface
+only through the density's slope between two samples, which puts noise in ``J`` (so ``JᵀWJ`` is too
+large and the LM step too short) and leaves most of the depth's change along the line of sight out
+of it. Coarse pyramid levels average ``_GROUP`` jittered rays per pixel (the render blurred like the
+target); the fine level keeps one set of rays, so the last iterations are a deterministic LM that
+can converge.
 
 Covariance. At the estimate, the parameters are re-centred there (position of the box centre in
 metres, rotation in radians about it, both on camera axes, and ``θ`` in joint units) and
@@ -78,6 +84,10 @@ _FD_THETA = 1e-3  # forward-difference step for θ in parts mode, as a fraction 
 _FD_POSE = 1e-5  # central-difference step of the pose columns (object radii, radians)
 _MAX_FAILURES = 8
 _STEP_FACTORS = (1.0, 2.0, 4.0)  # multiples of the LM step tried, in order, while the cost keeps falling
+# Once one start is left at the fine level of a pyramid (the polish), the multiples go on to 32x: the
+# Jacobian's noise (the surface seen only through the density's slope between samples) inflates JᵀWJ,
+# so the LM step there falls several times short of the minimum along it (docs/benchmarks.md).
+_POLISH_STEP_FACTORS = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
 _GROUP = 4  # jittered rays averaged per pixel at a coarse pyramid level
 _INFORMATION_CHUNK = 256  # rays linearised at once for the covariance (bounds its render graph's memory)
 
@@ -171,10 +181,11 @@ class Problem:
     samples: Samples | None = None
 
     def predictions(
-        self, rays_cam: Rays, T_obj_cam: Tensor, theta: Tensor, grad: bool
+        self, rays_cam: Rays, T_obj_cam: Tensor, theta: Tensor, grad: bool, along_ray: bool = False
     ) -> tuple[Tensor, tuple[Tensor, Tensor, Tensor] | None]:
         """``P [S, n, 5]`` (float64) of every start and, with ``grad``, the leaves' derivatives
-        ``dP/do, dP/dd [S, n, 5, 3]`` and ``dP/dθ [S, n, 5, k]``."""
+        ``dP/do, dP/dd [S, n, 5, 3]`` and ``dP/dθ [S, n, 5, k]``; ``along_ray``: ``dP/do``'s part along
+        each ray the render's change over a sample spacing (:func:`along_ray_exact`)."""
         S, n, k = T_obj_cam.shape[0], len(rays_cam), theta.shape[1]
         dtype = rays_cam.origins.dtype
         R = T_obj_cam[:, :3, :3].to(dtype)
@@ -198,6 +209,9 @@ class Problem:
             grads = _channel_gradients(P, leaves)
         grads = [torch.zeros(_CHANNELS, S * n, x.shape[1]) if g is None else g for g, x in zip(grads, leaves)]
         dP = [g.permute(1, 0, 2).reshape(S, n, _CHANNELS, -1).double() for g in grads]  # [S, n, 5, ·]
+        if along_ray:
+            dP[0] = along_ray_exact(dP[0], P.detach().reshape(S, n, _CHANNELS).double(),
+                                    d.detach().reshape(S, n, 3).double(), rays_cam.z_per_t.double())
         if k == 0:
             dP.append(P.new_zeros(S, n, _CHANNELS, 0).double())
         elif parts:
@@ -251,14 +265,16 @@ class Problem:
         index: Tensor,
         jacobian: bool,
         group: int = 1,
+        along_ray: bool = False,
     ) -> Residuals:
         """Residuals of every row of ``p [S, d]`` on the rays ``rays_cam [n * group]`` through the box
-        pixels ``index [n]`` (see the module docstring), with their Jacobian if asked. With
-        ``group > 1`` each pixel's prediction is the mean of ``group`` consecutive rays (jittered
-        over a pyramid level's square, so the render is box-filtered like the level's target)."""
+        pixels ``index [n]`` (see the module docstring), with their Jacobian if asked (``along_ray``:
+        see :meth:`predictions`). With ``group > 1`` each pixel's prediction is the mean of ``group``
+        consecutive rays (jittered over a pyramid level's square, so the render is box-filtered like
+        the level's target)."""
         T_obj_cam, dT = chain.object_from_camera_jacobian(p) if jacobian else (invert_pose(chain.poses(p)), None)
         theta = chain.thetas(p)
-        P, dP = self.predictions(rays_cam, T_obj_cam, theta, jacobian)
+        P, dP = self.predictions(rays_cam, T_obj_cam, theta, jacobian, along_ray)
         if jacobian:
             dPo, dPd, dPt = dP
             dirs = rays_cam.directions.double()  # [n * group, 3] camera frame
@@ -325,6 +341,22 @@ class Problem:
         from narf_core.estimate import _gain_bias
 
         return _gain_bias(P[..., :3], P[..., 3], rgb_t, mask_t, keep)
+
+
+def along_ray_exact(dPo: Tensor, P: Tensor, d: Tensor, z_per_t: Tensor) -> Tensor:
+    """``dP/do [S, n, 5, 3]`` with its part along each ray's unit direction ``d [S, n, 3]`` replaced by
+    the render's change over a sample spacing.
+
+    A ray's origin moved one sample spacing along the ray meets the same points one sample on, so
+    colour and opacity stay and the premultiplied depth falls by ``opacity z_per_t`` per metre
+    (``P [S, n, 5]``, ``z_per_t [n]``). Autograd gives the slope between two samples instead (their
+    distances are fixed, the surface is seen through the density's slope there): on a sharp surface
+    (a thin tool's, a sample or two deep) anything from a small fraction of that depth change to
+    twice it, and a colour change that is not there. The part across the ray is left as it is."""
+    along = torch.einsum("snci,sni->snc", dPo, d)  # [S, n, 5]
+    exact = torch.zeros_like(along)
+    exact[..., 4] = -P[..., 3] * z_per_t[None, :]
+    return dPo + (exact - along)[..., None] * d[:, :, None, :]
 
 
 def _channel_gradients(P: Tensor, leaves: tuple[Tensor, ...]) -> list[Tensor | None]:
@@ -446,7 +478,10 @@ class GaussNewtonRun:
             self.iteration += 1
             index, rays, group = self._rays(target, self.params.shape[0] > 1)
             t0 = time.perf_counter()
-            res = self._linearise(rays, target, index, group)
+            # The polish: one start left at the fine level after a pyramid (not a tracker's frame, which
+            # has neither): the along-ray derivatives over a sample spacing and longer trial steps.
+            polish = n_levels > 1 and level == n_levels - 1 and self.params.shape[0] == 1
+            res = self._linearise(rays, target, index, group, polish)
             t1 = time.perf_counter()
             self.timing["jacobian_s"] += t1 - t0
             if not (bool(torch.isfinite(res.r).all()) and bool(torch.isfinite(res.J).all())):
@@ -472,7 +507,7 @@ class GaussNewtonRun:
             # The step, and longer ones along it while the cost on the same rays falls (renders only, no
             # Jacobian): the linear model of a sharp edge reaches only about a sample's length.
             trial_params, trial_cost = self.params, cost.clone()
-            for factor in _STEP_FACTORS:
+            for factor in _POLISH_STEP_FACTORS if polish else _STEP_FACTORS:
                 candidate = self.params + factor * step
                 trial = self.problem.residuals(self.chain, candidate, rays, target, index, False, group)
                 c = robust_cost(trial.r * trial.used, kind, scale)
@@ -505,13 +540,13 @@ class GaussNewtonRun:
                 self.status = "converged"
                 return
 
-    def _linearise(self, rays: Rays, target: _Target, index: Tensor, group: int) -> Residuals:
+    def _linearise(self, rays: Rays, target: _Target, index: Tensor, group: int, along_ray: bool = False) -> Residuals:
         """The residuals and Jacobian at ``params`` on this iteration's rays; the last ones again where
         neither changed (a rejected step at the fine level, whose rays are fixed: only ``λ`` differs)."""
         last = self.linearised
         if last is not None and last[0] is index and torch.equal(last[1], self.params):
             return last[2]
-        res = self.problem.residuals(self.chain, self.params, rays, target, index, True, group)
+        res = self.problem.residuals(self.chain, self.params, rays, target, index, True, group, along_ray)
         finite = bool(torch.isfinite(res.r).all()) and bool(torch.isfinite(res.J).all())
         self.linearised = (index, self.params.clone(), res) if finite else None
         return res

@@ -8,7 +8,7 @@ import json
 import math
 import subprocess
 import sys
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -478,14 +478,14 @@ def _overshooting_run(model, monkeypatch, cache: bool) -> tuple[object, list[flo
     before every solve at the fine level, and how many Jacobians were rendered."""
     monkeypatch.setattr(gauss_newton, "_STEP_FACTORS", (64.0,))
     if not cache:
-        monkeypatch.setattr(gauss_newton.GaussNewtonRun, "_linearise", lambda self, rays, target, index, group:
-                            self.problem.residuals(self.chain, self.params, rays, target, index, True, group))
+        monkeypatch.setattr(gauss_newton.GaussNewtonRun, "_linearise", lambda self, rays, target, index, group, along=False:
+                            self.problem.residuals(self.chain, self.params, rays, target, index, True, group, along))
     lams, jacobians = [], [0]
     solve, residuals = gauss_newton.GaussNewtonRun._solve, gauss_newton.Problem.residuals
 
-    def counted(self, chain, p, rays, target, index, jacobian, group=1):
+    def counted(self, chain, p, rays, target, index, jacobian, group=1, along_ray=False):
         jacobians[0] += int(jacobian)
-        return residuals(self, chain, p, rays, target, index, jacobian, group)
+        return residuals(self, chain, p, rays, target, index, jacobian, group, along_ray)
 
     def logged(self, H, g):
         lams.append(float(self.lam[0]))
@@ -533,6 +533,58 @@ def test_lambda_grows_faster_with_every_rejection_in_a_row(model, monkeypatch):
     assert len(expected) >= 3 and max(want for _, want in expected) >= 8, lams
     for got, want in expected:
         assert got == pytest.approx(want, rel=1e-9), lams
+
+
+def test_the_along_ray_derivative_is_the_render_moved_along_its_rays(model):
+    """Moving every ray's origin along the ray by one sample spacing (the same points, one sample on)
+    changes the toy's render only in its premultiplied depth, by ``-opacity z_per_t`` per metre: the
+    corrected ``dP/do`` says exactly that along the ray and keeps its part across the ray, where
+    autograd's part along the ray (the slope between two samples) is off by up to twice that."""
+    from narf_core.geometry import Rays, invert_pose
+
+    T = torch.as_tensor(view(), dtype=torch.float64)
+    theta = model.joint_vector(TRUTH).double()[None]
+    problem = gauss_newton.Problem(model, EstimateOptions.preset("gauss-newton", mode="narf"), 0.1, True)
+    v, u = torch.meshgrid(torch.arange(12.0, 36.0, 2.0), torch.arange(16.0, 48.0, 2.0), indexing="ij")
+    rays = CAMERA.rays(torch.stack([u.flatten(), v.flatten()], -1))
+    T_obj_cam = invert_pose(T)[None]
+    P, (raw, _, _) = problem.predictions(rays, T_obj_cam, theta, True)
+    _, (exact, _, _) = problem.predictions(rays, T_obj_cam, theta, True, along_ray=True)
+    d = rays.directions.double() @ T_obj_cam[0, :3, :3].T  # object frame, unit
+    hit = P[0, :, 3] > 0.99
+    assert int(hit.sum()) >= 20
+    along = torch.einsum("nci,ni->nc", exact[0], d)
+    scale = float(raw.abs().max())  # the leaves are float32: agreement to about 1e-6 of the largest entry
+    torch.testing.assert_close(along[:, :4], torch.zeros_like(along[:, :4]), rtol=0, atol=1e-5 * scale)
+    torch.testing.assert_close(along[:, 4], -P[0, :, 3] * rays.z_per_t.double(), rtol=0, atol=1e-5 * scale)
+    across = lambda J: J - torch.einsum("nci,ni->nc", J, d)[..., None] * d[:, None, :]  # noqa: E731
+    torch.testing.assert_close(across(exact[0]), across(raw[0]), rtol=0, atol=1e-5 * scale)
+    # The renders, every ray's origin moved half a sample spacing back and on along the ray.
+    o = T_obj_cam[0, :3, 3].float().expand(len(rays), 3)
+    moved = [model.render_rays(Rays(o + s * d.float(), d.float(), rays.z_per_t), theta[0].float(), mode="narf",
+                               outputs=("rgb", "opacity", "depth")) for s in (-model.step / 2, model.step / 2)]
+    fd = (moved[1].depth - moved[0].depth).double() / model.step
+    torch.testing.assert_close(fd[hit], along[hit, 4], rtol=0, atol=0.02)
+    assert float((moved[1].opacity - moved[0].opacity).abs()[hit].max()) < 1e-3
+    raw_along = torch.einsum("nci,ni->nc", raw[0], d)[hit, 4]
+    assert float((raw_along - fd[hit]).abs().max()) > 0.3  # the slope between samples: not the derivative
+
+
+def test_only_a_pyramid_run_polishes(model, monkeypatch):
+    """The polish (exact along-ray derivatives, trial steps up to 32x) runs once one start is left at a
+    pyramid's fine level; a run without a pyramid (a tracker's frame) keeps the plain iteration."""
+    calls = []
+    exact = gauss_newton.along_ray_exact
+    monkeypatch.setattr(gauss_newton, "along_ray_exact", lambda *a: calls.append(1) or exact(*a))
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    T0 = perturbed(T, 10, 0.02, seed=1)
+    plain = EstimateOptions.preset("gauss-newton", **{**GN, "iterations": 6}, coarse_to_fine=1, theta_starts=1,
+                                   uncertainty=False)
+    refine(model, image, mask, CAMERA, T0, depth=depth, options=plain)
+    assert calls == []
+    refine(model, image, mask, CAMERA, T0, depth=depth, options=replace(plain, coarse_to_fine=2, iterations=12))
+    assert len(calls) >= 3
 
 
 @pytest.mark.slow
