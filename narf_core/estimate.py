@@ -227,6 +227,9 @@ class EstimateOptions:
     sigma_floor_position: float = 0.0  # metres
     sigma_floor_rotation: float = 0.0  # radians
     sigma_floor_joint: float = 0.0  # fraction of the joint's range
+    # > 0: colour residuals up to this count as the model's usual one, and the model's error (MODEL_ERROR)
+    # grows only with a residual above it; 0: MODEL_ERROR's reference (model_error; the tracker's with depth).
+    uncertainty_usual_residual: float = 0.0
 
     def __post_init__(self) -> None:
         check_option_types(self, EstimateInputError)
@@ -1204,7 +1207,8 @@ def _uncertainty(
     floor = torch.cat([
         torch.full((3,), opts.sigma_floor_position), torch.full((3,), opts.sigma_floor_rotation), opts.sigma_floor_joint * span
     ]).double()
-    sd = model_error(model, _error_class(opts, uses_depth), pixel, param.radius, stat.colour_variance)
+    sd = model_error(model, _error_class(opts, uses_depth), pixel, param.radius,
+                     stat.colour_variance, opts.uncertainty_usual_residual)
     Sigma = stat.sigma + torch.diag(sd**2 + floor**2)
     return Uncertainty.from_covariance(Sigma.numpy().copy(), [j.name for j in model.joints], stat.variance, stat.dof)
 
@@ -1235,14 +1239,18 @@ def _error_class(opts: EstimateOptions, uses_depth: bool) -> str:
     return "shape-gauss-newton" if opts.solver == "gauss-newton" else "shape"
 
 
-def model_error(model: NarfModel, kind: str, pixel_m: float, radius: float, colour_variance: float) -> Tensor:
+def model_error(model: NarfModel, kind: str, pixel_m: float, radius: float, colour_variance: float,
+                usual: float = 0.0) -> Tensor:
     """σ ``[6 + k]`` of the model's error (see :data:`MODEL_ERROR`; ``kind`` from :func:`_error_class`)
     at an estimate where a pixel spans ``pixel_m`` metres at the object's centre: in position that
     times ``pixels``, in rotation that over the object's ``radius``, per joint a position
-    (prismatic, metres) or a rotation (revolute)."""
+    (prismatic, metres) or a rotation (revolute). ``usual`` (> 0): the reference colour residual
+    instead of the calibration's, and residuals below it count as it
+    (``EstimateOptions.uncertainty_usual_residual``)."""
     own = model.metadata.get("uncertainty") or {}
     calibration = {**MODEL_ERROR, **own, "pixels": {**MODEL_ERROR["pixels"], **own.get("pixels", {})}}
-    fit = (max(colour_variance, 0.0) / calibration["reference_variance"]) ** calibration["exponent"]
+    reference = usual or calibration["reference_variance"]
+    fit = (max(colour_variance, usual) / reference) ** calibration["exponent"]
     position = calibration["pixels"][kind] * pixel_m * fit
     joints = [position if j.type == "prismatic" else position / radius for j in model.joints]
     return torch.tensor([position] * 3 + [position / radius] * 3 + joints, dtype=torch.float64)

@@ -374,6 +374,90 @@ def test_model_error_footprint_is_never_finer_than_the_reference_box(clamp, clam
     assert seen[1] == pytest.approx(seen[0] * expected, rel=0.05)  # (the estimates differ a little)
 
 
+def test_model_error_grows_only_above_the_usual_residual(clamp) -> None:
+    """``usual`` (the tracker's ``usual_residual`` with depth): a colour residual up to it gives the
+    model's error at its reference (pixel footprints alone), above it the error grows in proportion;
+    0 leaves the calibration's own reference and scaling."""
+    from narf_core.estimate import MODEL_ERROR, EstimateInputError, EstimateOptions, model_error
+
+    at_usual = model_error(clamp, "shape", 0.004, 0.1, 0.03, usual=0.03)
+    assert float(at_usual[0]) == pytest.approx(MODEL_ERROR["pixels"]["shape"] * 0.004)
+    for below in (0.0, 0.001, 0.02):
+        assert _close(model_error(clamp, "shape", 0.004, 0.1, below, usual=0.03), at_usual)
+    assert _close(model_error(clamp, "shape", 0.004, 0.1, 0.09, usual=0.03), 3 * at_usual)
+    reference = MODEL_ERROR["reference_variance"]
+    assert _close(model_error(clamp, "shape", 0.004, 0.1, 0.5 * reference), 0.5 * at_usual)  # (usual 0)
+    with pytest.raises(EstimateInputError, match=r"options\.uncertainty_usual_residual must be >= 0"):
+        EstimateOptions(uncertainty_usual_residual=-1.0)
+
+
+def _close(a, b) -> bool:
+    return bool(np.allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=0))
+
+
+def test_depth_frame_sigma_is_in_pixel_footprints_below_the_usual_residual(clamp, clamp_sequence: Path) -> None:
+    """With depth a warm-started frame's position σ is ``sigma_scale`` times the model's error in
+    pixel footprints at the object (its colour residual is below ``usual_residual`` on the clamp's
+    own render) plus the small statistical part, and no smaller on a darkened image (a larger
+    residual); without depth the refiner's Σ follows the residual from the calibration's reference,
+    and grows on the darkened image."""
+    from narf_core.data.dataset import Dataset
+    from narf_core.estimate import _error_class, model_error
+    from narf_core.track import TrackFrame, TrackInputError, TrackOptions, TrackState, step
+
+    with pytest.raises(TrackInputError, match=r"options\.usual_residual must be >= 0"):
+        TrackOptions(usual_residual=-0.1)
+    dataset = Dataset.open(clamp_sequence)
+    frame = dataset.frames()[1]
+    images = dataset.load(frame)
+    options = TrackOptions(iterations=2, rays_per_iteration=128, uncertainty_rays=64)
+    assert options.step_options(True).uncertainty_usual_residual == options.usual_residual > 0
+    assert options.step_options(False).uncertainty_usual_residual == 0
+    sigmas = {}
+    for depth in (images.depth, None):
+        for gain in (1.0, 0.5):
+            image = (images.rgb * gain).astype(np.uint8)
+            state = TrackState.initial(clamp, frame.T_cam_obj, frame.joints, frame.time - 1 / 30, status="tracking")
+            result = step(clamp, dataset.camera, TrackFrame(image, images.labels > 0, frame.time, depth), state, options)[0]
+            sigmas[depth is None, gain] = np.asarray(result.uncertainty["position_sigma_m"])
+            if depth is not None and gain == 1.0:
+                aabb = clamp.aabb.double().numpy()
+                centre_depth = float(result.T_cam_obj[2, :3] @ ((aabb[0] + aabb[1]) / 2) + result.T_cam_obj[2, 3])
+                pixel = centre_depth / float(dataset.camera.K[0, 0])
+                kind = _error_class(options.step_options(True), True)
+                expected = options.sigma_scale * float(model_error(clamp, kind, pixel, 1.0, 0.0, usual=1.0)[0])
+                assert expected <= sigmas[False, 1.0].min() and sigmas[False, 1.0].max() <= 1.3 * expected
+    assert sigmas[False, 0.5].min() >= 0.95 * sigmas[False, 1.0].min()
+    assert sigmas[True, 0.5].min() > 1.5 * sigmas[True, 1.0].max()  # RGB only: the colour residual scales σ
+
+
+def test_a_frame_whose_sigma_passes_the_limits_gets_a_second_round(clamp, clamp_sequence: Path) -> None:
+    """With depth, a warm-started frame whose Σ passes the limits (``max_position_sigma_m``, here
+    set below any σ) runs its iterations twice, the second round from where the first ended, and
+    ends closer to the truth than one round from a start 1.5 cm off; never without depth, nor with
+    ``retry_uncertain`` off."""
+    from narf_core.data.dataset import Dataset
+    from narf_core.track import TrackFrame, TrackOptions, TrackState, step
+    from narf_core.track_io import score
+
+    dataset = Dataset.open(clamp_sequence)
+    frame = dataset.frames()[1]
+    images = dataset.load(frame)
+    T_off = np.array(frame.T_cam_obj, dtype=np.float64)
+    T_off[:3, 3] += np.array([0.015, 0.0, 0.0])  # across the line of sight: no depth alignment catches it
+    fast = dict(iterations=3, rays_per_iteration=256, uncertainty_rays=64, max_position_sigma_m=1e-6)
+    runs = {}
+    for depth in (images.depth, None):
+        for retry in (True, False):
+            state = TrackState.initial(clamp, T_off, frame.joints, frame.time - 1 / 30, status="tracking")
+            result = step(clamp, dataset.camera, TrackFrame(images.rgb, images.labels > 0, frame.time, depth), state,
+                          TrackOptions(retry_uncertain=retry, **fast))[0]
+            runs[depth is None, retry] = (result.iterations, score(clamp, frame, result)["add_m"])
+    assert runs[False, True][0] == 6 and runs[False, False][0] == 3
+    assert runs[True, True][0] == runs[True, False][0] == 3
+    assert runs[False, True][1] < runs[False, False][1]
+
+
 def test_frame_and_iteration_marching_give_the_same_step(clamp, clamp_sequence: Path) -> None:
     """A warm-started step without marching (march "frame") lands where the refiner that marches
     every iteration lands: the same rays, the same loss, renders equal up to the march's early stop."""
