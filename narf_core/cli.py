@@ -665,6 +665,9 @@ def _add_estimate(commands: argparse._SubParsersAction) -> None:
     arg("--pose-starts", type=_positive_int, metavar="N",
         help="the given pose and N - 1 turned by 30 deg, scored before refining (at most 11; default: the "
              "preset's, 1); robust with 9 finds the pose from 30 deg / 6 cm off")
+    arg("--refinements", type=_positive_int, metavar="N",
+        help="without --depth, or with a mask the depth contradicts: N refinements, the one of lowest loss "
+             "on one fixed set of rays kept (at most 8; default 1); N times the time")
     _add_json_flag(parser)
     parser.set_defaults(run=_run_estimate)
 
@@ -689,7 +692,7 @@ def _run_estimate(args: argparse.Namespace) -> int:
         if not isinstance(gt, dict) or "pose" not in gt:
             raise ValueError("--gt: expected {\"pose\": ..., \"joints\": {...}}")
         ground_truth = (_pose_arg(json.dumps(gt["pose"]), "--gt pose"), _joints_arg(json.dumps(gt.get("joints", {})), "--gt joints"))
-    chosen = {"iterations": args.iterations, "pose_starts": args.pose_starts}
+    chosen = {"iterations": args.iterations, "pose_starts": args.pose_starts, "refinements": args.refinements}
     options = EstimateOptions.preset(args.preset, mode=args.mode, **{k: v for k, v in chosen.items() if v is not None})
     model = load_bundle(args.model)
     _mode_arg(model, args.mode)  # a mode the model lacks, named as the flag

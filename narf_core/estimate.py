@@ -131,8 +131,17 @@ _PRUNE_SHARE = 1 / 3  # of the iterations run every θ start (half the rays each
 _MAX_BOX_SCALE = 4  # reference_box_px multiplies the rays per iteration by at most this
 _BEHIND_M = 0.01  # observed depth this far behind the rendered surface: the object is not on that ray
 _EVAL_RAYS = 4096  # starts are compared, and the final loss measured, on at most this many rays of the box
+_CHOICE_RAYS = 16384  # box rays on which several refinements' estimates are compared (refinements)
 _SCORE_RAYS = 1024  # box rays on which every (pose, θ) start is scored before the refinement
 _POSES_KEPT = 1  # pose starts refined per θ start besides the given pose (the best scored; docs/benchmarks.md)
+# The configuration search (_theta_search): surface points per link and mask pixels matched, Adam steps and
+# their rates (pose in radians and object radii, configuration in u), and how far in front of the observed
+# depth a point may lie before it costs.
+_SEARCH_POINTS = 64
+_SEARCH_PIXELS = 256
+_SEARCH_STEPS = 30
+_SEARCH_RATES = (0.02, 0.1)
+_SEARCH_DEPTH_MARGIN = 0.01
 # Directions of the turned pose starts (camera axes, in order): about the camera's x axis (up and down),
 # its y axis (left and right), the diagonals between them, then the viewing axis.
 _POSE_TURNS = ((0, 0, 0), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0),
@@ -196,6 +205,12 @@ class EstimateOptions:
     # With partial trust, at least this many configuration starts (0: theta_starts): an occluder or a
     # wrong mask edge hides part of the object, and a wrong configuration then fits from more places.
     partial_theta_starts: int = 0
+    # Where one refinement is least reliable, without depth (the distance along the line of sight is weakly
+    # observed) or with a partially trusted mask (occluders, a segmenter's edge), and the random rays'
+    # trajectory decides where a run ends: this many refinements from the same starts, each with its own ray
+    # seed and every other one on a single pyramid level; the one whose estimate has the lowest loss on one
+    # fixed set of _CHOICE_RAYS box rays is returned (_best_refinement). 0 or 1: one refinement. Adam only.
+    refinements: int = 0
     # Rays of an iteration: "uniform" (independent draws over the box), "stratified" (one per cell of a
     # grid over the box), "edges" (half drawn on silhouette edges and texture, half uniform) or
     # "auto" (uniform in a box up to reference_box_px, edges in a larger one).
@@ -259,6 +274,7 @@ class EstimateOptions:
         need(0 <= self.mask_band_px <= 32, "mask_band_px", "must be in [0, 32] pixels (0 = trust the mask's edge)")
         need(0 <= self.outside_weight <= 1, "outside_weight", "must be in [0, 1] (1 = trust the mask outside it)")
         need(0 <= self.partial_theta_starts <= 64, "partial_theta_starts", "must be in [0, 64] (0 = theta_starts)")
+        need(0 <= self.refinements <= 8, "refinements", "must be in [0, 8] (0 or 1 = one refinement)")
         need(self.reference_box_px >= 0, "reference_box_px", "must be >= 0 (0 = off)")
         need(self.ray_sampling in RAY_SAMPLINGS, "ray_sampling", f"must be one of {', '.join(RAY_SAMPLINGS)}")
         need(self.uncertainty_rays >= 16, "uncertainty_rays", "must be >= 16")
@@ -316,7 +332,9 @@ class EstimateOptions:
         starts = theta_starts * (1 + _POSES_KEPT) if self.pose_starts > 1 else theta_starts
         scoring = 3 * self.pose_starts * theta_starts * _SCORE_RAYS if self.pose_starts > 1 else 0  # _start_rows
         scoring += 3 * theta_starts * _SCORE_RAYS if self.align_start else 0
-        return (self.iterations + self.adam_iterations) * self.rays_per_iteration * scale * starts + scoring
+        runs = max(1, self.refinements)
+        choice = runs * _CHOICE_RAYS if runs > 1 else 0  # _best_refinement
+        return runs * (self.iterations + self.adam_iterations) * self.rays_per_iteration * scale * starts + scoring + choice
 
     @classmethod
     def preset(cls, name: str = "paper", **overrides) -> EstimateOptions:
@@ -1158,10 +1176,9 @@ def refine(
             run.recovered |= warm.recovered
         last = run.params
     else:
-        run = _Run(model, opts, obs, camera, param, loss_fn, params0, start_time)
-        run.should_stop = should_stop
-        run.optimise()
-        last = run.adam.params
+        count = opts.refinements if partial or not uses_depth else 1
+        run, last = _best_refinement(lambda o, ob: _Run(model, o, ob, camera, param, loss_fn, params0, start_time),
+                                     opts, obs, count, should_stop)
     final = _final_choice(loss_fn, obs, camera, param, last, run.best_params, run.rng)
     if final is None:
         run.recovered = True
@@ -1444,13 +1461,60 @@ def _final_choice(
     return None
 
 
+def _best_refinement(
+    start: Callable[[EstimateOptions, _Observation], _Run],
+    opts: EstimateOptions,
+    obs: _Observation,
+    count: int,
+    should_stop: Callable[[], str | None] | None,
+) -> tuple[_Run, Tensor]:
+    """``max(count, 1)`` Adam refinements (``start(options, observation)`` makes one, from the same
+    starts each time): the first with ``opts``, the others each with its own ray seed
+    (``opts.seed + i``) and, every other one, the finest pyramid level alone. Which of several
+    trajectories a run takes depends on its random rays, and no run's own loss compares with
+    another's (each is measured on its own rays), so of every run's :func:`_final_choice` the one
+    of lowest loss on one fixed set of ``_CHOICE_RAYS`` fine box rays is kept. Returns the kept run (its iterations and trace cover every run) and its last parameters
+    ``[S', d]`` (one run: its last iterate). A run stopped by ``should_stop`` ends the series, and
+    its status is the result's."""
+    runs, rows = [], []
+    for i in range(max(count, 1)):
+        single = i % 2 == 1 and len(obs.levels) > 1
+        run = start(opts if i == 0 else replace(opts, seed=opts.seed + i),
+                    replace(obs, levels=obs.levels[-1:]) if single else obs)
+        run.should_stop = should_stop
+        run.optimise()
+        runs.append(run)
+        if count > 1:
+            final = _final_choice(run.loss_fn, obs, run.camera, run.param, run.adam.params, run.best_params, run.rng)
+            rows.append(run.adam.params[:0] if final is None else final[0])
+        if run.status not in ("max_iterations", "converged"):
+            break
+    if len(runs) == 1:
+        return runs[0], runs[0].adam.params
+    chooser = torch.Generator().manual_seed(opts.seed)
+    losses = _fixed_rays_loss(run.loss_fn, obs, run.camera, run.param, torch.cat(rows), chooser, _CHOICE_RAYS)
+    losses = torch.where(torch.isfinite(losses), losses, math.inf)
+    owner = [i for i, row in enumerate(rows) for _ in range(row.shape[0])]
+    if not owner:  # nothing finite anywhere: the last run's own final choice says so
+        return runs[-1], runs[-1].adam.params
+    best = owner[int(losses.argmin())]
+    chosen = runs[best]
+    if runs[-1].status not in ("max_iterations", "converged", "non_finite"):  # should_stop's reason holds for all
+        chosen.status = runs[-1].status
+    chosen.iteration = sum(r.iteration for r in runs)
+    chosen.trace = [point for r in runs for point in r.trace]
+    chosen.recovered = any(r.recovered for r in runs)
+    return chosen, rows[best]
+
+
 @torch.no_grad()
 def _fixed_rays_loss(
-    loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, params: Tensor, rng: torch.Generator
+    loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, params: Tensor, rng: torch.Generator,
+    n: int = 0,
 ) -> Tensor:
-    """Loss ``[S]`` of every row of ``params [S, d]`` on the same up to ``options.eval_rays`` pixels of
-    the box, at the finest level."""
-    n_pixels, n = obs.pixels.shape[0], loss_fn.options.eval_rays
+    """Loss ``[S]`` of every row of ``params [S, d]`` on the same up to ``n`` (0: ``options.eval_rays``)
+    pixels of the box, at the finest level."""
+    n_pixels, n = obs.pixels.shape[0], n or loss_fn.options.eval_rays
     index = torch.arange(n_pixels) if n_pixels <= n else torch.randperm(n_pixels, generator=rng)[:n]
     index = index.to(obs.pixels.device)
     return loss_fn(camera.rays(obs.pixels[index]), obs.levels[-1], index, param.poses(params), param.thetas(params))

@@ -1,0 +1,132 @@
+"""Several refinements where one is least reliable (no depth, or a partially trusted mask) and the
+choice among them on one fixed set of rays (``EstimateOptions.refinements``, issue #15); on the
+analytic toy clamp of tests/test_estimate.py."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+from torch import Tensor
+
+import narf_core.estimate as estimate
+from narf_core.estimate import EstimateInputError, EstimateOptions, refine
+from tests.test_estimate import ASSETS, CAMERA, TRUTH, SliderField, make_model, observe, perturbed, view
+
+pytest_plugins = ("conftest_model",)  # tiny_bundle, tiny_dataset (the CLI test)
+
+FAST = dict(iterations=30, rays_per_iteration=256, theta_starts=2, uncertainty=False, early_stop=False)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return make_model(SliderField(), ASSETS)
+
+
+@pytest.fixture(scope="module")
+def scene(model):
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    return T, image, mask, depth, perturbed(T, 8, 0.012, seed=3)
+
+
+def spy_on_choice(monkeypatch) -> list[tuple[Tensor, Tensor]]:
+    """Every call of the choice among refinements: its rows ``[R, d]`` and their losses ``[R]``."""
+    calls = []
+    real = estimate._fixed_rays_loss
+
+    def spy(loss_fn, obs, camera, param, params, rng, n=0):
+        losses = real(loss_fn, obs, camera, param, params, rng, n)
+        if n == estimate._CHOICE_RAYS:
+            calls.append((param.poses(params), losses))
+        return losses
+
+    monkeypatch.setattr(estimate, "_fixed_rays_loss", spy)
+    return calls
+
+
+
+def test_without_depth_the_estimate_of_lowest_loss_among_the_refinements_is_kept(model, scene, monkeypatch):
+    """Three refinements from the same starts, each on its own rays (the second on one pyramid
+    level): they end apart, and the one returned is the row of lowest loss on the common rays;
+    the iterations reported are all three runs'."""
+    T, image, mask, _, T0 = scene
+    calls = spy_on_choice(monkeypatch)
+    options = EstimateOptions.robust(refinements=3, **FAST)
+    result = refine(model, image, mask, CAMERA, T0, options=options, ground_truth=(T, TRUTH))
+    assert len(calls) == 1
+    poses, losses = calls[0]
+    assert poses.shape[0] == 3 and bool(torch.isfinite(losses).all())
+    assert float((poses[0] - poses[1]).abs().max()) > 1e-5  # other rays, another pyramid: another trajectory
+    best = int(losses.argmin())
+    np.testing.assert_allclose(result.T_cam_obj, poses[best].numpy(), atol=1e-6)
+    assert result.iterations == 3 * options.iterations
+    assert result.metrics["add"] < 0.01
+
+
+def test_the_first_refinement_is_the_single_run_and_depth_keeps_one(model, scene, monkeypatch):
+    """``refinements`` 0 and 1 give the same estimate bit for bit, and the first of several runs
+    is that run; with a depth image and a mask trusted in full only one refinement runs, whatever
+    the option says; with the mask trusted partially, several."""
+    T, image, mask, depth, T0 = scene
+    one = refine(model, image, mask, CAMERA, T0, options=EstimateOptions.robust(**FAST))
+    same = refine(model, image, mask, CAMERA, T0, options=EstimateOptions.robust(refinements=1, **FAST))
+    np.testing.assert_array_equal(one.T_cam_obj, same.T_cam_obj)
+    calls = spy_on_choice(monkeypatch)
+    refine(model, image, mask, CAMERA, T0, options=EstimateOptions.robust(refinements=2, **FAST))
+    np.testing.assert_allclose(calls[0][0][0].numpy(), one.T_cam_obj, atol=1e-9)
+    calls.clear()
+    with_depth = [refine(model, image, mask, CAMERA, T0, depth=depth, options=EstimateOptions.robust(refinements=k, **FAST))
+                  for k in (0, 3)]
+    assert not calls
+    np.testing.assert_array_equal(with_depth[0].T_cam_obj, with_depth[1].T_cam_obj)
+    assert with_depth[1].iterations == FAST["iterations"]
+    partial = EstimateOptions.robust(refinements=3, mask_trust="partial", **FAST)
+    result = refine(model, image, mask, CAMERA, T0, depth=depth, options=partial)
+    assert len(calls) == 1 and calls[0][0].shape[0] == 3 and result.iterations == 3 * FAST["iterations"]
+
+
+def test_a_cancelled_refinement_ends_the_series(model, scene, monkeypatch):
+    """``should_stop`` during a refinement: no further runs, the status says why (in the second, the
+    choice is between the first's estimate and the second's so far)."""
+    _, image, mask, _, T0 = scene
+    calls = spy_on_choice(monkeypatch)
+    polls = iter([None] * 5 + ["cancelled"] * 1000)
+    result = refine(model, image, mask, CAMERA, T0, options=EstimateOptions.robust(refinements=3, **FAST),
+                    should_stop=lambda: next(polls))
+    assert result.status == "cancelled" and result.iterations == 5 and not calls
+    polls = iter([None] * (FAST["iterations"] + 5) + ["cancelled"] * 1000)  # in the second: a choice among two
+    result = refine(model, image, mask, CAMERA, T0, options=EstimateOptions.robust(refinements=3, **FAST),
+                    should_stop=lambda: next(polls))
+    assert result.status == "cancelled" and result.iterations == FAST["iterations"] + 5
+    assert len(calls) == 1 and calls[0][0].shape[0] == 2
+
+
+def test_max_rays_counts_every_refinement_and_the_choice():
+    options = EstimateOptions.robust()
+    several = replace(options, refinements=3)
+    assert several.max_rays() == 3 * options.max_rays() + 3 * estimate._CHOICE_RAYS
+    assert replace(options, refinements=1).max_rays() == options.max_rays()
+    with pytest.raises(EstimateInputError, match="options.refinements"):
+        EstimateOptions(refinements=9)
+    with pytest.raises(EstimateInputError, match="options.refinements"):
+        EstimateOptions(refinements=-1)
+
+
+@pytest.mark.slow
+def test_narf_estimate_takes_refinements(capsys, monkeypatch, tiny_bundle, tiny_dataset, tmp_path_factory):
+    """``narf estimate --refinements N`` reaches the refiner's options; a count outside [1, 8] is one
+    error line naming it."""
+    from tests.test_cli_model import assert_error, estimate_argv, run, view
+
+    seen, real = [], estimate.refine
+    monkeypatch.setattr(estimate, "refine", lambda *a, options, **k: seen.append(options) or real(*a, options=options, **k))
+    argv = estimate_argv(tiny_bundle, view.__wrapped__(tiny_dataset, tmp_path_factory), **{"--iterations": "1"})
+    for extra, refinements in ((["--preset", "robust", "--refinements", "2"], 2), ([], 0)):
+        code, _, err = run(capsys, *argv, *extra, "--json")
+        assert code == 0 and seen[-1].refinements == refinements and seen[-1].iterations == 1, err
+    assert seen[0].theta_starts == 4  # the preset's, with the option on top
+    assert_error(capsys, "estimate", [*argv, "--refinements", "0"], "--refinements")
+    assert_error(capsys, "estimate", [*argv, "--refinements", "9"], "refinements")
