@@ -80,7 +80,10 @@ right jaw start to pull ahead (docs/benchmarks.md). ``pose_starts = P`` widens t
 pose: the given pose and P - 1 turned about the object's centre (out of the image plane first,
 where a silhouette changes least for a wrong angle), each also moved onto the mask and the observed
 depth, are scored with every θ start once, on one set of rays without gradients, and each θ start
-is refined from the given pose and from its best other one. A non-finite loss or gradient
+is refined from the given pose and from its best other one. With two joints or more,
+``theta_search = N`` (on in ``robust``) first fits N configurations to the mask through the model's
+surface points, and the S that fit best are the θ starts (:func:`_theta_search`): a few spread
+starts leave most of a several-joint box unvisited (docs/benchmarks.md). A non-finite loss or gradient
 never reaches the parameters: the best finite iterate is restored, Adam's moments reset and its
 rates halved.
 """
@@ -235,6 +238,11 @@ class EstimateOptions:
     # the line of sight, which Gauss-Newton's narrower basin does not pull back; off in every preset, as
     # it also sent a clamp scene to a wrong jaw (docs/benchmarks.md).
     align_start: bool = False
+    # With two joints or more: this many configurations (the given one and a Latin hypercube over the joint
+    # box) are first fitted to the mask through the model's surface points (_theta_search: a silhouette
+    # chamfer, whose basin is wide where a thin rendered part that misses its image has no gradient), and
+    # the theta_starts that fit best replace the spread starts of _theta_starts. 0 = off.
+    theta_search: int = 0
     uncertainty: bool = True  # a covariance of the estimate (one linearisation at the optimum)
     uncertainty_rays: int = 4096  # rays of the box used for it
     uncertainty_patch: int = 4  # pixels per side of the squares whose residuals count as correlated
@@ -283,8 +291,9 @@ class EstimateOptions:
         need(self.eval_rays >= 16, "eval_rays", "must be >= 16")
         need(1 <= self.pose_starts <= len(_POSE_TURNS), "pose_starts", f"must be in [1, {len(_POSE_TURNS)}]")
         need(0 < self.pose_spread_deg <= 90, "pose_spread_deg", "must be in (0, 90] degrees")
+        need(0 <= self.theta_search <= 256, "theta_search", "must be in [0, 256] (0 = off)")
         need(1 <= self.uncertainty_patch <= 64, "uncertainty_patch", "must be in [1, 64]")
-        for name in ("sigma_floor_position", "sigma_floor_rotation", "sigma_floor_joint"):
+        for name in ("sigma_floor_position", "sigma_floor_rotation", "sigma_floor_joint", "uncertainty_usual_residual"):
             need(getattr(self, name) >= 0, name, "must be >= 0")
 
     @classmethod
@@ -297,11 +306,13 @@ class EstimateOptions:
         ``ray_sampling = "auto"``); up to that size nothing changes. Where a depth image contradicts
         the mask (an occluder beside it, its edge on a continuous surface: a segmenter's mask), the
         mask is trusted only partially (``mask_trust = "auto"``), with a 2-pixel band: a segmenter's
-        edge is off by about that much, and a wider band leaves a small visible part no evidence."""
+        edge is off by about that much, and a wider band leaves a small visible part no evidence. With two
+        joints or more the configuration starts come from a search over 16 (``theta_search``): 4 spread
+        starts leave most of a 3-joint box unvisited."""
         return cls(**{
             "silhouette_weight": 1.0, "depth_weight": 1.0, "theta_starts": 4, "coarse_to_fine": 2, "lr_pose": 0.02,
             "reference_box_px": ROBUST_BOX_PX, "ray_sampling": "auto", "mask_trust": "auto", "partial_theta_starts": 8,
-            "mask_band_px": 2, **overrides,
+            "mask_band_px": 2, "theta_search": 16, **overrides,
         })
 
     @classmethod
@@ -776,8 +787,12 @@ def _start_rows(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Para
     a rough guide (the refinement compares the starts again after a third of its iterations).
     The pose starts: the turns of :func:`_pose_turns` about the object's centre, each also moved
     onto the observation (:func:`_aligned`). With ``options.align_start`` the given pose of each θ
-    start is first that pose or its moved copy, whichever scores lower on the same rays."""
+    start is first that pose or its moved copy, whichever scores lower on the same rays. With
+    ``options.theta_search`` and two joints or more, the θ starts are first those the search fits best
+    (:func:`_theta_search`; ``thetas[0]`` is among its candidates)."""
     opts = loss_fn.options
+    if opts.theta_search and thetas.shape[1] > 1 and any(len(p) for p in loss_fn.model.sample_points.values()):
+        thetas = _theta_search(loss_fn, obs, camera, param, thetas[0], max(opts.theta_search, len(thetas)), len(thetas))
     u = param.u_of(thetas)
     rows = torch.cat([torch.zeros(len(u), 6, dtype=torch.float64), u], dim=1)
     if opts.pose_starts == 1 and not opts.align_start:
@@ -804,6 +819,97 @@ def _start_rows(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Para
     best = losses.topk(min(_POSES_KEPT, len(losses)), dim=0, largest=False).indices + 1  # [K, S], per θ start
     chosen = candidates.reshape(-1, n_starts, candidates.shape[1])[best, torch.arange(n_starts)]
     return torch.cat([rows, chosen.reshape(-1, candidates.shape[1])])
+
+
+def _theta_search(
+    loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, theta0: Tensor, count: int, keep: int
+) -> Tensor:
+    """``[keep, k]``: of ``count`` candidate configurations (``theta0 [k]`` and a Latin hypercube over the
+    joint box, :func:`_theta_starts`), the ``keep`` that fit the observation best after ``_SEARCH_STEPS``
+    Adam steps of each one's pose and θ on :func:`_chamfer`, best first.
+
+    The refinement's loss compares rendered rays with pixels: a thin part (an arm 2-3 pixels wide) drawn
+    beside its image has no overlap to pull on, so with several joints a few spread starts rarely find
+    the configuration. Surface points projected into the image know how far they lie from the mask,
+    however far that is. Only the configurations are kept: the points' fit has no colour and leaves
+    the distance along the line of sight loose, which the refinement determines."""
+    model, opts = loss_fn.model, loss_fn.options
+    rng = torch.Generator().manual_seed(opts.seed + 3)
+    points, link_of = _surface_sample(model, _SEARCH_POINTS, rng)
+    target = obs.levels[-1]
+    inside = (target.mask > 0.5).cpu()
+    mask_uv = obs.pixels.cpu()[inside].double() + 0.5
+    if len(mask_uv) > _SEARCH_PIXELS:
+        mask_uv = mask_uv[torch.randperm(len(mask_uv), generator=rng)[:_SEARCH_PIXELS]]
+    depth = target.depth.double().cpu() if loss_fn.uses_depth and target.depth is not None else None
+    fit = _Fit(camera.K.detach().double().cpu(), mask_uv, obs.pixels[0].cpu(), obs.shape, inside, depth)
+    candidates = _theta_starts(theta0, param, count)
+    rows = torch.cat([torch.zeros(count, 6, dtype=torch.float64), param.u_of(candidates)], dim=1)
+    rates = [_SEARCH_RATES[0]] * 6 + [_SEARCH_RATES[1]] * len(theta0)
+    adam = _Adam(rows, torch.tensor(rates, dtype=torch.float64))
+    with torch.enable_grad():
+        for _ in range(_SEARCH_STEPS):
+            p = adam.params.clone().requires_grad_(True)
+            (grad,) = torch.autograd.grad(_chamfer(fit, _camera_points(model, param, p, points, link_of)).sum(), p)
+            adam.step(torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0), 1.0)
+    score = _chamfer(fit, _camera_points(model, param, adam.params, points, link_of))
+    order = torch.where(torch.isfinite(score), score, math.inf).argsort()[:keep]
+    return param.thetas(adam.params[order])
+
+
+def _surface_sample(model: NarfModel, per_link: int, rng: torch.Generator) -> tuple[Tensor, Tensor]:
+    """Up to ``per_link`` of each link's surface points (``model.sample_points``, link frame), drawn
+    with ``rng``: ``points [N, 3]`` float64 and their links' indices ``[N]`` in ``model.links`` order."""
+    points, owners = [], []
+    for i, link in enumerate(model.links):
+        own = torch.as_tensor(np.asarray(model.sample_points.get(link, np.zeros((0, 3)))), dtype=torch.float64)
+        own = own[torch.randperm(len(own), generator=rng)[:per_link]]
+        points.append(own)
+        owners.append(torch.full((len(own),), i, dtype=torch.long))
+    return torch.cat(points), torch.cat(owners)
+
+
+def _camera_points(model: NarfModel, param: _Parameterisation, p: Tensor, points: Tensor, link_of: Tensor) -> Tensor:
+    """``[S, N, 3]``: link-frame ``points [N, 3]`` of links ``link_of [N]`` in the camera frame under
+    every row of ``p [S, 6 + k]`` (its pose and configuration)."""
+    T = param.poses(p)[:, None] @ model.kinematics.link_poses(param.thetas(p))  # [S, links, 4, 4]
+    T = T[:, link_of.to(T.device)]
+    return (T[..., :3, :3] @ points.to(T)[:, :, None])[..., 0] + T[..., :3, 3]
+
+
+@dataclass
+class _Fit:
+    """What :func:`_chamfer` compares points with: ``K [3, 3]``, the mask's pixel centres ``mask_uv [Q, 2]``,
+    the box's corner ``(u0, v0)``, shape ``(h, w)``, mask ``[h*w]`` bool and observed depth ``[h*w]`` (or None)."""
+
+    K: Tensor
+    mask_uv: Tensor
+    corner: Tensor
+    shape: tuple[int, int]
+    mask: Tensor
+    depth: Tensor | None
+
+
+def _chamfer(fit: _Fit, X: Tensor) -> Tensor:
+    """``[S]``: how far camera-frame points ``X [S, N, 3]`` are from explaining the mask, in pixels: the
+    mean distance of a projected point to the nearest mask pixel plus that of a mask pixel to the nearest
+    projected point (a point set matches the whole silhouette whether or not it is seen), plus, where a
+    point falls on the mask with an observed depth, how far (over ``_SEARCH_DEPTH_MARGIN``, in pixels at
+    its depth) it lies in front of that depth: a hidden point lies behind it, none in front."""
+    z = X[..., 2].clamp_min(1e-3)
+    uv = (fit.K[:2, :2] @ (X[..., :2] / z[..., None])[..., None])[..., 0] + fit.K[:2, 2]
+    d = torch.cdist(uv, fit.mask_uv.expand(len(uv), -1, -1))  # [S, N, Q]
+    score = d.min(-1).values.mean(-1) + d.min(-2).values.mean(-1)
+    if fit.depth is None:
+        return score
+    h, w = fit.shape
+    ij = uv.detach().floor().long() - fit.corner
+    inbox = (ij[..., 0] >= 0) & (ij[..., 0] < w) & (ij[..., 1] >= 0) & (ij[..., 1] < h)
+    at = (ij[..., 1].clamp(0, h - 1) * w + ij[..., 0].clamp(0, w - 1))
+    observed = fit.depth[at]
+    seen = inbox & fit.mask[at] & (observed > 0)
+    front = torch.relu(observed - z - _SEARCH_DEPTH_MARGIN) * fit.K[0, 0] / z
+    return score + (front * seen).sum(-1) / seen.sum(-1).clamp_min(1)
 
 
 @torch.no_grad()

@@ -619,3 +619,81 @@ def test_theta_starts_with_several_joints_of_mixed_units_form_a_latin_hypercube(
         # u keeps _U_LIMIT inside ±π/2, so a start within half_range * (1 - cos _U_LIMIT) of a limit moves there
         assert bool(((back - starts).abs() <= (upper - lower) / 2 * (1 - math.cos(_U_LIMIT)) + 1e-12).all())
         assert bool(((back >= lower) & (back <= upper)).all())
+
+
+CHAIN_URDF = """<?xml version="1.0"?>
+<robot name="chain">
+  <link name="base"/><link name="upper"/><link name="lower"/>
+  <joint name="shoulder" type="revolute"><parent link="base"/><child link="upper"/>
+    <origin xyz="0.04 0 0"/><axis xyz="0 0 1"/><limit lower="-1.2" upper="1.2"/></joint>
+  <joint name="elbow" type="revolute"><parent link="upper"/><child link="lower"/>
+    <origin xyz="0.1 0 0"/><axis xyz="0 0 1"/><limit lower="-1.2" upper="1.2"/></joint>
+</robot>
+"""
+
+
+def _chain(tmp_path):
+    """A thin two-joint arm (a 4 cm base bar, then two 10 cm links, 1 cm wide) as the search sees it: its
+    kinematics, surface points along the bars, and its box."""
+    from types import SimpleNamespace
+
+    path = tmp_path / "chain.urdf"
+    path.write_text(CHAIN_URDF)
+    kin = KinematicTree.from_urdf(path)
+    g = torch.Generator().manual_seed(0)
+
+    def bar(x0, x1, n=400):
+        along = x0 + (x1 - x0) * torch.rand(n, generator=g, dtype=torch.float64)
+        return torch.stack([along, (torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * 0.01,
+                            (torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * 0.01], -1).numpy()
+
+    points = {"base": bar(-0.04, 0.04), "upper": bar(0.0, 0.1), "lower": bar(0.0, 0.1)}
+    aabb = torch.tensor([[-0.25, -0.25, -0.01], [0.25, 0.25, 0.01]])
+    return SimpleNamespace(kinematics=kin, links=kin.links, sample_points=points, aabb=aabb)
+
+
+def test_theta_search_finds_a_thin_chain_s_configuration_that_the_spread_starts_miss(tmp_path):
+    """Two revolute joints, 1 cm wide links seen from above (2 pixels wide), the truth far from
+    mid-range: the search's best configuration lies within 0.2 rad of the truth in both joints and
+    nearer than any of the spread starts, its rows stay inside the limits, and without the option
+    (or with one joint) the starts are the spread ones."""
+    from types import SimpleNamespace
+
+    from narf_core.estimate import _observation, _Parameterisation, _start_rows, _theta_search, _theta_starts
+
+    chain = _chain(tmp_path)
+    kin = chain.kinematics
+    camera = Pinhole.primesense(128, 96)
+    T = np.eye(4)
+    T[:3, 3] = (0.0, 0.0, 0.6)  # 0.6 m in front of the camera, the arm in the image plane
+    truth = torch.tensor([0.6, -1.05], dtype=torch.float64)
+    dense = {link: np.repeat(p, 4, 0) + np.random.default_rng(1).normal(0, 0.002, (4 * len(p), 3))
+             for link, p in chain.sample_points.items()}
+    links = kin.link_poses(truth).numpy()
+    mask = np.zeros((camera.height, camera.width), bool)
+    for i, link in enumerate(kin.links):
+        X = (T @ links[i] @ np.c_[dense[link], np.ones(len(dense[link]))].T).T[:, :3]
+        uv, _ = camera.project(torch.from_numpy(X))
+        u, v = uv.numpy().T.astype(int)
+        mask[v.clip(0, camera.height - 1), u.clip(0, camera.width - 1)] = True
+    obs = _observation(np.zeros((*mask.shape, 3), np.uint8), mask, None, (0, 0, camera.width, camera.height), 1, "cpu")
+    param = _Parameterisation.around(torch.from_numpy(T), chain)
+    loss_fn = SimpleNamespace(model=chain, options=EstimateOptions(theta_search=16, theta_starts=4), uses_depth=False)
+    theta0 = kin.mid_configuration()
+    found = _theta_search(loss_fn, obs, camera, param, theta0, 16, 4)
+    assert found.shape == (4, 2)
+    assert bool(((found >= kin.lower) & (found <= kin.upper)).all())
+    assert float((found[0] - truth).abs().max()) < 0.2, found[0]
+    spread = _theta_starts(theta0, param, 4)
+    assert float((found[0] - truth).norm()) < float((spread - truth).norm(dim=-1).min())
+    rows = _start_rows(loss_fn, obs, camera, param, spread)  # the option on: the search's starts
+    assert torch.allclose(param.thetas(rows), found)
+    loss_fn.options = EstimateOptions(theta_starts=4)  # off: the spread starts
+    assert torch.allclose(param.thetas(_start_rows(loss_fn, obs, camera, param, spread)), spread, atol=1e-9)
+
+
+def test_theta_search_option_is_checked_and_on_in_the_robust_preset():
+    with pytest.raises(EstimateInputError, match=re.escape("options.theta_search must be in [0, 256] (0 = off)")):
+        EstimateOptions(theta_search=-1)
+    assert EstimateOptions.robust().theta_search == 16
+    assert EstimateOptions().theta_search == 0  # the paper's protocol: the spread starts
