@@ -495,6 +495,8 @@ def _add_train(commands: argparse._SubParsersAction) -> None:
     arg("--batch-rays", type=_positive_int, metavar="N", help="rays per step")
     arg("--composites", type=_non_negative_int, metavar="N", help="stage 2 on N pre-rendered composite views "
         "(the paper: 5000) instead of fresh rays every step (0, the default)")
+    arg("--free-space-weight", type=_non_negative_float, metavar="W", help="stage 1's free-space term: the "
+        "opacity a part renders in front of the depth measured on any labelled pixel (0, the default: off)")
     arg("--no-parts", action="store_true", help="leave the part fields out of the bundle (no 'parts' mode)")
     arg("--seed", type=_non_negative_int, default=0)
     parser.set_defaults(run=_run_train, auto_threads_max=None)  # batches of thousands of rays with backward
@@ -505,7 +507,7 @@ def _run_train(args: argparse.Namespace) -> int:
 
     config = TrainConfig(arch=args.arch, field=args.field, budget_s=args.budget, seed=args.seed, keep_parts=not args.no_parts)
     overrides = {"part_steps": args.part_steps, "distill_steps": args.distill_steps, "batch_rays": args.batch_rays,
-                 "composites": args.composites}
+                 "composites": args.composites, "free_space_weight": args.free_space_weight}
     config = replace(config.for_arch(), **{k: v for k, v in overrides.items() if v is not None})
     start = time.perf_counter()
     out = train(args.dataset, args.out, config, command=shlex.join(["narf", *args.argv]), progress=True)

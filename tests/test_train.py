@@ -24,7 +24,7 @@ from narf_core.render import OccupancyGrid, RenderOutput, ray_aabb  # noqa: E402
 from narf_core.train import pipeline  # noqa: E402
 from narf_core.train.distill import random_views, rays_through_box  # noqa: E402
 from narf_core.train.loop import run_stage  # noqa: E402
-from narf_core.train.parts import RayTargets, part_boxes, part_rays  # noqa: E402
+from narf_core.train.parts import RayTargets, occluder_rays, part_boxes, part_rays  # noqa: E402
 from narf_core.train.pipeline import TrainConfig, TrainError, ray_loss, train  # noqa: E402
 
 # ---------------------------------------------------------------------------------------------
@@ -387,6 +387,20 @@ def test_part_rays_supervise_every_labelled_pixel_of_the_part_and_no_other(tiny_
         assert torch.allclose(rays[p].rays.directions.norm(dim=-1), torch.ones(len(rays[p])), atol=1e-5)
 
 
+@pytest.mark.slow
+def test_occluder_rays_are_the_other_links_pixels_crossing_the_part_box(tiny_dataset):
+    dataset = Dataset.open(tiny_dataset)
+    kin = KinematicTree.from_urdf(dataset.urdf_path)
+    boxes = part_boxes(kin)
+    occluders = occluder_rays(dataset, kin, boxes)
+    labels = np.stack([dataset.load(f).labels for f in dataset.frames("train")])
+    for p in range(len(kin.parts)):  # one link per part here
+        assert 0 < len(occluders[p]) <= int(((labels > 0) & (labels != p + 1)).sum())
+        assert bool((occluders[p].depth > 0).all())
+        _, _, hit = ray_aabb(occluders[p].rays.origins, occluders[p].rays.directions, boxes[p])
+        assert bool(hit.all())
+
+
 def test_random_views_look_at_the_centre_from_the_shell():
     centre = torch.tensor([0.1, -0.2, 0.05])
     T = random_views(500, centre, (0.4, 1.0), torch.Generator().manual_seed(0))
@@ -500,3 +514,93 @@ def test_fields_benchmark_puts_the_articulated_field_beside_the_bundles_field_an
         assert by_name["articulated"]["psnr"] == pytest.approx(by_name["parts"]["psnr"], abs=0.05)
         assert all(r["n"] == 2 and r["cpu_ms"] > 0 and math.isfinite(r["psnr"]) for r in by_name.values())
     assert "| novel | articulated |" in markdown(rows, 48, 36)
+
+
+# ---------------------------------------------------------------------------------------------
+# The free-space term: the space in front of a measured surface is carved
+
+
+class Slabs(nn.Module):
+    """Grey density ``exp(log_sigma[0])`` on ``z`` in [0.3, 0.4) (a false floor) and ``exp(log_sigma[1])``
+    on [0.6, 0.7) (the true surface); empty elsewhere."""
+
+    def __init__(self, log_sigma=(5.0, 5.0)):
+        super().__init__()
+        self.log_sigma = nn.Parameter(torch.tensor(log_sigma))
+
+    def forward(self, x, d, theta=None):
+        z = x[:, 2]
+        sigma = self.log_sigma.exp()
+        density = torch.where((z >= 0.3) & (z < 0.4), sigma[0], 0.0) + torch.where((z >= 0.6) & (z < 0.7), sigma[1], 0.0)
+        return density, torch.full_like(x, 0.5)
+
+
+SLAB_BOX = torch.tensor([[-0.1, -0.1, 0.0], [0.1, 0.1, 1.0]])
+
+
+def rays_along_z(n: int) -> Rays:
+    """``n`` rays along +z from z = -0.5 (so camera z = t = the ray's z + 0.5)."""
+    origins = torch.stack([torch.linspace(-0.05, 0.05, n), torch.zeros(n), torch.full((n,), -0.5)], dim=-1)
+    return Rays(origins, torch.tensor([[0.0, 0.0, 1.0]]).expand(n, 3), torch.ones(n))
+
+
+def test_free_space_loss_is_the_opacity_in_front_of_the_measured_surface():
+    field = Slabs((math.log(5.0), math.log(5.0)))
+    rays = rays_along_z(3)
+    depth = torch.tensor([1.1, 0.7, 0.85])  # the true surface; in front of both slabs; inside the false floor
+    opacity = [pipeline.free_space_loss(field, pipeline.FreeRays(rays[i : i + 1], depth[i : i + 1]), SLAB_BOX, None, 0.01).item()
+               for i in range(3)]
+    assert opacity[0] == pytest.approx(1 - math.exp(-5.0 * 0.1), abs=0.04)  # the false floor, not the true surface
+    assert opacity[1] == 0.0
+    assert opacity[2] == pytest.approx(1 - math.exp(-5.0 * (0.35 - pipeline.FREE_SPACE_MARGIN - 0.3)), abs=0.04)
+
+
+def test_the_free_space_term_carves_a_false_floor_that_hides_the_surface():
+    """A false floor in front of the measured surface, opaque enough to stop the march
+    (transmittance < 1e-3), meets the colour and opacity targets; trained with the free-space term the
+    floor is emptied and the rays end on the true surface."""
+    field = Slabs()
+    rays = rays_along_z(16)
+    targets = RayTargets(rays, torch.full((16, 3), 0.5), torch.ones(16), torch.full((16,), 1.1))
+    free = pipeline.free_rays(targets, pipeline.FreeRays(rays[:0], torch.zeros(0)), 0, torch.Generator())
+    config = TrainConfig(free_space_weight=1.0)
+    optimizer = torch.optim.Adam(field.parameters(), lr=0.1)
+
+    def render():
+        return pipeline.render_rays(field, rays, SLAB_BOX, step=0.01, outputs=("rgb", "opacity", "depth"), jitter=True)
+
+    before = pipeline.free_space_loss(field, free, SLAB_BOX, None, 0.01).item()
+    assert before > 0.99
+    for _ in range(60):
+        loss = ray_loss(render(), targets, config) + config.free_space_weight * pipeline.free_space_loss(field, free, SLAB_BOX, None, 0.01)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        out = render()
+        assert pipeline.free_space_loss(field, free, SLAB_BOX, None, 0.01).item() < 0.05
+    assert bool((out.opacity > 0.95).all())
+    assert (out.depth / out.opacity).mean().item() == pytest.approx(1.1, abs=0.02)  # the true surface's front
+
+
+def test_free_rays_are_the_batch_rays_with_a_depth_and_drawn_occluders():
+    rays = rays_along_z(4)
+    batch = RayTargets(rays, torch.zeros(4, 3), torch.tensor([1.0, 0.0, 1.0, 1.0]), torch.tensor([0.9, 0.0, 0.0, 1.2]))
+    occluders = pipeline.FreeRays(rays_along_z(2), torch.tensor([0.25, 0.5]))
+    free = pipeline.free_rays(batch, occluders, 5, torch.Generator().manual_seed(0))
+    assert len(free) == 7 and free.depth[:2].tolist() == pytest.approx([0.9, 1.2])
+    assert set(free.depth[2:].tolist()) <= {0.25, 0.5}
+    assert torch.equal(free.rays.origins[:2], rays.origins[[0, 3]])
+
+
+@pytest.mark.slow
+def test_training_with_the_free_space_term_runs_it_every_step_and_sees_the_object(tiny_dataset, tmp_path, monkeypatch):
+    calls = []
+    loss = pipeline.free_space_loss
+    monkeypatch.setattr(pipeline, "free_space_loss", lambda field, free, *a: calls.append(len(free)) or loss(field, free, *a))
+    config = tiny_config(field="articulated", free_space_weight=1.0)
+    model = load_bundle(train(tiny_dataset, tmp_path / "free.narf", config, progress=False))
+    assert model.metadata["provenance"]["config"]["free_space_weight"] == 1.0
+    assert len(calls) == 2 * config.part_steps and min(calls) > 0  # every step of both parts
+    iou, outside = mask_iou(model, Dataset.open(tiny_dataset), "test", "narf")
+    assert iou > 0.35 and outside < 0.02

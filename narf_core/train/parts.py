@@ -2,7 +2,9 @@
 
 Supervision per pixel of a training image: a pixel labelled with one of the part's links gives
 colour, opacity 1 and depth (where measured); a background pixel gives opacity 0; a pixel of
-another link is an occluder and is ignored. Only rays that cross the part's box are kept.
+another link is an occluder: it says nothing of the part behind it, but the part must be empty in
+front of its measured depth (:class:`FreeRays`, the free-space term). Only rays that cross the
+part's box are kept.
 """
 
 from __future__ import annotations
@@ -61,12 +63,11 @@ def part_boxes(kin: KinematicTree, margin: float = 0.01) -> list[Tensor]:
     return boxes
 
 
-def part_rays(dataset: Dataset, kin: KinematicTree, boxes: list[Tensor], split: str = "train") -> list[RayTargets]:
-    """For every part, the supervising rays of ``split`` that cross its box, in the part frame."""
-    camera = dataset.camera
-    cam_rays = camera.rays()
+def _frames(dataset: Dataset, kin: KinematicTree, split: str):
+    """Per frame of ``split``: ``(rays [HW], rgb [HW,3], depth [HW] (0 = none), pixel_part [HW] (-1 =
+    background), T_part_cam [n_parts,4,4])``, the rays in the camera frame."""
+    cam_rays = dataset.camera.rays()
     link_part = torch.tensor([kin.part_of_link[kin.links.index(name)] for name in dataset.links])
-    collected: list[list[RayTargets]] = [[] for _ in kin.parts]
     for frame in dataset.frames(split):
         images = dataset.load(frame)
         labels = torch.from_numpy(images.labels.reshape(-1).astype(np.int64))
@@ -75,18 +76,58 @@ def part_rays(dataset: Dataset, kin: KinematicTree, boxes: list[Tensor], split: 
             torch.from_numpy(images.depth.reshape(-1)).float() if images.depth is not None else torch.zeros(len(labels))
         )
         theta = kin.joint_vector(frame.joints)
-        T_obj_part = kin.part_poses(theta).float()
-        T_cam_obj = torch.from_numpy(frame.T_cam_obj).float()
+        T_cam_part = torch.from_numpy(frame.T_cam_obj).float() @ kin.part_poses(theta).float()
         pixel_part = torch.where(labels > 0, link_part[(labels - 1).clamp_min(0)], torch.full_like(labels, -1))
+        yield cam_rays, rgb, depth, pixel_part, invert_pose(T_cam_part)
+
+
+def _in_box(cam_rays: Rays, keep: Tensor, T_part_cam: Tensor, box: Tensor) -> tuple[Tensor, Rays]:
+    """The pixels ``keep`` whose rays cross ``box``, and those rays in the part's frame."""
+    rays = cam_rays[keep].transform(T_part_cam)
+    _, _, hit = ray_aabb(rays.origins, rays.directions, box)
+    return keep[hit], rays[hit]
+
+
+def part_rays(dataset: Dataset, kin: KinematicTree, boxes: list[Tensor], split: str = "train") -> list[RayTargets]:
+    """For every part, the supervising rays of ``split`` that cross its box, in the part frame."""
+    collected: list[list[RayTargets]] = [[] for _ in kin.parts]
+    for cam_rays, rgb, depth, pixel_part, T_part_cam in _frames(dataset, kin, split):
         for p, box in enumerate(boxes):
-            T_part_cam = invert_pose(T_cam_obj @ T_obj_part[p])
-            mine, empty = pixel_part == p, labels == 0
-            keep = (mine | empty).nonzero().squeeze(-1)
-            rays = cam_rays[keep].transform(T_part_cam)
-            _, _, hit = ray_aabb(rays.origins, rays.directions, box)
-            keep, rays = keep[hit], rays[hit]
+            mine = pixel_part == p
+            keep, rays = _in_box(cam_rays, (mine | (pixel_part < 0)).nonzero().squeeze(-1), T_part_cam[p], box)
             collected[p].append(RayTargets(rays, rgb[keep], mine[keep].float(), depth[keep] * mine[keep]))
     return [concat_targets(chunks) for chunks in collected]
+
+
+@dataclass
+class FreeRays:
+    """Rays ``[n]`` (the part's frame) on which the part must be empty in front of ``depth [n]``, the
+    camera z of the surface measured there: the first visible surface of another link (an occluder)."""
+
+    rays: Rays
+    depth: Tensor
+
+    def __len__(self) -> int:
+        return len(self.rays)
+
+    def __getitem__(self, index) -> FreeRays:
+        return FreeRays(self.rays[index], self.depth[index])
+
+
+def occluder_rays(dataset: Dataset, kin: KinematicTree, boxes: list[Tensor], split: str = "train") -> list[FreeRays]:
+    """For every part, the rays of ``split``'s pixels of other links with a measured depth that cross its box."""
+    collected: list[list[FreeRays]] = [[] for _ in kin.parts]
+    for cam_rays, _, depth, pixel_part, T_part_cam in _frames(dataset, kin, split):
+        for p, box in enumerate(boxes):
+            other = (pixel_part >= 0) & (pixel_part != p) & (depth > 0)
+            keep, rays = _in_box(cam_rays, other.nonzero().squeeze(-1), T_part_cam[p], box)
+            collected[p].append(FreeRays(rays, depth[keep]))
+    return [FreeRays(concat_rays([c.rays for c in chunks]), torch.cat([c.depth for c in chunks])) for chunks in collected]
+
+
+def concat_rays(chunks: list[Rays]) -> Rays:
+    """One :class:`Rays` from several, in order."""
+    return Rays(*(torch.cat([getattr(c, a) for c in chunks]) for a in ("origins", "directions", "z_per_t")))
 
 
 def concat_targets(chunks: list[RayTargets]) -> RayTargets:
@@ -94,11 +135,7 @@ def concat_targets(chunks: list[RayTargets]) -> RayTargets:
     if not chunks:
         raise ValueError("no training frames")
     return RayTargets(
-        Rays(
-            torch.cat([c.rays.origins for c in chunks]),
-            torch.cat([c.rays.directions for c in chunks]),
-            torch.cat([c.rays.z_per_t for c in chunks]),
-        ),
+        concat_rays([c.rays for c in chunks]),
         torch.cat([c.rgb for c in chunks]),
         torch.cat([c.opacity for c in chunks]),
         torch.cat([c.depth for c in chunks]),

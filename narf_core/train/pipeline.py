@@ -27,7 +27,9 @@ from narf_core.modes import RECORD_KEY, measure_modes
 from narf_core.render import OccupancyGrid, render_rays
 from narf_core.train.distill import composite_rays
 from narf_core.train.loop import run_stage, save_atomic
-from narf_core.train.parts import RayTargets, concat_targets as _concat_targets, part_boxes, part_rays
+from narf_core.train.parts import (
+    FreeRays, RayTargets, concat_rays, concat_targets as _concat_targets, occluder_rays, part_boxes, part_rays,
+)
 
 
 @dataclass
@@ -39,6 +41,9 @@ class TrainConfig:
     fields are copied in, no distillation); ``distilled`` is the paper's field of ``arch``, trained
     on renders of the composed parts. ``articulated`` needs K-planes parts and at least one joint;
     otherwise the distilled field is trained.
+
+    ``free_space_weight``: stage 1's free-space term (:func:`free_space_loss`), the mean opacity a
+    part renders in front of the surface measured on a pixel, its own or another link's (0: off).
     """
 
     arch: str = "kplanes"
@@ -54,6 +59,7 @@ class TrainConfig:
     distance: tuple[float, float] = (0.4, 1.0)
     depth_weight: float = 0.1
     opacity_weight: float = 1.0
+    free_space_weight: float = 0.0
     budget_s: float | None = None
     seed: int = 0
     keep_parts: bool = True
@@ -88,6 +94,31 @@ def ray_loss(out, targets: RayTargets, config: TrainConfig) -> torch.Tensor:
         else out.rgb.new_zeros(())
     )
     return rgb_loss + config.opacity_weight * opacity_loss + config.depth_weight * depth_loss
+
+
+FREE_SPACE_MARGIN = 0.005  # metres of camera z before the measured surface where the free space ends
+
+
+def free_space_loss(field, free: FreeRays, box, grid, step: float) -> torch.Tensor:
+    """Mean opacity of ``field`` rendered on each ray of ``free`` from its start to
+    :data:`FREE_SPACE_MARGIN` before its measured surface (jittered samples).
+
+    The depth term alone may not empty the space in front of a surface: training stops a ray once it
+    is opaque, so a false surface in front of the true one hides what is behind it, and the depth
+    term, acting only on the samples that were marched, can pull its density up rather than down;
+    nothing at all acts on a part where another link is seen. This term marches exactly the space
+    that must be empty (as Urban NeRF's and DS-NeRF's free-space losses)."""
+    far = ((free.depth - FREE_SPACE_MARGIN) / free.rays.z_per_t).clamp_min(0)
+    out = render_rays(field, free.rays, box, grid=grid, step=step, outputs=("opacity",), jitter=True,
+                      t_range=(torch.zeros_like(far), far))
+    return out.opacity.mean()
+
+
+def free_rays(batch: RayTargets, occluders: FreeRays, n: int, generator: torch.Generator) -> FreeRays:
+    """The free-space rays of a step: ``batch``'s rays with a measured depth and ``n`` drawn from ``occluders``."""
+    own = batch.depth > 0
+    drawn = occluders[torch.randint(len(occluders), (n,), generator=generator)] if len(occluders) else occluders
+    return FreeRays(concat_rays([batch.rays[own], drawn.rays]), torch.cat([batch.depth[own], drawn.depth]))
 
 
 def _git_commit() -> str | None:
@@ -125,6 +156,7 @@ def train(
 
     boxes = part_boxes(kin)
     rays_per_part: list[RayTargets] | None = None
+    occluders: list[FreeRays | None] = [None] * len(boxes)
     part_fields, part_grids, timings = [], [], {}
     for p, box in enumerate(boxes):
         done = work / f"part{p}.pt"
@@ -137,7 +169,12 @@ def train(
         else:
             if rays_per_part is None:
                 rays_per_part = part_rays(dataset, kin, boxes)
-            grid, seconds = _train_part(field, box, rays_per_part[p], config, work / f"part{p}.ckpt", budget_parts, progress, kin.part_names[p])
+                if config.free_space_weight > 0:
+                    occluders = occluder_rays(dataset, kin, boxes)
+            grid, seconds = _train_part(
+                field, box, rays_per_part[p], config, work / f"part{p}.ckpt", budget_parts, progress, kin.part_names[p],
+                occluders[p],
+            )
             save_atomic({"field": field.state_dict(), "grid": grid.occupancy.to(torch.uint8), "seconds": seconds}, done)
             timings[f"part{p}_s"] = seconds
         part_fields.append(field.eval())
@@ -243,10 +280,15 @@ def _theta_samples(kin: KinematicTree, boxes: list[torch.Tensor], cell: float, m
         per_axis = min(2 * per_axis - 1, most)
 
 
-def _fit_step(field, optimizer, batch: RayTargets, theta, box, grid, step: float, config: TrainConfig) -> float:
-    """One optimiser step of ``field`` on the rays of ``batch`` (jittered samples); returns the loss."""
+def _fit_step(
+    field, optimizer, batch: RayTargets, theta, box, grid, step: float, config: TrainConfig, free: FreeRays | None = None
+) -> float:
+    """One optimiser step of ``field`` on the rays of ``batch`` (jittered samples), with the free-space
+    term on ``free`` (a part field's step); returns the loss."""
     out = render_rays(field, batch.rays, box, theta=theta, grid=grid, step=step, outputs=("rgb", "opacity", "depth"), jitter=True)
     loss = ray_loss(out, batch, config) + field.regularization()
+    if free is not None and len(free):
+        loss = loss + config.free_space_weight * free_space_loss(field, free, box, grid, step)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
@@ -275,7 +317,13 @@ def refreshes_grid(step: int, steps: int) -> bool:
     return step % 200 == warmup % 200
 
 
-def _train_part(field, box, targets: RayTargets, config: TrainConfig, ckpt: Path, budget_s, progress: bool, name: str):
+def _train_part(
+    field, box, targets: RayTargets, config: TrainConfig, ckpt: Path, budget_s, progress: bool, name: str,
+    occluders: FreeRays | None = None,
+):
+    """Stage 1 for one part; with ``occluders`` (the free-space term on) each step also draws them in
+    the proportion they have to ``targets``, so every labelled pixel crossing the box bounds the free space."""
+    n_occluders = 0 if occluders is None else round(config.batch_rays * len(occluders) / max(len(targets), 1))
     generator = torch.Generator().manual_seed(config.seed)
     optimizer = torch.optim.Adam(field.parameters(), lr=config.lr, eps=1e-15)
     step = march_step(box)
@@ -288,7 +336,9 @@ def _train_part(field, box, targets: RayTargets, config: TrainConfig, ckpt: Path
 
     def step_fn(i: int) -> float:
         idx = torch.randint(len(targets), (config.batch_rays,), generator=generator)
-        return _fit_step(field, optimizer, targets[idx], None, box, grid, step, config)
+        batch = targets[idx]
+        free = None if occluders is None else free_rays(batch, occluders, n_occluders, generator)
+        return _fit_step(field, optimizer, batch, None, box, grid, step, config, free)
 
     result = run_stage(
         f"part {name}", field, optimizer, step_fn, steps=config.part_steps, budget_s=budget_s, checkpoint=ckpt,
