@@ -495,7 +495,7 @@ def _add_train(commands: argparse._SubParsersAction) -> None:
     arg("--batch-rays", type=_positive_int, metavar="N", help="rays per step")
     arg("--composites", type=_non_negative_int, metavar="N", help="stage 2 on N pre-rendered composite views "
         "(the paper: 5000) instead of fresh rays every step (0, the default)")
-    arg("--free-space-weight", type=_non_negative_float, metavar="W", help="stage 1's free-space term: the "
+    arg("--free-space-weight", type=float, metavar="W", help="stage 1's free-space term: the "
         "opacity a part renders in front of the depth measured on any labelled pixel (0, the default: off)")
     arg("--no-parts", action="store_true", help="leave the part fields out of the bundle (no 'parts' mode)")
     arg("--seed", type=_non_negative_int, default=0)
@@ -503,12 +503,16 @@ def _add_train(commands: argparse._SubParsersAction) -> None:
 
 
 def _run_train(args: argparse.Namespace) -> int:
-    from narf_core.train.pipeline import TrainConfig, train
+    from narf_core.train.pipeline import TrainConfig, TrainInputError, train
 
-    config = TrainConfig(arch=args.arch, field=args.field, budget_s=args.budget, seed=args.seed, keep_parts=not args.no_parts)
     overrides = {"part_steps": args.part_steps, "distill_steps": args.distill_steps, "batch_rays": args.batch_rays,
                  "composites": args.composites, "free_space_weight": args.free_space_weight}
-    config = replace(config.for_arch(), **{k: v for k, v in overrides.items() if v is not None})
+    try:
+        config = TrainConfig(arch=args.arch, field=args.field, budget_s=args.budget, seed=args.seed, keep_parts=not args.no_parts)
+        config = replace(config.for_arch(), **{k: v for k, v in overrides.items() if v is not None})
+    except TrainInputError as e:  # the core names options.<name>; the user typed its flag
+        name = e.field.removeprefix("options.")
+        raise ValueError(f"--{'budget' if name == 'budget_s' else name.replace('_', '-')} {e.reason}") from None
     start = time.perf_counter()
     out = train(args.dataset, args.out, config, command=shlex.join(["narf", *args.argv]), progress=True)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB) in {time.perf_counter() - start:.0f} s")

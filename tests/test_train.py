@@ -24,8 +24,8 @@ from narf_core.render import OccupancyGrid, RenderOutput, ray_aabb  # noqa: E402
 from narf_core.train import pipeline  # noqa: E402
 from narf_core.train.distill import random_views, rays_through_box  # noqa: E402
 from narf_core.train.loop import run_stage  # noqa: E402
-from narf_core.train.parts import RayTargets, occluder_rays, part_boxes, part_rays  # noqa: E402
-from narf_core.train.pipeline import TrainConfig, TrainError, ray_loss, train  # noqa: E402
+from narf_core.train.parts import RayTargets, part_boxes, part_rays, surface_incidence  # noqa: E402
+from narf_core.train.pipeline import TrainConfig, TrainError, TrainInputError, ray_loss, train  # noqa: E402
 
 # ---------------------------------------------------------------------------------------------
 # The trained tiny model
@@ -84,9 +84,46 @@ def test_the_articulated_field_is_trained_without_distillation_and_renders_like_
         torch.testing.assert_close(narf["opacity"], parts["opacity"], rtol=0, atol=2e-3)
 
 
-def test_an_unknown_configuration_field_is_refused_before_training(tiny_dataset, tmp_path):
-    with pytest.raises(TrainError, match="unknown configuration field 'nerf'; expected one of articulated, distilled"):
-        train(tiny_dataset, tmp_path / "x.narf", tiny_config(field="nerf"), progress=False)
+def test_an_unknown_configuration_field_is_refused_before_training():
+    with pytest.raises(TrainError, match="options.field must be one of articulated, distilled, got 'nerf'"):
+        tiny_config(field="nerf")
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "reason"),
+    [
+        ("arch", "nerf", "must be one of kplanes, fastnerf"),
+        ("part_steps", 0, "must be >= 1"),
+        ("batch_rays", 2.5, "must be an integer"),
+        ("lr", 0.0, "must be > 0"),
+        ("grid_resolution", 1, "must be >= 2"),
+        ("composites", -1, "must be >= 0"),
+        ("free_space_weight", -1.0, "must be >= 0"),
+        ("free_space_weight", float("nan"), "must be finite"),
+        ("depth_weight", True, "must be a number"),
+        ("distance", (1.0, 0.4), "must be (near, far) metres with 0 < near <= far"),
+        ("distance", (0.4,), "must be (near, far)"),
+        ("budget_s", -5.0, "must be None (no cap) or a finite number of seconds >= 0"),
+        ("budget_s", float("inf"), "must be None"),
+        ("keep_parts", 1, "must be true or false"),
+    ],
+)
+def test_a_bad_training_setting_is_one_error_naming_its_field(field, value, reason):
+    with pytest.raises(TrainInputError) as info:
+        TrainConfig(**{field: value})
+    assert info.value.field == f"options.{field}"
+    assert str(info.value).startswith(f"options.{field} {reason}") and repr(value) in str(info.value)
+    with pytest.raises(TrainInputError, match=f"options.{field}"):  # replace() checks again
+        dataclasses.replace(TrainConfig(), **{field: value})
+
+
+def test_the_cli_maps_a_bad_training_setting_to_one_line_naming_the_flag(tmp_path, capsys):
+    from narf_core.cli import main
+
+    assert main(["train", str(tmp_path / "data"), "--out", str(tmp_path / "x.narf"), "--free-space-weight", "-1"]) == 2
+    err = capsys.readouterr().err
+    assert err == "narf train: error: --free-space-weight must be >= 0, got -1.0\n"
+    assert not (tmp_path / "x.narf.work").exists()  # refused before any work
 
 
 def json_config(config: TrainConfig) -> dict:
@@ -375,7 +412,7 @@ def test_composed_field_skips_samples_outside_part_grids():
 def test_part_rays_supervise_every_labelled_pixel_of_the_part_and_no_other(tiny_dataset):
     dataset = Dataset.open(tiny_dataset)
     kin = KinematicTree.from_urdf(dataset.urdf_path)
-    rays = part_rays(dataset, kin, part_boxes(kin))
+    rays, _ = part_rays(dataset, kin, part_boxes(kin))
     labels = np.stack([dataset.load(f).labels for f in dataset.frames("train")])
     for p, link in enumerate(dataset.links):  # one link per part here
         assert kin.parts[p] == [link]
@@ -385,6 +422,7 @@ def test_part_rays_supervise_every_labelled_pixel_of_the_part_and_no_other(tiny_
         assert int((~mine).sum()) <= int((labels == 0).sum())  # the rest is background crossing the box
         assert rays[p].rgb.min() >= 0 and rays[p].rgb.max() <= 1
         assert torch.allclose(rays[p].rays.directions.norm(dim=-1), torch.ones(len(rays[p])), atol=1e-5)
+        assert bool((rays[p].incidence >= 0).all()) and bool((rays[p].incidence <= 1 + 1e-5).all())
 
 
 @pytest.mark.slow
@@ -392,7 +430,7 @@ def test_occluder_rays_are_the_other_links_pixels_crossing_the_part_box(tiny_dat
     dataset = Dataset.open(tiny_dataset)
     kin = KinematicTree.from_urdf(dataset.urdf_path)
     boxes = part_boxes(kin)
-    occluders = occluder_rays(dataset, kin, boxes)
+    _, occluders = part_rays(dataset, kin, boxes)
     labels = np.stack([dataset.load(f).labels for f in dataset.frames("train")])
     for p in range(len(kin.parts)):  # one link per part here
         assert 0 < len(occluders[p]) <= int(((labels > 0) & (labels != p + 1)).sum())
@@ -555,6 +593,50 @@ def test_free_space_loss_is_the_opacity_in_front_of_the_measured_surface():
     assert opacity[2] == pytest.approx(1 - math.exp(-5.0 * (0.35 - pipeline.FREE_SPACE_MARGIN - 0.3)), abs=0.04)
 
 
+def test_the_free_space_ends_the_margin_from_the_surface_along_its_normal():
+    """Seen at incidence |cos| = c the free space ends FREE_SPACE_MARGIN / c before the surface along
+    the ray (the margin along the normal), so a surface seen edge-on keeps its density ramp."""
+    field = Slabs((math.log(20.0), math.log(20.0)))
+    rays = rays_along_z(3)
+    free = pipeline.FreeRays(rays, torch.full((3,), 0.85), torch.tensor([1.0, 0.2, 0.0]))  # inside the false floor
+    ends = 0.85 - pipeline.FREE_SPACE_MARGIN / torch.tensor([1.0, 0.2, pipeline.MIN_INCIDENCE])
+    torch.testing.assert_close(pipeline.free_space_end(free), ends)
+    opacity = [pipeline.free_space_loss(field, free[i : i + 1], SLAB_BOX, None, 0.01).item() for i in range(3)]
+    for got, end in zip(opacity, ends.tolist()):  # the false floor starts at t = 0.8
+        assert got == pytest.approx(1 - math.exp(-20.0 * max(end - 0.8, 0.0)), abs=0.04)
+    assert opacity[0] > opacity[1] + 0.1 and opacity[2] < 0.01
+
+
+def plane_depth(camera, normal: torch.Tensor, offset: float) -> torch.Tensor:
+    """``[H*W]`` camera z of the plane ``normal . x = offset`` (camera frame) on each pixel's ray."""
+    rays = camera.rays()
+    t = offset / (rays.directions @ normal)
+    return t * rays.z_per_t
+
+
+def test_surface_incidence_is_the_cosine_between_ray_and_plane_normal_and_skips_depth_edges():
+    from narf_core.geometry import Pinhole
+
+    camera = Pinhole(torch.tensor([[40.0, 0, 16], [0, 40.0, 12], [0, 0, 1]]), 32, 24)
+    rays = camera.rays()
+    normal = torch.nn.functional.normalize(torch.tensor([0.0, -0.8, -0.6]), dim=0)  # a floor seen from above, tilted
+    depth = plane_depth(camera, normal, -0.5)
+    truth = (rays.directions @ normal).abs()
+    torch.testing.assert_close(surface_incidence(rays, depth, 24, 32), truth, atol=1e-4, rtol=0)
+    # the left half 20 cm further (a depth edge down the middle): each side keeps its own normal
+    wall = torch.tensor([0.0, 0.0, -1.0])
+    left = (torch.arange(24 * 32) % 32) < 16
+    stepped = torch.where(left, plane_depth(camera, wall, -0.9), depth)
+    got = surface_incidence(rays, stepped, 24, 32)
+    torch.testing.assert_close(got[left], (rays.directions[left] @ wall).abs(), atol=1e-4, rtol=0)
+    torch.testing.assert_close(got[~left], truth[~left], atol=1e-4, rtol=0)
+    # no depth, or a pixel whose neighbours along an axis have none: unknown (0)
+    lone = torch.zeros(24 * 32)
+    lone[5 * 32 + 7] = 0.8
+    lone[5 * 32 + 8 : 5 * 32 + 10] = 0.8  # a row segment: no neighbour above or below
+    assert bool((surface_incidence(rays, lone, 24, 32) == 0).all())
+
+
 def test_the_free_space_term_carves_a_false_floor_that_hides_the_surface():
     """A false floor in front of the measured surface, opaque enough to stop the march
     (transmittance < 1e-3), meets the colour and opacity targets; trained with the free-space term the
@@ -591,6 +673,10 @@ def test_free_rays_are_the_batch_rays_with_a_depth_and_drawn_occluders():
     assert len(free) == 7 and free.depth[:2].tolist() == pytest.approx([0.9, 1.2])
     assert set(free.depth[2:].tolist()) <= {0.25, 0.5}
     assert torch.equal(free.rays.origins[:2], rays.origins[[0, 3]])
+    assert free.incidence is None  # none known: every surface as if seen face-on
+    batch.incidence = torch.tensor([0.5, 0.0, 0.0, 0.25])
+    free = pipeline.free_rays(batch, occluders, 5, torch.Generator().manual_seed(0))
+    assert free.incidence.tolist() == [0.5, 0.25, 1, 1, 1, 1, 1]
 
 
 @pytest.mark.slow

@@ -26,19 +26,21 @@ class RayTargets:
     """Training rays with their targets; ``rays`` in the field's frame.
 
     ``rgb [n,3]`` in [0,1], ``opacity [n]`` (1 object, 0 empty), ``depth [n]`` camera z in metres
-    (0 = not measured).
+    (0 = not measured), ``incidence [n]`` the measured surface's :func:`surface_incidence` (None: 1).
     """
 
     rays: Rays
     rgb: Tensor
     opacity: Tensor
     depth: Tensor
+    incidence: Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.rays)
 
     def __getitem__(self, index) -> RayTargets:
-        return RayTargets(self.rays[index], self.rgb[index], self.opacity[index], self.depth[index])
+        incidence = None if self.incidence is None else self.incidence[index]
+        return RayTargets(self.rays[index], self.rgb[index], self.opacity[index], self.depth[index], incidence)
 
 
 def part_boxes(kin: KinematicTree, margin: float = 0.01) -> list[Tensor]:
@@ -63,9 +65,40 @@ def part_boxes(kin: KinematicTree, margin: float = 0.01) -> list[Tensor]:
     return boxes
 
 
+def surface_incidence(rays: Rays, depth: Tensor, height: int, width: int) -> Tensor:
+    """``[H*W]``: ``|cos|`` of the angle between each pixel's ray (camera frame, row-major ``[H*W]``)
+    and the normal of the surface its depth ``[H*W]`` (camera z, 0 = none) measures; 0 where unknown.
+
+    The normal is the cross product of the two image axes' tangents, each the difference to the
+    neighbour nearer in depth, so that a tangent never spans a depth edge where a smoother side
+    exists; a pixel with no measured neighbour along an axis gets 0 (as seen edge-on).
+    """
+    points = (rays.directions * (depth / rays.z_per_t)[:, None]).reshape(height, width, 3)
+    valid = (depth > 0).reshape(height, width)
+    tangents, known = [], valid
+    for axis in (0, 1):
+        step = points.diff(dim=axis)  # pixel i+1 minus pixel i
+        both = valid.narrow(axis, 1, valid.shape[axis] - 1) & valid.narrow(axis, 0, valid.shape[axis] - 1)
+        jump = torch.where(both, step[..., 2].abs(), torch.inf)
+        ahead, behind = _pad(jump, axis, front=False), _pad(jump, axis, front=True)
+        use_ahead = (ahead <= behind)[..., None]
+        tangents.append(torch.where(use_ahead, _pad(step, axis, front=False), _pad(step, axis, front=True)))
+        known = known & torch.minimum(ahead, behind).isfinite()
+    normal = torch.cross(tangents[0], tangents[1], dim=-1).reshape(-1, 3)
+    cos = (normal * rays.directions).sum(-1).abs() / normal.norm(dim=-1).clamp_min(1e-12)
+    return torch.where(known.reshape(-1), cos, 0.0)
+
+
+def _pad(x: Tensor, axis: int, front: bool) -> Tensor:
+    """``x`` with one slice of ``inf`` added along ``axis``, before its first slice or after its last."""
+    fill = torch.full_like(x.narrow(axis, 0, 1), torch.inf)
+    return torch.cat([fill, x] if front else [x, fill], dim=axis)
+
+
 def _frames(dataset: Dataset, kin: KinematicTree, split: str):
-    """Per frame of ``split``: ``(rays [HW], rgb [HW,3], depth [HW] (0 = none), pixel_part [HW] (-1 =
-    background), T_part_cam [n_parts,4,4])``, the rays in the camera frame."""
+    """Per frame of ``split``: ``(rays [HW], rgb [HW,3], depth [HW] (0 = none), incidence [HW]
+    (:func:`surface_incidence`), pixel_part [HW] (-1 = background), T_part_cam [n_parts,4,4])``, the
+    rays in the camera frame."""
     cam_rays = dataset.camera.rays()
     link_part = torch.tensor([kin.part_of_link[kin.links.index(name)] for name in dataset.links])
     for frame in dataset.frames(split):
@@ -78,7 +111,8 @@ def _frames(dataset: Dataset, kin: KinematicTree, split: str):
         theta = kin.joint_vector(frame.joints)
         T_cam_part = torch.from_numpy(frame.T_cam_obj).float() @ kin.part_poses(theta).float()
         pixel_part = torch.where(labels > 0, link_part[(labels - 1).clamp_min(0)], torch.full_like(labels, -1))
-        yield cam_rays, rgb, depth, pixel_part, invert_pose(T_cam_part)
+        incidence = surface_incidence(cam_rays, depth, dataset.camera.height, dataset.camera.width)
+        yield cam_rays, rgb, depth, incidence, pixel_part, invert_pose(T_cam_part)
 
 
 def _in_box(cam_rays: Rays, keep: Tensor, T_part_cam: Tensor, box: Tensor) -> tuple[Tensor, Rays]:
@@ -88,41 +122,40 @@ def _in_box(cam_rays: Rays, keep: Tensor, T_part_cam: Tensor, box: Tensor) -> tu
     return keep[hit], rays[hit]
 
 
-def part_rays(dataset: Dataset, kin: KinematicTree, boxes: list[Tensor], split: str = "train") -> list[RayTargets]:
-    """For every part, the supervising rays of ``split`` that cross its box, in the part frame."""
-    collected: list[list[RayTargets]] = [[] for _ in kin.parts]
-    for cam_rays, rgb, depth, pixel_part, T_part_cam in _frames(dataset, kin, split):
-        for p, box in enumerate(boxes):
-            mine = pixel_part == p
-            keep, rays = _in_box(cam_rays, (mine | (pixel_part < 0)).nonzero().squeeze(-1), T_part_cam[p], box)
-            collected[p].append(RayTargets(rays, rgb[keep], mine[keep].float(), depth[keep] * mine[keep]))
-    return [concat_targets(chunks) for chunks in collected]
-
-
 @dataclass
 class FreeRays:
     """Rays ``[n]`` (the part's frame) on which the part must be empty in front of ``depth [n]``, the
-    camera z of the surface measured there: the first visible surface of another link (an occluder)."""
+    camera z of the surface measured there: the first visible surface of another link (an occluder)
+    or of the part's own; ``incidence [n]`` that surface's :func:`surface_incidence` (None: 1)."""
 
     rays: Rays
     depth: Tensor
+    incidence: Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.rays)
 
     def __getitem__(self, index) -> FreeRays:
-        return FreeRays(self.rays[index], self.depth[index])
+        return FreeRays(self.rays[index], self.depth[index], None if self.incidence is None else self.incidence[index])
 
 
-def occluder_rays(dataset: Dataset, kin: KinematicTree, boxes: list[Tensor], split: str = "train") -> list[FreeRays]:
-    """For every part, the rays of ``split``'s pixels of other links with a measured depth that cross its box."""
-    collected: list[list[FreeRays]] = [[] for _ in kin.parts]
-    for cam_rays, _, depth, pixel_part, T_part_cam in _frames(dataset, kin, split):
+def part_rays(
+    dataset: Dataset, kin: KinematicTree, boxes: list[Tensor], split: str = "train"
+) -> tuple[list[RayTargets], list[FreeRays]]:
+    """For every part, in the part frame and in one pass over ``split``: the supervising rays that
+    cross its box (its own pixels and the background's), and the rays of other links' pixels with a
+    measured depth that cross it (its occluders)."""
+    targets: list[list[RayTargets]] = [[] for _ in kin.parts]
+    occluders: list[list[FreeRays]] = [[] for _ in kin.parts]
+    for cam_rays, rgb, depth, incidence, pixel_part, T_part_cam in _frames(dataset, kin, split):
         for p, box in enumerate(boxes):
-            other = (pixel_part >= 0) & (pixel_part != p) & (depth > 0)
+            mine = pixel_part == p
+            keep, rays = _in_box(cam_rays, (mine | (pixel_part < 0)).nonzero().squeeze(-1), T_part_cam[p], box)
+            targets[p].append(RayTargets(rays, rgb[keep], mine[keep].float(), depth[keep] * mine[keep], incidence[keep]))
+            other = (pixel_part >= 0) & ~mine & (depth > 0)
             keep, rays = _in_box(cam_rays, other.nonzero().squeeze(-1), T_part_cam[p], box)
-            collected[p].append(FreeRays(rays, depth[keep]))
-    return [FreeRays(concat_rays([c.rays for c in chunks]), torch.cat([c.depth for c in chunks])) for chunks in collected]
+            occluders[p].append(FreeRays(rays, depth[keep], incidence[keep]))
+    return [concat_targets(chunks) for chunks in targets], [concat_free(chunks) for chunks in occluders]
 
 
 def concat_rays(chunks: list[Rays]) -> Rays:
@@ -139,4 +172,17 @@ def concat_targets(chunks: list[RayTargets]) -> RayTargets:
         torch.cat([c.rgb for c in chunks]),
         torch.cat([c.opacity for c in chunks]),
         torch.cat([c.depth for c in chunks]),
+        _concat_incidence(chunks),
     )
+
+
+def concat_free(chunks: list[FreeRays]) -> FreeRays:
+    """One :class:`FreeRays` from several, in order."""
+    return FreeRays(concat_rays([c.rays for c in chunks]), torch.cat([c.depth for c in chunks]), _concat_incidence(chunks))
+
+
+def _concat_incidence(chunks: list[RayTargets] | list[FreeRays]) -> Tensor | None:
+    """The chunks' ``incidence`` in order (1 for a chunk without), or None if no chunk has one."""
+    if all(c.incidence is None for c in chunks):
+        return None
+    return torch.cat([torch.ones(len(c)) if c.incidence is None else c.incidence for c in chunks])

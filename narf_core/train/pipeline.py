@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import shutil
 import subprocess
 import time
@@ -19,6 +20,7 @@ import torch
 
 from narf_core import __version__
 from narf_core.bundle import NarfModel, march_step, save_bundle
+from narf_core.checks import InputError, check_option_types, option_rule
 from narf_core.data.dataset import Dataset
 from narf_core.fields import ArticulatedField, make_field
 from narf_core.fields.composed import ComposedField, union_occupancy
@@ -28,7 +30,7 @@ from narf_core.render import OccupancyGrid, render_rays
 from narf_core.train.distill import composite_rays
 from narf_core.train.loop import run_stage, save_atomic
 from narf_core.train.parts import (
-    FreeRays, RayTargets, concat_rays, concat_targets as _concat_targets, occluder_rays, part_boxes, part_rays,
+    FreeRays, RayTargets, concat_free, concat_targets as _concat_targets, part_boxes, part_rays,
 )
 
 
@@ -44,6 +46,9 @@ class TrainConfig:
 
     ``free_space_weight``: stage 1's free-space term (:func:`free_space_loss`), the mean opacity a
     part renders in front of the surface measured on a pixel, its own or another link's (0: off).
+
+    Every field is checked when the configuration is made: :class:`TrainInputError` names the first
+    bad one (``options.<name>``).
     """
 
     arch: str = "kplanes"
@@ -64,6 +69,32 @@ class TrainConfig:
     seed: int = 0
     keep_parts: bool = True
 
+    def __post_init__(self) -> None:
+        check_option_types(self, TrainInputError)
+        need = option_rule(self, TrainInputError)
+        need(self.arch in ARCHS, "arch", f"must be one of {', '.join(ARCHS)}")
+        need(self.field in FIELDS, "field", f"must be one of {', '.join(FIELDS)}")
+        for name in ("part_steps", "distill_steps", "batch_rays", "views_per_batch", "theta_bins"):
+            need(getattr(self, name) >= 1, name, "must be >= 1")
+        need(self.grid_resolution >= 2, "grid_resolution", "must be >= 2")
+        need(self.composites >= 0, "composites", "must be >= 0 (0 = fresh rays every step)")
+        need(self.lr > 0, "lr", "must be > 0")
+        for name in ("depth_weight", "opacity_weight", "free_space_weight"):
+            need(getattr(self, name) >= 0, name, "must be >= 0")
+        near_far = self.distance
+        need(
+            isinstance(near_far, (tuple, list)) and len(near_far) == 2
+            and all(isinstance(d, (int, float)) and not isinstance(d, bool) and math.isfinite(d) for d in near_far)
+            and 0 < near_far[0] <= near_far[1],
+            "distance", "must be (near, far) metres with 0 < near <= far",
+        )
+        need(
+            self.budget_s is None or (not isinstance(self.budget_s, bool) and isinstance(self.budget_s, (int, float))
+                                      and 0 <= self.budget_s < math.inf),
+            "budget_s", "must be None (no cap) or a finite number of seconds >= 0",
+        )
+        need(self.seed >= 0, "seed", "must be >= 0")
+
     def for_arch(self) -> TrainConfig:
         """This configuration with the learning rate suited to ``arch`` (MLPs want a smaller one)."""
         return replace(self, lr=5e-4) if self.arch == "fastnerf" else self
@@ -73,13 +104,16 @@ class TrainError(ValueError):
     """Training cannot start or resume (e.g. a work folder left by a different run)."""
 
 
+class TrainInputError(InputError, TrainError):
+    """A :class:`TrainConfig` field the training cannot use; ``field`` is ``options.<name>``."""
+
+
+ARCHS = ("kplanes", "fastnerf")
 FIELDS = ("articulated", "distilled")
 
 
 def articulated_field(config: TrainConfig, kin: KinematicTree) -> bool:
     """Whether :func:`train` builds the articulated field (else it distils the paper's field)."""
-    if config.field not in FIELDS:
-        raise TrainError(f"unknown configuration field {config.field!r}; expected one of {', '.join(FIELDS)}")
     return config.field == "articulated" and config.arch == "kplanes" and kin.n_joints > 0
 
 
@@ -96,19 +130,31 @@ def ray_loss(out, targets: RayTargets, config: TrainConfig) -> torch.Tensor:
     return rgb_loss + config.opacity_weight * opacity_loss + config.depth_weight * depth_loss
 
 
-FREE_SPACE_MARGIN = 0.005  # metres of camera z before the measured surface where the free space ends
+FREE_SPACE_MARGIN = 0.005  # metres along the measured surface's normal where the free space ends
+MIN_INCIDENCE = 0.1  # the |cos| a surface seen more edge-on (or of unknown normal) counts as
+
+
+def free_space_end(free: FreeRays) -> torch.Tensor:
+    """``[n]``: the distance along each ray of ``free`` at which its free space ends, :data:`FREE_SPACE_MARGIN`
+    from the measured surface along the surface's normal (so ``margin / |cos|`` along the ray; with
+    :data:`MIN_INCIDENCE` as the least ``|cos|``).
+
+    A margin taken along the ray (or in camera z) is a fraction of a millimetre from a surface seen
+    edge-on, inside the field's density ramp, and erodes thin panels seen that way."""
+    incidence = torch.ones_like(free.depth) if free.incidence is None else free.incidence
+    return (free.depth / free.rays.z_per_t - FREE_SPACE_MARGIN / incidence.clamp_min(MIN_INCIDENCE)).clamp_min(0)
 
 
 def free_space_loss(field, free: FreeRays, box, grid, step: float) -> torch.Tensor:
-    """Mean opacity of ``field`` rendered on each ray of ``free`` from its start to
-    :data:`FREE_SPACE_MARGIN` before its measured surface (jittered samples).
+    """Mean opacity of ``field`` rendered on each ray of ``free`` from its start to its
+    :func:`free_space_end` (jittered samples).
 
     The depth term alone may not empty the space in front of a surface: training stops a ray once it
     is opaque, so a false surface in front of the true one hides what is behind it, and the depth
     term, acting only on the samples that were marched, can pull its density up rather than down;
     nothing at all acts on a part where another link is seen. This term marches exactly the space
     that must be empty (as Urban NeRF's and DS-NeRF's free-space losses)."""
-    far = ((free.depth - FREE_SPACE_MARGIN) / free.rays.z_per_t).clamp_min(0)
+    far = free_space_end(free)
     out = render_rays(field, free.rays, box, grid=grid, step=step, outputs=("opacity",), jitter=True,
                       t_range=(torch.zeros_like(far), far))
     return out.opacity.mean()
@@ -118,7 +164,7 @@ def free_rays(batch: RayTargets, occluders: FreeRays, n: int, generator: torch.G
     """The free-space rays of a step: ``batch``'s rays with a measured depth and ``n`` drawn from ``occluders``."""
     own = batch.depth > 0
     drawn = occluders[torch.randint(len(occluders), (n,), generator=generator)] if len(occluders) else occluders
-    return FreeRays(concat_rays([batch.rays[own], drawn.rays]), torch.cat([batch.depth[own], drawn.depth]))
+    return concat_free([FreeRays(batch.rays[own], batch.depth[own], None if batch.incidence is None else batch.incidence[own]), drawn])
 
 
 def _git_commit() -> str | None:
@@ -144,7 +190,7 @@ def train(
     out = Path(out)
     dataset = Dataset.open(dataset_root)
     kin = KinematicTree.from_urdf(dataset.urdf_path)
-    articulated = articulated_field(config, kin)  # refuses an unknown field before any work
+    articulated = articulated_field(config, kin)
     dataset_hash = hashlib.sha256((Path(dataset_root) / "scene.json").read_bytes()).hexdigest()[:16]
     work = out.parent / f"{out.name}.work"
     _check_work_folder(work, config, dataset_hash)
@@ -168,9 +214,9 @@ def train(
             timings[f"part{p}_s"] = float(state["seconds"])
         else:
             if rays_per_part is None:
-                rays_per_part = part_rays(dataset, kin, boxes)
+                rays_per_part, all_occluders = part_rays(dataset, kin, boxes)
                 if config.free_space_weight > 0:
-                    occluders = occluder_rays(dataset, kin, boxes)
+                    occluders = all_occluders
             grid, seconds = _train_part(
                 field, box, rays_per_part[p], config, work / f"part{p}.ckpt", budget_parts, progress, kin.part_names[p],
                 occluders[p],
