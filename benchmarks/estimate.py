@@ -488,7 +488,8 @@ def run_arguments(args: argparse.Namespace) -> dict:
     """The keyword arguments of :func:`run` that the command line chose (the rest keep their defaults)."""
     chosen = {k: v for k, v in (("presets", tuple(getattr(args, "presets", None) or ())),
                                 ("scale_sweep", tuple(getattr(args, "scales", None) or ())),
-                                ("scenes", getattr(args, "scenes", None))) if v}
+                                ("scenes", getattr(args, "scenes", None)),
+                                ("modes", tuple(getattr(args, "modes", None) or ()))) if v}
     if getattr(args, "seed", None) is not None:
         chosen["seed"] = args.seed
     if getattr(args, "pose_starts", None) is not None:
@@ -498,8 +499,9 @@ def run_arguments(args: argparse.Namespace) -> dict:
 
 def main(args: argparse.Namespace) -> int:
     """``narf bench estimate``: ``args`` has ``work``, ``tools``, ``noise``, ``quick``, ``models``, ``json``
-    and optionally ``presets``, ``scales`` (the perturbation sweep), ``scenes`` (per split), ``seed`` (the
-    frames, the starts and the refiner's) and ``pose_starts`` (every preset's option)."""
+    and optionally ``presets``, ``scales`` (the perturbation sweep), ``scenes`` (per split), ``modes`` (the
+    render modes), ``seed`` (the frames, the starts and the refiner's) and ``pose_starts`` (every preset's
+    option)."""
     if args.tools:
         tools = tuple(args.tools)
     elif args.quick:

@@ -673,7 +673,7 @@ def _add_estimate(commands: argparse._SubParsersAction) -> None:
              "preset's, 1); robust with 9 finds the pose from 30 deg / 6 cm off")
     arg("--refinements", type=_positive_int, metavar="N",
         help="without --depth, or with a mask the depth contradicts: N refinements, the one of lowest loss "
-             "on one fixed set of rays kept (at most 8; default 1); N times the time")
+             "on one fixed set of rays kept (at most 8; default 1, robust without --depth 3); N times the time")
     _add_json_flag(parser)
     parser.set_defaults(run=_run_estimate)
 
@@ -698,7 +698,8 @@ def _run_estimate(args: argparse.Namespace) -> int:
         if not isinstance(gt, dict) or "pose" not in gt:
             raise ValueError("--gt: expected {\"pose\": ..., \"joints\": {...}}")
         ground_truth = (_pose_arg(json.dumps(gt["pose"]), "--gt pose"), _joints_arg(json.dumps(gt.get("joints", {})), "--gt joints"))
-    chosen = {"iterations": args.iterations, "pose_starts": args.pose_starts, "refinements": args.refinements}
+    chosen = {"iterations": args.iterations, "pose_starts": args.pose_starts, "refinements": args.refinements,
+              "rgb_refinements": args.refinements}
     options = EstimateOptions.preset(args.preset, mode=args.mode, **{k: v for k, v in chosen.items() if v is not None})
     model = load_bundle(args.model)
     _mode_arg(model, args.mode)  # a mode the model lacks, named as the flag
@@ -956,6 +957,9 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
                                                 "(at most 11; default: each preset's, 1)")
     which.choices["estimate"].add_argument("--seed", type=_non_negative_int, metavar="S",
                                            help="the scenes, their perturbed starts and the refiner's rays (default: 0)")
+    which.choices["estimate"].add_argument("--modes", nargs="+", choices=MODES[1:], metavar="MODE",
+                                           help="render modes to refine in, of narf and parts (default: both; "
+                                                "--quick: the first)")
     for sub in which.choices.values():  # last, so that it covers every benchmark declared above
         sub.set_defaults(run=_under_load(sub.get_default("run")))
 

@@ -123,7 +123,7 @@ class DetectOptions:
         """The refiner's options for one kept candidate (its θ is the refinement's first start)."""
         return EstimateOptions.preset(self.preset, **{"iterations": self.iterations,
                                                       "theta_starts": self.refine_theta_starts,
-                                                      "seed": self.seed, **overrides})
+                                                      "seed": self.seed, "rgb_refinements": 0, **overrides})
 
 
 # --------------------------------------------------------------------------------------------

@@ -81,9 +81,10 @@ pose: the given pose and P - 1 turned about the object's centre (out of the imag
 where a silhouette changes least for a wrong angle), each also moved onto the mask and the observed
 depth, are scored with every θ start once, on one set of rays without gradients, and each θ start
 is refined from the given pose and from its best other one. With two joints or more,
-``theta_search = N`` (on in ``robust``) first fits N configurations to the mask through the model's
-surface points, and the S that fit best are the θ starts (:func:`_theta_search`): a few spread
-starts leave most of a several-joint box unvisited (docs/benchmarks.md). A non-finite loss or gradient
+``theta_search = N`` (on in ``robust`` and ``gauss-newton``) first fits N configurations to the mask
+(and the observed depth's surface) through the model's surface points, and the S that fit best are
+the θ starts (:func:`_theta_search`): a few spread starts leave most of a several-joint box unvisited
+(docs/benchmarks.md). A non-finite loss or gradient
 never reaches the parameters: the best finite iterate is restored, Adam's moments reset and its
 rates halved.
 """
@@ -214,6 +215,9 @@ class EstimateOptions:
     # seed and every other one on a single pyramid level; the one whose estimate has the lowest loss on one
     # fixed set of _CHOICE_RAYS box rays is returned (_best_refinement). 0 or 1: one refinement. Adam only.
     refinements: int = 0
+    # Where the view comes without a depth image, at least this many refinements (as above). Only then, not
+    # where a given depth turns out unusable: a request's work is bounded before its depth is read (max_rays).
+    rgb_refinements: int = 0
     # Rays of an iteration: "uniform" (independent draws over the box), "stratified" (one per cell of a
     # grid over the box), "edges" (half drawn on silhouette edges and texture, half uniform) or
     # "auto" (uniform in a box up to reference_box_px, edges in a larger one).
@@ -235,13 +239,14 @@ class EstimateOptions:
     pose_spread_deg: float = 30.0
     # Every θ start's given pose replaced by its copy moved onto the mask's centroid and the observed depth
     # (_aligned) where that copy scores lower on the pose starts' rays: for a start centimetres off along
-    # the line of sight, which Gauss-Newton's narrower basin does not pull back; off in every preset, as
-    # it also sent a clamp scene to a wrong jaw (docs/benchmarks.md).
+    # the line of sight, which Gauss-Newton's narrower basin does not pull back; on in `gauss-newton` (whose
+    # pruning keeps the starts that tie, see narf_core/gauss_newton.py), off in the Adam presets.
     align_start: bool = False
     # With two joints or more: this many configurations (the given one and a Latin hypercube over the joint
     # box) are first fitted to the mask through the model's surface points (_theta_search: a silhouette
-    # chamfer, whose basin is wide where a thin rendered part that misses its image has no gradient), and
-    # the theta_starts that fit best replace the spread starts of _theta_starts. 0 = off.
+    # chamfer, whose basin is wide where a thin rendered part that misses its image has no gradient, and with
+    # depth the observed surface's distance to them), and the theta_starts that fit best replace the spread
+    # starts of _theta_starts (Gauss-Newton with depth: at the poses fitted, _keeps_search_pose). 0 = off.
     theta_search: int = 0
     uncertainty: bool = True  # a covariance of the estimate (one linearisation at the optimum)
     uncertainty_rays: int = 4096  # rays of the box used for it
@@ -283,6 +288,7 @@ class EstimateOptions:
         need(0 <= self.outside_weight <= 1, "outside_weight", "must be in [0, 1] (1 = trust the mask outside it)")
         need(0 <= self.partial_theta_starts <= 64, "partial_theta_starts", "must be in [0, 64] (0 = theta_starts)")
         need(0 <= self.refinements <= 8, "refinements", "must be in [0, 8] (0 or 1 = one refinement)")
+        need(0 <= self.rgb_refinements <= 8, "rgb_refinements", "must be in [0, 8] (0 = refinements)")
         need(self.reference_box_px >= 0, "reference_box_px", "must be >= 0 (0 = off)")
         need(self.ray_sampling in RAY_SAMPLINGS, "ray_sampling", f"must be one of {', '.join(RAY_SAMPLINGS)}")
         need(self.uncertainty_rays >= 16, "uncertainty_rays", "must be >= 16")
@@ -308,19 +314,25 @@ class EstimateOptions:
         mask is trusted only partially (``mask_trust = "auto"``), with a 2-pixel band: a segmenter's
         edge is off by about that much, and a wider band leaves a small visible part no evidence. With two
         joints or more the configuration starts come from a search over 16 (``theta_search``): 4 spread
-        starts leave most of a 3-joint box unvisited."""
+        starts leave most of a 3-joint box unvisited. Without a depth image, 3 refinements and the best
+        of them (``rgb_refinements``): there the distance along the line of sight is weakly observed, and
+        where a run ends depends on its random rays."""
         return cls(**{
             "silhouette_weight": 1.0, "depth_weight": 1.0, "theta_starts": 4, "coarse_to_fine": 2, "lr_pose": 0.02,
             "reference_box_px": ROBUST_BOX_PX, "ray_sampling": "auto", "mask_trust": "auto", "partial_theta_starts": 8,
-            "mask_band_px": 2, "theta_search": 16, **overrides,
+            "mask_band_px": 2, "theta_search": 16, "rgb_refinements": 3, **overrides,
         })
 
     @classmethod
     def gauss_newton(cls, **overrides) -> EstimateOptions:
         """Levenberg-Marquardt on the robust preset's terms (colour, silhouette, depth) with Huber
         weights, 4 configuration starts and 2 pyramid levels, at most ``GN_ITERATIONS`` iterations
-        (narf_core/gauss_newton.py), the covariance on ``GN_UNCERTAINTY_RAYS`` rays.
-        ``adam_iterations`` runs Adam first instead of the pyramid.
+        (narf_core/gauss_newton.py), the covariance on ``GN_UNCERTAINTY_RAYS`` rays. With two joints or
+        more the starts come from a search over 16 (``theta_search``), with depth at the poses it fitted.
+        ``adam_iterations`` runs Adam first instead of the pyramid. Each configuration start begins at the
+        given pose or its copy moved onto the mask and the depth, whichever scores lower (``align_start``):
+        a thin tool's start 2 cm off along the line of sight otherwise ends there, or in a wrong joint
+        basin (docs/benchmarks.md).
 
         ``depth_weight`` is ``GN_DEPTH_WEIGHT``, not the robust preset's 1: Gauss-Newton sums its
         residuals (three colour channels, the silhouette and the depth of every ray) where Adam's
@@ -331,19 +343,23 @@ class EstimateOptions:
         return cls(**{
             "solver": "gauss-newton", "iterations": GN_ITERATIONS, "silhouette_weight": 1.0,
             "depth_weight": GN_DEPTH_WEIGHT, "theta_starts": 4, "coarse_to_fine": 2, "robust_loss": "huber",
-            "tolerance": 3e-3, "patience": 2, "uncertainty_rays": GN_UNCERTAINTY_RAYS, **overrides,
+            "tolerance": 3e-3, "patience": 2, "uncertainty_rays": GN_UNCERTAINTY_RAYS, "theta_search": 16,
+            "align_start": True, **overrides,
         })
 
-    def max_rays(self) -> int:
+    def max_rays(self, depth: bool = True) -> int:
         """An upper bound on the rays a refinement traces, known before any work: every iteration
-        (Adam's first with ``adam_iterations``) at the largest box scale, for every start, and the
-        scoring of the pose starts."""
+        (Adam's first with ``adam_iterations``) at the largest box scale, for every start and refinement,
+        the scoring of the pose starts and the choice among refinements. ``depth``: whether the view comes
+        with a depth image (without one: ``rgb_refinements``, and a mask trusted partially only where
+        ``mask_trust`` is "partial", as nothing else contradicts it)."""
         scale = _MAX_BOX_SCALE if self.reference_box_px else 1
-        theta_starts = max(self.theta_starts, self.partial_theta_starts)
+        partial = depth or self.mask_trust == "partial"
+        theta_starts = max(self.theta_starts, self.partial_theta_starts) if partial else self.theta_starts
         starts = theta_starts * (1 + _POSES_KEPT) if self.pose_starts > 1 else theta_starts
         scoring = 3 * self.pose_starts * theta_starts * _SCORE_RAYS if self.pose_starts > 1 else 0  # _start_rows
         scoring += 3 * theta_starts * _SCORE_RAYS if self.align_start else 0
-        runs = max(1, self.refinements)
+        runs = max(1, self.refinements, 0 if depth else self.rgb_refinements)
         choice = runs * _CHOICE_RAYS if runs > 1 else 0  # _best_refinement
         return runs * (self.iterations + self.adam_iterations) * self.rays_per_iteration * scale * starts + scoring + choice
 
@@ -789,12 +805,12 @@ def _start_rows(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Para
     onto the observation (:func:`_aligned`). With ``options.align_start`` the given pose of each θ
     start is first that pose or its moved copy, whichever scores lower on the same rays. With
     ``options.theta_search`` and two joints or more, the θ starts are first those the search fits best
-    (:func:`_theta_search`; ``thetas[0]`` is among its candidates)."""
+    (:func:`_theta_search`; ``thetas[0]`` is among its candidates), with the search's poses where it had a depth."""
     opts = loss_fn.options
     if opts.theta_search and thetas.shape[1] > 1 and any(len(p) for p in loss_fn.model.sample_points.values()):
-        thetas = _theta_search(loss_fn, obs, camera, param, thetas[0], max(opts.theta_search, len(thetas)), len(thetas))
-    u = param.u_of(thetas)
-    rows = torch.cat([torch.zeros(len(u), 6, dtype=torch.float64), u], dim=1)
+        rows = _theta_search(loss_fn, obs, camera, param, thetas[0], max(opts.theta_search, len(thetas)), len(thetas))
+    else:
+        rows = torch.cat([torch.zeros(len(thetas), 6, dtype=torch.float64), param.u_of(thetas)], dim=1)
     if opts.pose_starts == 1 and not opts.align_start:
         return rows
     n_pixels = obs.pixels.shape[0]
@@ -824,25 +840,21 @@ def _start_rows(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Para
 def _theta_search(
     loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, theta0: Tensor, count: int, keep: int
 ) -> Tensor:
-    """``[keep, k]``: of ``count`` candidate configurations (``theta0 [k]`` and a Latin hypercube over the
-    joint box, :func:`_theta_starts`), the ``keep`` that fit the observation best after ``_SEARCH_STEPS``
-    Adam steps of each one's pose and θ on :func:`_chamfer`, best first.
+    """``[keep, 6 + k]`` start rows: of ``count`` candidate configurations (``theta0 [k]`` and a Latin
+    hypercube over the joint box, :func:`_theta_starts`), the ``keep`` that fit the observation best after
+    ``_SEARCH_STEPS`` Adam steps of each one's pose and θ on :func:`_chamfer`, best first.
 
     The refinement's loss compares rendered rays with pixels: a thin part (an arm 2-3 pixels wide) drawn
     beside its image has no overlap to pull on, so with several joints a few spread starts rarely find
     the configuration. Surface points projected into the image know how far they lie from the mask,
-    however far that is. Only the configurations are kept: the points' fit has no colour and leaves
-    the distance along the line of sight loose, which the refinement determines."""
+    however far that is. Without a depth image the silhouette leaves the distance along the line of sight
+    loose, and the points drift along it, fitting a wrong configuration on the way; with one the observed
+    surface holds it (:func:`_chamfer`). The fitted poses are kept where :func:`_keeps_search_pose` says,
+    else the rows start at the given pose."""
     model, opts = loss_fn.model, loss_fn.options
     rng = torch.Generator().manual_seed(opts.seed + 3)
     points, link_of = _surface_sample(model, _SEARCH_POINTS, rng)
-    target = obs.levels[-1]
-    inside = (target.mask > 0.5).cpu()
-    mask_uv = obs.pixels.cpu()[inside].double() + 0.5
-    if len(mask_uv) > _SEARCH_PIXELS:
-        mask_uv = mask_uv[torch.randperm(len(mask_uv), generator=rng)[:_SEARCH_PIXELS]]
-    depth = target.depth.double().cpu() if loss_fn.uses_depth and target.depth is not None else None
-    fit = _Fit(camera.K.detach().double().cpu(), mask_uv, obs.pixels[0].cpu(), obs.shape, inside, depth)
+    fit = _search_fit(loss_fn, obs, camera, rng)
     candidates = _theta_starts(theta0, param, count)
     rows = torch.cat([torch.zeros(count, 6, dtype=torch.float64), param.u_of(candidates)], dim=1)
     rates = [_SEARCH_RATES[0]] * 6 + [_SEARCH_RATES[1]] * len(theta0)
@@ -854,7 +866,41 @@ def _theta_search(
             adam.step(torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0), 1.0)
     score = _chamfer(fit, _camera_points(model, param, adam.params, points, link_of))
     order = torch.where(torch.isfinite(score), score, math.inf).argsort()[:keep]
-    return param.thetas(adam.params[order])
+    rows = adam.params[order].detach().clone()
+    if not _keeps_search_pose(opts, fit):
+        rows[:, :6] = 0
+    return rows
+
+
+def _keeps_search_pose(opts: EstimateOptions, fit: _Fit) -> bool:
+    """Whether the refinement starts from the search's poses (else from the given one): where the observed
+    surface held their distance, and for Gauss-Newton only, whose narrow basin a pose started nearer needs;
+    Adam's wider steps walk off it and ended further from the truth from the search's poses than from the
+    given one (docs/benchmarks.md)."""
+    return fit.cloud is not None and len(fit.cloud) > 0 and opts.solver == "gauss-newton"
+
+
+def _search_fit(loss_fn: _Loss, obs: _Observation, camera: Pinhole, rng: torch.Generator) -> _Fit:
+    """What the search's points are compared with: up to ``_SEARCH_PIXELS`` of the mask's pixels (drawn
+    with ``rng``) and, where the loss uses a depth image, the observed depth and those pixels' points."""
+    target = obs.levels[-1]
+    inside = (target.mask > 0.5).cpu()
+    chosen = torch.nonzero(inside)[:, 0]
+    if len(chosen) > _SEARCH_PIXELS:
+        chosen = chosen[torch.randperm(len(chosen), generator=rng)[:_SEARCH_PIXELS]]
+    mask_uv = obs.pixels.cpu()[chosen].double() + 0.5
+    K = camera.K.detach().double().cpu()
+    depth = target.depth.double().cpu() if loss_fn.uses_depth and target.depth is not None else None
+    cloud = None if depth is None else _back_projected(K, mask_uv, depth[chosen])
+    return _Fit(K, mask_uv, obs.pixels[0].cpu(), obs.shape, inside, depth, cloud)
+
+
+def _back_projected(K: Tensor, uv: Tensor, z: Tensor) -> Tensor:
+    """``[M, 3]`` camera-frame points of the pixels ``uv [Q, 2]`` at their z-depths ``z [Q]``, those with
+    one (``z > 0``) only."""
+    uv, z = uv[z > 0], z[z > 0]
+    xy = (uv - K[:2, 2]) / torch.stack([K[0, 0], K[1, 1]]) * z[:, None]
+    return torch.cat([xy, z[:, None]], -1)
 
 
 def _surface_sample(model: NarfModel, per_link: int, rng: torch.Generator) -> tuple[Tensor, Tensor]:
@@ -880,7 +926,8 @@ def _camera_points(model: NarfModel, param: _Parameterisation, p: Tensor, points
 @dataclass
 class _Fit:
     """What :func:`_chamfer` compares points with: ``K [3, 3]``, the mask's pixel centres ``mask_uv [Q, 2]``,
-    the box's corner ``(u0, v0)``, shape ``(h, w)``, mask ``[h*w]`` bool and observed depth ``[h*w]`` (or None)."""
+    the box's corner ``(u0, v0)``, shape ``(h, w)``, mask ``[h*w]`` bool, observed depth ``[h*w]`` and the
+    observed surface: camera-frame points ``cloud [M, 3]`` of mask pixels with a depth (both None without one)."""
 
     K: Tensor
     mask_uv: Tensor
@@ -888,6 +935,7 @@ class _Fit:
     shape: tuple[int, int]
     mask: Tensor
     depth: Tensor | None
+    cloud: Tensor | None = None
 
 
 def _chamfer(fit: _Fit, X: Tensor) -> Tensor:
@@ -895,7 +943,10 @@ def _chamfer(fit: _Fit, X: Tensor) -> Tensor:
     mean distance of a projected point to the nearest mask pixel plus that of a mask pixel to the nearest
     projected point (a point set matches the whole silhouette whether or not it is seen), plus, where a
     point falls on the mask with an observed depth, how far (over ``_SEARCH_DEPTH_MARGIN``, in pixels at
-    its depth) it lies in front of that depth: a hidden point lies behind it, none in front."""
+    its depth) it lies in front of that depth: a hidden point lies behind it, none in front. With an
+    observed surface (``fit.cloud``) also the mean distance of an observed point to the nearest point, in
+    pixels at its depth: every observed point lies on the object, which fixes the distance along the line
+    of sight that the silhouette leaves loose (and with it the configuration that a wrong distance fits)."""
     z = X[..., 2].clamp_min(1e-3)
     uv = (fit.K[:2, :2] @ (X[..., :2] / z[..., None])[..., None])[..., 0] + fit.K[:2, 2]
     d = torch.cdist(uv, fit.mask_uv.expand(len(uv), -1, -1))  # [S, N, Q]
@@ -909,7 +960,11 @@ def _chamfer(fit: _Fit, X: Tensor) -> Tensor:
     observed = fit.depth[at]
     seen = inbox & fit.mask[at] & (observed > 0)
     front = torch.relu(observed - z - _SEARCH_DEPTH_MARGIN) * fit.K[0, 0] / z
-    return score + (front * seen).sum(-1) / seen.sum(-1).clamp_min(1)
+    score = score + (front * seen).sum(-1) / seen.sum(-1).clamp_min(1)
+    if fit.cloud is None or not len(fit.cloud):
+        return score
+    near = torch.cdist(fit.cloud.expand(len(X), -1, -1), X).min(-1).values  # [S, M] metres
+    return score + (near * fit.K[0, 0] / fit.cloud[:, 2]).mean(-1)
 
 
 @torch.no_grad()
@@ -1187,6 +1242,7 @@ def refine(
     start_time = time.perf_counter()
     opts = _check_call(options, EstimateOptions, camera, EstimateInputError)
     image, mask, depth = _check_observation(image, mask, depth, camera)
+    rgb_only = depth is None  # the view came without a depth image: opts.rgb_refinements
     T0 = torch.from_numpy(check_pose(T_init, "T_init", error=EstimateInputError))
     warnings = check_observation(image, mask, depth, camera, expected_depth_m=float(T0[2, 3]))
     depth = usable_depth(depth, warnings)  # a depth in the wrong unit or off the mask is dropped, and said so
@@ -1282,7 +1338,7 @@ def refine(
             run.recovered |= warm.recovered
         last = run.params
     else:
-        count = opts.refinements if partial or not uses_depth else 1
+        count = max(opts.refinements, opts.rgb_refinements if rgb_only else 0) if partial or not uses_depth else 1
         run, last = _best_refinement(lambda o, ob: _Run(model, o, ob, camera, param, loss_fn, params0, start_time),
                                      opts, obs, count, should_stop)
     final = _final_choice(loss_fn, obs, camera, param, last, run.best_params, run.rng)
@@ -1366,8 +1422,11 @@ def model_error(model: NarfModel, kind: str, pixel_m: float, radius: float, colo
                 usual: float = 0.0) -> Tensor:
     """σ ``[6 + k]`` of the model's error (see :data:`MODEL_ERROR`; ``kind`` from :func:`_error_class`)
     at an estimate where a pixel spans ``pixel_m`` metres at the object's centre: in position that
-    times ``pixels``, in rotation that over the object's ``radius``, per joint a position
-    (prismatic, metres) or a rotation (revolute). ``usual`` (> 0): the reference colour residual
+    times ``pixels``, in rotation that over the object's ``radius``, per joint that over the speed at
+    which the joint moves the surface (``KinematicTree.surface_speeds``: 1 for a prismatic joint, so the
+    position in metres; the moved points' distance from its axis for a revolute one, so a small part
+    at the end of a chain gets the wider angle a position error means there; :func:`_joint_speeds`).
+    ``usual`` (> 0): the reference colour residual
     instead of the calibration's, and residuals below it count as it
     (``EstimateOptions.uncertainty_usual_residual``)."""
     own = model.metadata.get("uncertainty") or {}
@@ -1375,8 +1434,19 @@ def model_error(model: NarfModel, kind: str, pixel_m: float, radius: float, colo
     reference = usual or calibration["reference_variance"]
     fit = (max(colour_variance, usual) / reference) ** calibration["exponent"]
     position = calibration["pixels"][kind] * pixel_m * fit
-    joints = [position if j.type == "prismatic" else position / radius for j in model.joints]
-    return torch.tensor([position] * 3 + [position / radius] * 3 + joints, dtype=torch.float64)
+    joints = position / _joint_speeds(model, radius)
+    return torch.cat([torch.tensor([position] * 3 + [position / radius] * 3, dtype=torch.float64), joints])
+
+
+def _joint_speeds(model: NarfModel, radius: float) -> Tensor:
+    """``[k]`` metres per unit of each joint (``KinematicTree.surface_speeds`` on the model's surface points);
+    where there are none (or a joint moves none): 1 for a prismatic joint, the object's ``radius`` else."""
+    fallback = torch.tensor([1.0 if j.type == "prismatic" else radius for j in model.joints], dtype=torch.float64)
+    points = getattr(model, "sample_points", None) or {}
+    if not any(len(p) for p in points.values()):
+        return fallback
+    speeds = model.kinematics.surface_speeds(points)
+    return torch.where(speeds > 0, speeds, fallback)
 
 
 def _ray_index(obs: _Observation, opts: EstimateOptions, n_rays: int, rng: torch.Generator, allow_all: bool) -> Tensor:

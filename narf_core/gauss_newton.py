@@ -89,6 +89,11 @@ _STEP_FACTORS = (1.0, 2.0, 4.0)  # multiples of the LM step tried, in order, whi
 # so the LM step there falls several times short of the minimum along it (docs/benchmarks.md).
 _POLISH_STEP_FACTORS = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
 _GROUP = 4  # jittered rays averaged per pixel at a coarse pyramid level
+# At the pruning (a third of the iterations) every start whose cost on the fine rays is within this factor
+# of the lowest goes on, until _LAST_PRUNE_SHARE of the iterations, where the lowest goes on alone: there
+# the starts have not converged, and the right one can trail a wrong one by a few per cent (docs/benchmarks.md).
+_PRUNE_TIE = 1.15
+_LAST_PRUNE_SHARE = 0.5
 _INFORMATION_CHUNK = 256  # rays linearised at once for the covariance (bounds its render graph's memory)
 
 
@@ -437,6 +442,7 @@ class GaussNewtonRun:
         self.trace: list[tuple[float, float]] = []
         self.history: list = []
         self.small_steps = 0
+        self.pruned = False  # the starts were pruned once (the ties to the lowest cost may go on)
         self.fine_index: Tensor | None = None  # the fine level keeps one set of rays: a deterministic LM
         # The last linearisation ``(index, params, residuals)``: after a rejected step the fine level's
         # next iteration has the same rays and parameters, so its residuals and Jacobian are these.
@@ -466,7 +472,7 @@ class GaussNewtonRun:
         from narf_core.estimate import _PRUNE_SHARE, _level
 
         opts, n_levels = self.opts, len(self.obs.levels)
-        prune_at = int(opts.iterations * _PRUNE_SHARE)
+        prune_at, last_prune_at = int(opts.iterations * _PRUNE_SHARE), int(opts.iterations * _LAST_PRUNE_SHARE)
         failures = 0
         kind, scale = opts.robust_loss, opts.robust_scale
         while self.iteration < opts.iterations:
@@ -529,8 +535,9 @@ class GaussNewtonRun:
             self.trace.append((float(current.min()), elapsed))
             if snapshot is not None and opts.record_every and self.iteration % opts.record_every == 0:
                 self.history.append(snapshot(self.params, current, self.iteration, elapsed))
-            if S > 1 and self.iteration >= prune_at:
-                self._keep_best_start()
+            if S > 1 and self.iteration >= prune_at and (not self.pruned or self.iteration >= last_prune_at):
+                self._keep_best_starts(_PRUNE_TIE if self.iteration < last_prune_at else 1.0)
+                self.pruned = True
                 continue
             # Converged: `patience` accepted steps in a row each moved less than `tolerance`, or λ is at its cap.
             moved = float(self.param.motion(self.params, before).max())
@@ -562,7 +569,9 @@ class GaussNewtonRun:
             step = -g[..., 0] / scale
         return torch.where(torch.isfinite(step), step, torch.zeros_like(step))
 
-    def _keep_best_start(self) -> None:
+    def _keep_best_starts(self, tie: float) -> None:
+        """Keep the starts whose robust cost on up to ``_EVAL_RAYS`` fine box rays is at most ``tie`` times
+        the lowest (``tie`` 1: the lowest alone), lowest first."""
         from narf_core.estimate import _EVAL_RAYS
 
         n_pixels = self.obs.pixels.shape[0]
@@ -571,7 +580,8 @@ class GaussNewtonRun:
         with torch.no_grad():
             res = self.problem.residuals(self.chain, self.params, self.camera.rays(self.obs.pixels[index]), target, index, False)
         cost = robust_cost(res.r * res.used, self.opts.robust_loss, self.opts.robust_scale)
-        keep = torch.where(torch.isfinite(cost), cost, math.inf).argmin().reshape(1)
+        cost = torch.where(torch.isfinite(cost), cost, math.inf)
+        keep = cost.sort(stable=True).indices[: max(1, int((cost <= tie * cost.min()).sum()))]
         self.params, self.lam, self.lam_up = self.params[keep], self.lam[keep], self.lam_up[keep]
         self.best_params = self.params.clone()
 

@@ -49,6 +49,7 @@ from narf_core.geometry import make_pose, skew
 
 MOVABLE_TYPES = ("revolute", "continuous", "prismatic")
 SUPPORTED_TYPES = (*MOVABLE_TYPES, "fixed")
+_SPEED_STEP = 1e-4  # radians or metres: the central difference of surface_speeds (and the least speed counted)
 MAX_JOINTS = 8  # longest theta: training's occupancy keeps at least 2 configuration bins per joint (2^k grids)
 _AXIS_NORM_TOLERANCE = 1e-3  # axes written with 3-4 digits ("0.707 0 0.707") are normalised
 _BOUNDS_ANGLE_STEP = math.radians(10.0)
@@ -268,6 +269,25 @@ class KinematicTree:
             if name in values:
                 theta[i] = values[name]
         return theta
+
+    def surface_speeds(self, points: Mapping[str, np.ndarray], theta: Tensor | None = None) -> Tensor:
+        """``[k]`` float64: how far each joint moves the surface, in metres per unit of the joint (per
+        radian or per metre): the root mean square speed of the surface points ``points`` (``{link: [n, 3]}``,
+        link frame) that the joint moves, at ``theta [k]`` (mid-range if None), by central differences.
+        A prismatic joint moves its points at 1; a revolute one at their distance from its axis, which is
+        short for a small part at the end of a chain: there the same surface error is a larger angle.
+        0 where the joint moves no point."""
+        theta = self.mid_configuration() if theta is None else theta.detach().to(torch.float64)
+        step = _SPEED_STEP * torch.eye(self.n_joints, dtype=torch.float64)
+        poses = self.link_poses(torch.cat([theta + step, theta - step]))  # [2k, links, 4, 4]
+        moved = []
+        for i, link in enumerate(self.links):
+            own = torch.as_tensor(np.asarray(points.get(link, np.zeros((0, 3)))), dtype=torch.float64)
+            moved.append(own @ poses[:, i, :3, :3].transpose(-1, -2) + poses[:, i, None, :3, 3])  # [2k, n, 3]
+        moved = torch.cat(moved, 1)
+        speed = (moved[: self.n_joints] - moved[self.n_joints :]).norm(dim=-1) / (2 * _SPEED_STEP)  # [k, N]
+        moving = speed > _SPEED_STEP
+        return ((speed**2 * moving).sum(-1) / moving.sum(-1).clamp_min(1)).sqrt()
 
     def joint_dict(self, theta: Tensor) -> dict[str, float]:
         """``theta [k]`` to ``{name: value}`` in URDF file order."""

@@ -375,7 +375,7 @@ def test_a_pose_start_centimetres_off_is_moved_onto_the_mask_and_the_depth(model
 
 
 def test_align_start_begins_each_joint_start_from_the_moved_pose_where_it_scores_lower(model):
-    """``align_start`` (an option of any preset, off in all): a given pose 4 cm off along the line of sight is
+    """``align_start`` (on in ``gauss-newton``, off in the Adam presets): a given pose 4 cm off along the line of sight is
     replaced, for every θ start, by its copy moved onto the mask and the depth; without it the
     given pose stays."""
     from narf_core.estimate import _Loss, _mask_box, _observation, _Parameterisation, _start_rows, _theta_starts
@@ -385,7 +385,8 @@ def test_align_start_begins_each_joint_start_from_the_moved_pose_where_it_scores
     start = T.copy()
     start[:3, 3] *= 1 + 0.04 / np.linalg.norm(T[:3, 3])
     options = EstimateOptions.gauss_newton()
-    assert not any(EstimateOptions.preset(name).align_start for name in ("paper", "robust", "gauss-newton"))
+    assert not any(EstimateOptions.preset(name).align_start for name in ("paper", "robust"))
+    assert EstimateOptions.preset("gauss-newton").align_start
     obs = _observation(image, mask, depth, _mask_box(mask, options.box_margin), 2, "cpu")
     param = _Parameterisation.around(torch.from_numpy(start), model)
     thetas = _theta_starts(model.joint_vector(TRUTH).double(), param, options.theta_starts)
@@ -570,7 +571,7 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     robust = EstimateOptions.preset("robust")  # a box larger than the reference draws up to 4x the rays
     most = max(robust.theta_starts, robust.partial_theta_starts)  # a partially trusted mask raises the θ starts
     assert robust.max_rays() == robust.iterations * robust.rays_per_iteration * 4 * most
-    warm = EstimateOptions.preset("gauss-newton", adam_iterations=20)
+    warm = EstimateOptions.preset("gauss-newton", adam_iterations=20, align_start=False)
     assert warm.max_rays() == (warm.iterations + 20) * warm.rays_per_iteration * warm.theta_starts
     assert replace(warm, align_start=True).max_rays() == warm.max_rays() + 3 * 4 * 1024  # the alignment, then 2 x 4 scored
 
@@ -680,7 +681,7 @@ def test_theta_search_finds_a_thin_chain_s_configuration_that_the_spread_starts_
     param = _Parameterisation.around(torch.from_numpy(T), chain)
     loss_fn = SimpleNamespace(model=chain, options=EstimateOptions(theta_search=16, theta_starts=4), uses_depth=False)
     theta0 = kin.mid_configuration()
-    found = _theta_search(loss_fn, obs, camera, param, theta0, 16, 4)
+    found = param.thetas(_theta_search(loss_fn, obs, camera, param, theta0, 16, 4))
     assert found.shape == (4, 2)
     assert bool(((found >= kin.lower) & (found <= kin.upper)).all())
     assert float((found[0] - truth).abs().max()) < 0.2, found[0]
@@ -697,3 +698,115 @@ def test_theta_search_option_is_checked_and_on_in_the_robust_preset():
         EstimateOptions(theta_search=-1)
     assert EstimateOptions.robust().theta_search == 16
     assert EstimateOptions().theta_search == 0  # the paper's protocol: the spread starts
+
+
+def _chain_view(chain, camera: Pinhole, T: np.ndarray, theta: Tensor) -> tuple[np.ndarray, np.ndarray]:
+    """The mask ``[H, W]`` and z-depth ``[H, W]`` (0 off the mask, the nearest point's z on it) of the
+    chain of :func:`_chain` at pose ``T`` and configuration ``theta``, drawn from dense surface points."""
+    rng = np.random.default_rng(1)
+    links = chain.kinematics.link_poses(theta).numpy()
+    mask = np.zeros((camera.height, camera.width), bool)
+    depth = np.full((camera.height, camera.width), np.inf, np.float32)
+    for i, link in enumerate(chain.links):
+        points = np.repeat(chain.sample_points[link], 4, 0) + rng.normal(0, 0.002, (4 * len(chain.sample_points[link]), 3))
+        X = (T @ links[i] @ np.c_[points, np.ones(len(points))].T).T[:, :3]
+        uv, _ = camera.project(torch.from_numpy(X))
+        u, v = uv.numpy().T.astype(int)
+        keep = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+        mask[v[keep], u[keep]] = True
+        np.minimum.at(depth, (v[keep], u[keep]), X[keep, 2].astype(np.float32))
+    return mask, np.where(mask, depth, 0).astype(np.float32)
+
+
+def test_back_projected_points_project_back_onto_their_pixels_and_skip_missing_depth():
+    from narf_core.estimate import _back_projected
+
+    camera = Pinhole.primesense(128, 96)
+    K = camera.K.double()
+    uv = torch.tensor([[10.5, 20.5], [64.0, 48.0], [120.5, 3.5]], dtype=torch.float64)
+    z = torch.tensor([0.5, 0.0, 1.25], dtype=torch.float64)
+    X = _back_projected(K, uv, z)
+    assert X.shape == (2, 3)
+    assert torch.allclose(X[:, 2], z[[0, 2]])
+    back = (K[:2, :2] @ (X[:, :2] / X[:, 2:])[..., None])[..., 0] + K[:2, 2]
+    assert torch.allclose(back, uv[[0, 2]], atol=1e-9)
+
+
+def test_search_with_depth_holds_the_distance_and_starts_gauss_newton_at_the_fitted_pose(tmp_path):
+    """The chain seen with a depth image, the given pose 6 cm too far along the line of sight and the
+    configuration far from mid-range: the observed surface in the search's score makes the true distance
+    score lower than the far one (the silhouette alone barely tells them apart); the search's best row
+    then lies within 1.5 cm of the true distance and 0.25 rad of the true joints. Gauss-Newton starts
+    from the fitted poses, Adam from the given one (zero pose columns), and without depth nothing
+    of the pose is kept."""
+    from types import SimpleNamespace
+
+    from narf_core.estimate import (_camera_points, _chamfer, _observation, _Parameterisation, _search_fit,
+                                    _surface_sample, _theta_search)
+
+    chain = _chain(tmp_path)
+    kin = chain.kinematics
+    camera = Pinhole.primesense(128, 96)
+    T_true = np.eye(4)
+    T_true[:3, 3] = (0.0, 0.0, 0.6)
+    truth = torch.tensor([0.6, -1.05], dtype=torch.float64)
+    mask, depth = _chain_view(chain, camera, T_true, truth)
+    T_far = T_true.copy()
+    T_far[2, 3] += 0.06
+    box = (0, 0, camera.width, camera.height)
+    obs = _observation(np.zeros((*mask.shape, 3), np.uint8), mask, depth, box, 1, "cpu")
+    param = _Parameterisation.around(torch.from_numpy(T_far), chain)
+    gauss = EstimateOptions(solver="gauss-newton", theta_search=16, theta_starts=4)
+    loss_fn = SimpleNamespace(model=chain, options=gauss, uses_depth=True)
+
+    fit = _search_fit(loss_fn, obs, camera, torch.Generator().manual_seed(3))
+    assert fit.cloud is not None and len(fit.cloud) > 50
+    points, link_of = _surface_sample(chain, 64, torch.Generator().manual_seed(0))
+    rows = torch.cat([torch.zeros(2, 6, dtype=torch.float64), param.u_of(truth).expand(2, -1)], 1)
+    rows[0, 2] = -0.06 / param.radius  # the true distance (the camera's z is the centre frame's z)
+    with_cloud = _chamfer(fit, _camera_points(chain, param, rows, points, link_of))
+    assert float(with_cloud[1] - with_cloud[0]) > 2.0, with_cloud  # pixels
+    fit.cloud = None
+    silhouette = _chamfer(fit, _camera_points(chain, param, rows, points, link_of))
+    assert float(silhouette[1] - silhouette[0]) < float(with_cloud[1] - with_cloud[0]) / 2, silhouette
+
+    found = _theta_search(loss_fn, obs, camera, param, kin.mid_configuration(), 16, 4)
+    assert found.shape == (4, 8)
+    z = param.poses(found[:1])[0, 2, 3]
+    assert abs(float(z) - 0.6) < 0.015, float(z)
+    assert float((param.thetas(found[:1])[0] - truth).abs().max()) < 0.25, param.thetas(found[:1])
+    loss_fn.options = replace(gauss, solver="adam")
+    adam_rows = _theta_search(loss_fn, obs, camera, param, kin.mid_configuration(), 16, 4)
+    assert torch.equal(adam_rows[:, :6], torch.zeros(4, 6, dtype=torch.float64))
+    loss_fn.options, loss_fn.uses_depth = gauss, False
+    no_depth = _theta_search(loss_fn, obs, camera, param, kin.mid_configuration(), 16, 4)
+    assert torch.equal(no_depth[:, :6], torch.zeros(4, 6, dtype=torch.float64))
+
+
+def test_the_gauss_newton_preset_searches_configurations():
+    assert EstimateOptions.gauss_newton().theta_search == 16
+    assert EstimateOptions.gauss_newton(theta_search=0).theta_search == 0
+
+
+def test_model_error_of_a_revolute_joint_is_the_position_over_how_fast_it_moves_the_surface(tmp_path):
+    """A joint's σ is the position's σ over the speed at which it moves its points: the chain's distal
+    elbow (one 10 cm link) gets a wider angle than its shoulder (both links), both wider than the
+    position over the object's radius; without surface points the radius is used."""
+    from types import SimpleNamespace
+
+    from narf_core.bundle import JointSpec
+    from narf_core.estimate import MODEL_ERROR, model_error
+
+    chain = _chain(tmp_path)
+    joints = [JointSpec(j.name, j.type, j.lower, j.upper) for j in chain.kinematics.movable]
+    model = SimpleNamespace(metadata={}, joints=joints, kinematics=chain.kinematics, sample_points=chain.sample_points)
+    sd = model_error(model, "shape", 0.004, 0.25, MODEL_ERROR["reference_variance"]).numpy()
+    position = MODEL_ERROR["pixels"]["shape"] * 0.004
+    speeds = chain.kinematics.surface_speeds(chain.sample_points).numpy()
+    assert np.allclose(sd[:6], [position] * 3 + [position / 0.25] * 3)
+    assert np.allclose(sd[6:], position / speeds)
+    assert sd[7] > sd[6] > position / 0.25
+    assert 0.04 < speeds[1] < 0.07  # the elbow: one 10 cm link's points, 0-10 cm from its axis
+    bare = SimpleNamespace(metadata={}, joints=joints, kinematics=chain.kinematics, sample_points={})
+    assert np.allclose(model_error(bare, "shape", 0.004, 0.25, MODEL_ERROR["reference_variance"]).numpy()[6:],
+                       position / 0.25)

@@ -71,11 +71,11 @@ def test_the_first_refinement_is_the_single_run_and_depth_keeps_one(model, scene
     is that run; with a depth image and a mask trusted in full only one refinement runs, whatever
     the option says; with the mask trusted partially, several."""
     T, image, mask, depth, T0 = scene
-    one = refine(model, image, mask, CAMERA, T0, options=EstimateOptions.robust(**FAST))
-    same = refine(model, image, mask, CAMERA, T0, options=EstimateOptions.robust(refinements=1, **FAST))
+    one = refine(model, image, mask, CAMERA, T0, options=EstimateOptions.robust(rgb_refinements=0, **FAST))
+    same = refine(model, image, mask, CAMERA, T0, options=EstimateOptions.robust(rgb_refinements=0, refinements=1, **FAST))
     np.testing.assert_array_equal(one.T_cam_obj, same.T_cam_obj)
     calls = spy_on_choice(monkeypatch)
-    refine(model, image, mask, CAMERA, T0, options=EstimateOptions.robust(refinements=2, **FAST))
+    refine(model, image, mask, CAMERA, T0, options=EstimateOptions.robust(rgb_refinements=0, refinements=2, **FAST))
     np.testing.assert_allclose(calls[0][0][0].numpy(), one.T_cam_obj, atol=1e-9)
     calls.clear()
     with_depth = [refine(model, image, mask, CAMERA, T0, depth=depth, options=EstimateOptions.robust(refinements=k, **FAST))
@@ -104,6 +104,50 @@ def test_a_cancelled_refinement_ends_the_series(model, scene, monkeypatch):
     assert len(calls) == 1 and calls[0][0].shape[0] == 2
 
 
+def test_robust_refines_three_times_without_a_depth_image_and_once_with_one(model, scene, monkeypatch):
+    """The robust preset's ``rgb_refinements``: a view without a depth image gets 3 refinements and the
+    choice among them (``refinements`` may ask for more, not fewer); with a depth image (and the mask
+    trusted in full) one, as before."""
+    T, image, mask, depth, T0 = scene
+    calls = spy_on_choice(monkeypatch)
+    options = EstimateOptions.robust(**FAST)
+    assert options.rgb_refinements == 3 and options.refinements == 0
+    rgb = refine(model, image, mask, CAMERA, T0, options=options, ground_truth=(T, TRUTH))
+    assert len(calls) == 1 and calls[0][0].shape[0] == 3 and rgb.iterations == 3 * FAST["iterations"]
+    calls.clear()
+    more = refine(model, image, mask, CAMERA, T0, options=replace(options, refinements=4))
+    assert len(calls) == 1 and calls[0][0].shape[0] == 4 and more.iterations == 4 * FAST["iterations"]
+    calls.clear()
+    rgbd = refine(model, image, mask, CAMERA, T0, depth=depth, options=options)
+    assert not calls and rgbd.iterations == FAST["iterations"]
+
+
+def test_max_rays_bounds_the_rays_traced_without_a_depth_image(model, scene, monkeypatch):
+    """Without a depth image the bound counts ``rgb_refinements`` runs of ``theta_starts`` (a partially
+    trusted mask needs a depth, unless asked for) and the choice's rays; with one, as many runs as
+    ``refinements``. The rays an RGB-only refinement renders stay within its bound."""
+    options = EstimateOptions.robust()
+    one = replace(options, rgb_refinements=0)
+    loop = options.iterations * options.rays_per_iteration * estimate._MAX_BOX_SCALE
+    assert options.max_rays() == one.max_rays() == loop * options.partial_theta_starts  # with depth: as before
+    assert one.max_rays(depth=False) == loop * options.theta_starts
+    assert options.max_rays(depth=False) == 3 * loop * options.theta_starts + 3 * estimate._CHOICE_RAYS
+    assert options.max_rays(depth=False) <= 8_000_000  # the service's default work limit admits robust RGB-only
+    partial = replace(options, mask_trust="partial")
+    assert partial.max_rays(depth=False) == 3 * loop * options.partial_theta_starts + 3 * estimate._CHOICE_RAYS
+    T, image, mask, _, T0 = scene
+    rays = []
+    real = model.render_rays
+    monkeypatch.setattr(model, "render_rays", lambda r, *a, **k: rays.append(len(r)) or real(r, *a, **k))
+    small = EstimateOptions.robust(**FAST)
+    refine(model, image, mask, CAMERA, T0, options=small)
+    three = sum(rays)
+    rays.clear()
+    refine(model, image, mask, CAMERA, T0, options=replace(small, rgb_refinements=0))
+    assert 0 < sum(rays) <= replace(small, rgb_refinements=0).max_rays(depth=False)
+    assert 2.5 * sum(rays) < three <= small.max_rays(depth=False)  # three runs' work, within the bound
+
+
 def test_max_rays_counts_every_refinement_and_the_choice():
     options = EstimateOptions.robust()
     several = replace(options, refinements=3)
@@ -113,6 +157,8 @@ def test_max_rays_counts_every_refinement_and_the_choice():
         EstimateOptions(refinements=9)
     with pytest.raises(EstimateInputError, match="options.refinements"):
         EstimateOptions(refinements=-1)
+    with pytest.raises(EstimateInputError, match="options.rgb_refinements"):
+        EstimateOptions(rgb_refinements=9)
 
 
 @pytest.mark.slow
@@ -126,7 +172,21 @@ def test_narf_estimate_takes_refinements(capsys, monkeypatch, tiny_bundle, tiny_
     argv = estimate_argv(tiny_bundle, view.__wrapped__(tiny_dataset, tmp_path_factory), **{"--iterations": "1"})
     for extra, refinements in ((["--preset", "robust", "--refinements", "2"], 2), ([], 0)):
         code, _, err = run(capsys, *argv, *extra, "--json")
-        assert code == 0 and seen[-1].refinements == refinements and seen[-1].iterations == 1, err
+        assert code == 0 and seen[-1].refinements == seen[-1].rgb_refinements == refinements, err
+        assert seen[-1].iterations == 1
     assert seen[0].theta_starts == 4  # the preset's, with the option on top
     assert_error(capsys, "estimate", [*argv, "--refinements", "0"], "--refinements")
     assert_error(capsys, "estimate", [*argv, "--refinements", "9"], "refinements")
+
+
+def test_the_tracker_and_the_detector_refine_once_per_image_without_depth():
+    """A tracked frame, a re-initialisation and a detector's candidate keep one refinement without a depth
+    image (the robust preset's rgb_refinements is a single image's extra cost, not a frame's)."""
+    from narf_core.detect import DetectOptions
+    from narf_core.track import TrackOptions
+
+    track = TrackOptions()
+    for options in (track.step_options(depth=False), track.step_options(depth=True), track.reinit_options(),
+                    DetectOptions(preset="robust").refine_options()):
+        assert options.rgb_refinements == 0 and options.refinements == 0
+        assert options.max_rays(depth=False) <= options.max_rays(depth=True)

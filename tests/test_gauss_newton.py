@@ -611,3 +611,81 @@ def test_narf_estimate_takes_pose_starts(capsys, monkeypatch, tiny_bundle, tiny_
     assert code == 0 and seen[-1].pose_starts == 1, err
     assert_error(capsys, "estimate", [*argv, "--pose-starts", "0"], "--pose-starts")
     assert_error(capsys, "estimate", [*argv, "--pose-starts", "12"], "pose_starts")
+
+
+def test_bench_estimate_takes_modes_from_the_command_line(model, tmp_path, capsys):
+    """``narf bench estimate --modes parts`` refines in that mode alone (so a run over trained models can
+    leave out the slower one); a mode that is not a render mode is one error line naming the option."""
+    from benchmarks.estimate import run, run_arguments
+    from narf_core.cli import build_parser
+    from narf_core.data.dataset import DatasetWriter, FrameImages, read_urdf
+    from tests.test_cli_model import assert_error
+
+    chosen = run_arguments(build_parser().parse_args(["bench", "estimate", "--modes", "parts", "--scales", "1"]))
+    assert chosen == {"modes": ("parts",), "scale_sweep": (1.0,)}
+    assert "modes" not in run_arguments(build_parser().parse_args(["bench", "estimate"]))
+    assert_error(capsys, "bench estimate", ["bench", "estimate", "--modes", "auto"], "--modes")
+    root = tmp_path / "toy"
+    with DatasetWriter(root, read_urdf(ASSETS / "estimate_slider.urdf"), CAMERA) as writer:
+        T = view((0.08, -0.15, 0.18))
+        image, mask, _ = observe(model, T, TRUTH)
+        writer.add("test", FrameImages(image, None, mask.astype(np.uint8)), T, TRUTH)
+    result = run({"toy": model}, {"toy": root}, out_dir=tmp_path / "out", splits=("test",), scenes=1, iterations=2,
+                 presets=("paper",), progress=False, **chosen)
+    assert result["config"]["modes"] == ["parts"]
+    assert [(row["mode"], row["preset"]) for row in result["table"]] == [("parts", "paper")]
+    assert {s["mode"] for s in result["sweep"]} == {"parts"}
+
+
+def _run_with_costs(costs: list[float]) -> gauss_newton.GaussNewtonRun:
+    """A bare run whose starts (row ``i``: ``p[0] = i``) have robust cost ``costs[i]`` on any rays."""
+
+    class Costs:
+        def residuals(self, chain, p, rays, target, index, jacobian):
+            r = torch.tensor(costs, dtype=torch.float64)[p[:, 0].long()].mul(2).sqrt()  # cost = r² / 2
+            return gauss_newton.Residuals(r[:, None, None], None, torch.ones(len(p), 1, 1, dtype=torch.bool))
+
+    run = object.__new__(gauss_newton.GaussNewtonRun)
+    run.problem, run.chain, run.rng = Costs(), None, torch.Generator().manual_seed(0)
+    run.obs, run.camera = SimpleNamespace(pixels=torch.zeros(8, 2), levels=[None]), SimpleNamespace(rays=lambda px: px)
+    run.opts = SimpleNamespace(robust_loss="none", robust_scale=1.0)
+    run.params = torch.zeros(len(costs), 7, dtype=torch.float64)
+    run.params[:, 0] = torch.arange(len(costs))
+    run.lam, run.lam_up = torch.arange(len(costs), dtype=torch.float64), torch.ones(len(costs), dtype=torch.float64)
+    return run
+
+
+def test_the_pruning_keeps_the_starts_tied_with_the_lowest_cost():
+    """At the pruning every start within ``tie`` times the lowest cost goes on, lowest first, with its own
+    λ; ``tie`` 1 keeps the lowest alone (the last pruning, and the rule before ties were kept)."""
+    run = _run_with_costs([30.0, 40.0, 29.0, 33.0, 34.0])
+    run._keep_best_starts(1.15)  # 29 * 1.15 = 33.35
+    assert run.params[:, 0].tolist() == [2, 0, 3] and run.lam.tolist() == [2, 0, 3]
+    assert torch.equal(run.best_params, run.params)
+    run._keep_best_starts(1.0)
+    assert run.params[:, 0].tolist() == [2]
+    clear = _run_with_costs([50.0, 20.0, 40.0])
+    clear._keep_best_starts(1.15)
+    assert clear.params[:, 0].tolist() == [1]
+
+
+def test_tied_starts_go_on_until_the_last_pruning(model, monkeypatch):
+    """Starts tied at a third of the iterations go on together, and the lowest goes on alone from
+    ``_LAST_PRUNE_SHARE`` of them; with no tie one start goes on from the first pruning."""
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    T0 = perturbed(T, 10, 0.02, seed=1)
+    options = EstimateOptions.preset("gauss-newton", iterations=12, early_stop=False, uncertainty=False)
+    keep = gauss_newton.GaussNewtonRun._keep_best_starts
+    for tie, expected in ((1e9, [(4, 4), (6, 4)]), (1.0, [(4, 4)])):
+        calls = []
+
+        def spy(self, t, keep=keep):
+            calls.append((self.iteration, len(self.params)))
+            keep(self, t)
+
+        monkeypatch.setattr(gauss_newton, "_PRUNE_TIE", tie)
+        monkeypatch.setattr(gauss_newton.GaussNewtonRun, "_keep_best_starts", spy)
+        result = refine(model, image, mask, CAMERA, T0, depth=depth, options=options, ground_truth=(T, TRUTH))
+        assert calls == expected and result.iterations == 12
+        assert result.metrics["add"] < 0.02, result.metrics

@@ -585,3 +585,40 @@ def test_mimic_continuous_and_fixed_chain_train_end_to_end(tmp_path, assets):
     ends = [model.render(T, model.joint_vector({"finger_a": 0.02, "dial": d}), dataset.camera, outputs=("rgb",), mode="parts")["rgb"]
             for d in (-math.pi, math.pi)]
     torch.testing.assert_close(ends[0], ends[1], atol=1e-4, rtol=0)
+
+
+SPEED_URDF = """<?xml version="1.0"?>
+<robot name="speeds">
+  <link name="base"/><link name="arm"/><link name="tip"/><link name="slide"/><link name="bare"/>
+  <joint name="shoulder" type="revolute"><parent link="base"/><child link="arm"/>
+    <origin xyz="0 0 0"/><axis xyz="0 0 1"/><limit lower="-1" upper="1"/></joint>
+  <joint name="wrist" type="revolute"><parent link="arm"/><child link="tip"/>
+    <origin xyz="0.2 0 0"/><axis xyz="0 0 1"/><limit lower="-1" upper="1"/></joint>
+  <joint name="rail" type="prismatic"><parent link="base"/><child link="slide"/>
+    <origin xyz="0 0.3 0"/><axis xyz="1 0 0"/><limit lower="0" upper="0.1"/></joint>
+  <joint name="spin" type="revolute"><parent link="base"/><child link="bare"/>
+    <origin xyz="0 0 0"/><axis xyz="0 0 1"/><limit lower="-1" upper="1"/></joint>
+</robot>
+"""
+
+
+def test_surface_speeds_are_the_moved_points_distance_from_the_axis_or_one_for_a_slide():
+    """A revolute joint moves its points at their distance from its axis (a shoulder moves the arm's
+    and the tip's points: the RMS of both), a distal joint only its own small part's, a prismatic joint
+    at 1 m/m, a joint that moves no points at 0; the static base does not count."""
+    kin = KinematicTree.from_urdf_string(SPEED_URDF)
+    points = {
+        "base": np.array([[0.5, 0.5, 0.0]]),
+        "arm": np.array([[0.1, 0.0, 0.0], [0.2, 0.0, 0.0]]),  # 0.1 and 0.2 m from the shoulder's axis
+        "tip": np.array([[0.05, 0.0, 0.0], [0.0, 0.05, 0.01]]),  # 0.25 / 0.2062 m from the shoulder, 0.05 from the wrist
+        "slide": np.array([[0.0, 0.0, 0.0], [0.3, 0.1, 0.2]]),
+    }
+    speeds = kin.surface_speeds(points)
+    shoulder = math.sqrt((0.1**2 + 0.2**2 + 0.25**2 + (0.2**2 + 0.05**2)) / 4)
+    torch.testing.assert_close(speeds, torch.tensor([shoulder, 0.05, 1.0, 0.0], dtype=torch.float64), atol=1e-6, rtol=0)
+    bent = kin.surface_speeds(points, torch.tensor([0.5, -0.7, 0.05, 0.3], dtype=torch.float64))
+    torch.testing.assert_close(bent[1:], speeds[1:], atol=1e-6, rtol=0)  # distances from an axis do not change with it
+    c, s = math.cos(-0.7), math.sin(-0.7)  # the bent wrist moves the tip's points about the shoulder's axis
+    tip = [math.hypot(0.2 + c * x - s * y, s * x + c * y) for x, y in ((0.05, 0.0), (0.0, 0.05))]
+    expected = math.sqrt((0.1**2 + 0.2**2 + tip[0] ** 2 + tip[1] ** 2) / 4)
+    assert abs(float(bent[0]) - expected) < 1e-6 and abs(expected - shoulder) > 1e-3
