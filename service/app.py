@@ -172,12 +172,12 @@ async def estimate(
         jobs.check_joints(model, params.ground_truth.joints, "request.ground_truth.joints", complete=True)
     engine: Engine = request.app.state.engine
     options = jobs.refine_options(engine, params, "request.options")
-    jobs.check_work(options, settings.max_work_rays, "request.options")
     uploads = {
         "image": await image.read(),
         "mask": await mask.read(),
         "depth": await depth.read() if depth is not None else None,
     }
+    jobs.check_work(options, settings.max_work_rays, "request.options", depth=bool(uploads["depth"]))
     return await run_job(
         request,
         lambda stop: jobs.estimate(

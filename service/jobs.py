@@ -208,18 +208,19 @@ def refine_options(engine: Engine, request: EstimateRequest, field: str) -> Any:
         raise invalid(field + e.field.removeprefix("options"), e.reason) from None  # "options.<name>" of the core
 
 
-def check_work(options: EstimateOptions, max_rays: int, field: str) -> None:
+def check_work(options: EstimateOptions, max_rays: int, field: str, depth: bool) -> None:
     """422 naming ``field`` if the refinement would trace more than ``max_rays`` rays in all.
 
     The cost is the core's bound, :meth:`EstimateOptions.max_rays` (iterations x rays_per_iteration
-    x the largest box scale x theta_starts), known before any work.
+    x the largest box scale x theta_starts x refinements), known before any work; ``depth``: whether
+    the request carries a depth image (without one, the RGB-only refinements count).
     """
-    rays = options.max_rays()
+    rays = options.max_rays(depth=depth)
     if rays > max_rays:
         raise invalid(
             field,
-            f"would trace up to {rays} rays (iterations x rays_per_iteration x box scale x theta_starts), "
-            f"over this server's work limit of {max_rays}",
+            f"would trace up to {rays} rays (iterations x rays_per_iteration x box scale x theta_starts "
+            f"x refinements), over this server's work limit of {max_rays}",
         )
 
 
