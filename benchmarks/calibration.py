@@ -12,12 +12,20 @@ the object. The model error's σ is ``pixels · footprint · v / reference_varia
 1), ``reference_variance`` the median ``v`` of the ``shape`` class, and ``pixels`` per class of
 :func:`~narf_core.estimate._error_class` the smallest whose 95 % regions hold 95 % of the class's
 errors. ``--write-bundle`` stores the result in a bundle's ``metadata["uncertainty"]``.
+
+    python -m narf_benchmarks.calibration --tracker --model M.narf --tool TOOL [--write-bundle M.narf]
+
+fits only the tracker's own factor on a warm-started frame's σ (:func:`narf_core.track.sigma_scale`),
+per modality (RGB-D, RGB only), for that model: its default tracker over smooth 60-frame sequences of
+seeds 1-4 (``--track-seeds``), the smallest factor (0.1 steps) whose 95 % regions hold 95 % of the
+pooled frames' errors; ``--write-bundle`` stores it under ``metadata["uncertainty"]["track"]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -137,6 +145,55 @@ def coverage(rows: list[dict], calibration: dict) -> dict[str, float]:
             for p in sorted({r["preset"] for r in rows})}
 
 
+def track_nees(model: NarfModel, dataset: Dataset, rgb_only: bool, seed: int = 0) -> list[float]:
+    """The default tracker over a sequence from its first label (as ``narf bench track``); per frame
+    with a covariance, the NEES of its true error under the frame's Σ before the tracker's factor
+    (``sigma_scale`` 1: the NEES at the factor used times its square)."""
+    from narf_core.track import SIGMA_SCALE, TrackOptions, track
+    from narf_core.track_io import load_frames, sequence_frames
+
+    scale = SIGMA_SCALE["rgb" if rgb_only else "rgbd"]  # the pooled factor: the track does not see a model's own
+    options = TrackOptions(first_frame="warm", seed=seed, sigma_scale=SIGMA_SCALE["rgbd"], sigma_scale_rgb=SIGMA_SCALE["rgb"])
+    frames = sequence_frames(dataset)
+    nees = []
+    for frame, result in zip(frames, track(model, load_frames(dataset, frames, rgb_only=rgb_only), dataset.camera,
+                                           frames[0].T_cam_obj, frames[0].joints, options)):
+        if result.status != "lost" and result.covariance is not None:
+            e = E.local_error(result.T_cam_obj, result.joints, frame.T_cam_obj, frame.joints, model)
+            nees.append(float(e @ np.linalg.pinv(result.covariance, hermitian=True) @ e) * scale**2)
+    return nees
+
+
+def fit_track_scale(nees: list[float], dof: int, share: float = COVERAGE) -> float:
+    """The smallest factor on σ (0.1 steps) whose 95 % regions hold ``share`` of the errors whose
+    NEES at factor 1 are ``nees`` (a factor ``s`` divides each NEES by ``s²``)."""
+    if not nees:
+        raise ValueError("no tracked frame with a covariance to fit the factor on")
+    needed = float(np.quantile(np.asarray(nees), share, method="inverted_cdf"))
+    return max(0.1, math.ceil(round(10 * math.sqrt(needed / E.chi2_quantile(COVERAGE, dof)), 9)) / 10)
+
+
+def track_calibration(model: NarfModel, datasets: list[Dataset], modalities=("rgbd", "rgb")) -> dict:
+    """``metadata["uncertainty"]["track"]``: per modality the factor on a warm-started frame's σ
+    (:func:`narf_core.track.sigma_scale`) fitted on the pooled frames of ``datasets``' sequences."""
+    out = {}
+    for modality in modalities:
+        nees = [n for dataset in datasets for n in track_nees(model, dataset, modality == "rgb")]
+        out[modality] = fit_track_scale(nees, 6 + len(model.joints))
+        out[f"{modality}_frames"] = len(nees)
+    return out
+
+
+def write_calibration(path: Path, key: str | None, value: dict) -> None:
+    """Store ``value`` under the bundle's ``metadata["uncertainty"][key]`` (``key`` None: the
+    constants themselves), keeping what else it holds."""
+    target = load_bundle(path)
+    own = dict(target.metadata.get("uncertainty") or {})
+    own.update({key: value} if key else value)
+    target.metadata["uncertainty"] = own
+    save_bundle(path, target)
+
+
 def main(argv: list[str] | None = None) -> int:
     from narf_benchmarks.track import sequence
     from narf_core.data.synth.generate import synthesize
@@ -149,8 +206,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--seed", type=int, default=1, help="of the data (the benchmarks use 0)")
     parser.add_argument("--write-bundle", type=Path, help="store the constants in this bundle's metadata")
+    parser.add_argument("--tracker", action="store_true",
+                        help="fit only the tracker's factors on σ, on smooth sequences of --track-seeds")
+    parser.add_argument("--track-seeds", type=int, nargs="+", default=[1, 2, 3, 4],
+                        help="of the sequences (the benchmark uses 0)")
     args = parser.parse_args(argv)
     model = load_bundle(args.model)
+    if args.tracker:
+        factors = track_calibration(model, [Dataset.open(sequence(args.work, args.tool, (160, 120), args.frames, False,
+                                                                  seed=seed)) for seed in args.track_seeds])
+        print(json.dumps({"track": factors}, indent=1))
+        if args.write_bundle:
+            write_calibration(args.write_bundle, "track", {**factors, "seeds": args.track_seeds})
+        return 0
     root = args.work / f"{args.tool}-160x120-seed{args.seed}"
     if not (root / "scene.json").exists():
         synthesize(args.tool, root, size=(160, 120), views=24, seed=args.seed)
@@ -160,9 +228,7 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps({"calibration": calibration, "coverage_95_on_fit_data": coverage(rows, calibration),
                       "rows": len(rows)}, indent=1))
     if args.write_bundle:
-        target = load_bundle(args.write_bundle)
-        target.metadata["uncertainty"] = calibration
-        save_bundle(args.write_bundle, target)
+        write_calibration(args.write_bundle, None, calibration)
     return 0
 
 

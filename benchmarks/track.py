@@ -33,7 +33,7 @@ import numpy as np
 from narf_core.bundle import NarfModel, load_bundle
 from narf_core.data.dataset import Dataset
 from narf_core.estimate import chi2_quantile, local_error
-from narf_core.track import TrackOptions, track
+from narf_core.track import TrackOptions, sigma_scale, track
 from narf_core.track_io import load_frames, score, sequence_frames
 
 SIZES = ((160, 120), (640, 480))
@@ -44,7 +44,7 @@ def sequence(work: Path, tool: str, size: tuple[int, int], frames: int, events: 
     """The sequence dataset for one setting, synthesised on first use."""
     from narf_core.data.synth.sequence import synthesize_sequence
 
-    out = work / "sequences" / f"{tool}-{size[0]}x{size[1]}-{frames}{'-events' if events else ''}"
+    out = work / "sequences" / f"{tool}-{size[0]}x{size[1]}-{frames}{'-events' if events else ''}{f'-s{seed}' if seed else ''}"
     if not (out / "scene.json").is_file():
         synthesize_sequence(tool, out, frames, size=size, seed=seed, events=events, overwrite=True)
     return out
@@ -84,6 +84,8 @@ def run_one(model: NarfModel, dataset: Dataset, rgb_only: bool, options: TrackOp
         "first_frame_seconds": rows[0]["seconds"],
         "add_m": stats("add_m"),
         **{key: stats(key) for key in rows[0] if key.startswith("joint_error/")},
+        "joint_types": {j.name: j.type for j in model.joints},
+        "sigma_scale": sigma_scale(model, options, not rgb_only),
         "lost": sum(r["status"] == "lost" for r in rows),
         "reinitialised": sum(r["status"] == "reinitialised" for r in rows[1:]),
         "uncertain": sum(r["status"] == "uncertain" for r in rows),
@@ -164,13 +166,12 @@ def markdown(result: dict) -> str:
     ]
     for r in result["runs"]:
         add = r["add_m"]
-        joint = next((v for k, v in r.items() if k.startswith("joint_error/") and v), None)
         after = r["frames_per_second_tracking"]
         lines.append(
             f"| {r['tool']} | {r['size'][0]}x{r['size'][1]} | {r['modality']} | {'yes' if r['events'] else 'no'} | "
             f"{r['frames_per_second']:.1f} / {after:.1f} | {r['frames_per_cpu_second_tracking']:.1f} | "
             + (f"{add['mean'] * 100:.2f} / {add['p95'] * 100:.2f} / {add['max'] * 100:.2f}" if add else "-") + " | "
-            + (f"{joint['mean']:.4f} / {joint['p95']:.4f} / {joint['max']:.4f}" if joint else "-")
+            + _joint_cell(r)
             + f" | {r['lost']} | {r['reinitialised']} | "
             + (f"{r['nees_coverage_95']:.2f}" if r["nees_coverage_95"] is not None else "-") + " |"
         )
@@ -185,6 +186,17 @@ def markdown(result: dict) -> str:
                       + ", ".join(f"{c['frame_seconds_mean'] * 1000:.0f} ({c['tracker_seconds_mean'] * 1000:.0f})"
                                   for c in service["per_client"] if "error" not in c)]
     return "\n".join(lines)
+
+
+def _joint_cell(run: dict) -> str:
+    """The first joint's error mean / p95 / max in mm (prismatic) or degrees (revolute); ``-`` without one."""
+    name, joint = next(((k.split("/", 1)[1], v) for k, v in run.items() if k.startswith("joint_error/") and v),
+                       (None, None))
+    if joint is None:
+        return "-"
+    if run.get("joint_types", {}).get(name) == "prismatic":
+        return " / ".join(f"{joint[k] * 1000:.1f}" for k in ("mean", "p95", "max")) + " mm"
+    return " / ".join(f"{np.degrees(joint[k]):.2f}°" for k in ("mean", "p95", "max"))
 
 
 def main(args: argparse.Namespace) -> int:
@@ -226,9 +238,11 @@ def service_run(model_path: Path, dataset: Dataset, clients: int, frames: int) -
     """``clients`` threads each tracking the first ``frames`` frames of ``dataset`` through
     ``POST /v1/track`` on a server on loopback, run as its own process as deployed (``narf serve``
     with its defaults: one worker per core, the state in the token); frames per second per client,
-    counted after each client's first (initialising) frame, and the mean time between two of its
-    answers beside the server's tracker time per frame (the rest is waiting for a worker, HTTP,
-    decoding and the client's own work)."""
+    counted once every client has its first (initialising, multi-start) frame's answer, so that the
+    figure is that of ``clients`` tracks at once rather than one track beside the others'
+    initialisations, and the mean time between two of its answers beside the server's tracker time
+    per frame (the rest is waiting for a worker, HTTP, decoding and the client's own work)."""
+    import contextlib
     import os
     import shutil
     import tempfile
@@ -243,17 +257,22 @@ def service_run(model_path: Path, dataset: Dataset, clients: int, frames: int) -
     model = load_bundle(model_path)
     name = model_path.stem
     per_client: list[dict] = [{} for _ in range(clients)]
+    initialised = threading.Barrier(clients, timeout=600)
 
     def client(i: int) -> None:
         try:
             track_all(i)
         except Exception as e:  # noqa: BLE001 - reported in the result, beside the others' figures
+            initialised.abort()  # (the others do not wait for this one)
             per_client[i] = {"error": f"{type(e).__name__}: {e}"}
 
     def track_all(i: int) -> None:
         with NarfClient(url, timeout=120) as narf:
             stamps, statuses, errors, steps = [], [], [], []
             for update in narf.track(sent, K, labels[0].T_cam_obj, model=name, initial_joints=labels[0].joints):
+                if not stamps:
+                    with contextlib.suppress(threading.BrokenBarrierError):
+                        initialised.wait()
                 stamps.append(time.perf_counter())
                 statuses.append(update.status)
                 steps.append(update.seconds)

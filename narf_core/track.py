@@ -64,6 +64,14 @@ _FRAME_MARGIN_M = 0.006
 _DEPTH_WINDOW_M = 0.005
 _DEPTH_ROUNDS = 3
 _DEPTH_CELL = 0.7  # its cells' side over the mean spacing of the projected points (a pixel at least)
+# Without depth, refine_frame's iterations and Σ drop the samples light does not reach (visible) only in
+# a mask box larger than the reference (a finer camera, where the silhouette pins the distance): at the
+# reference size the RGB-only track is bistable and the pruning was not harmless (docs/benchmarks.md).
+_PRUNE_LARGE_RGB = True
+# A warm-started frame's σ over the refiner's (TrackOptions.sigma_scale), with depth and without, for a
+# model whose bundle carries no factor of its own: fitted on four tools' seed-1 sequences pooled (with
+# depth) and on the clamp's (without; docs/benchmarks.md).
+SIGMA_SCALE = {"rgbd": 3.0, "rgb": 1.8}
 
 
 class TrackInputError(EstimateInputError):
@@ -124,9 +132,12 @@ class TrackOptions:
     # and longnose: the smallest factor (0.1 steps) whose 95 % regions hold at least 94 % of their
     # pooled errors; checked on the benchmarks' seed-0 sequences (docs/benchmarks.md). Without depth
     # the residual follows the error (a drift in distance shows in the colour) and the refiner's Σ is
-    # kept, times sigma_scale_rgb (fitted on the clamp's seed-1 sequence).
-    sigma_scale: float = 3.0
-    sigma_scale_rgb: float = 1.8  # without depth
+    # kept, times sigma_scale_rgb (fitted on the clamp's seed-1 sequence). 0 (the default): the
+    # model's own factor where its bundle has one (metadata["uncertainty"]["track"], fitted on held-out
+    # sequences of that model by benchmarks/calibration.py: tools track 3-6x apart in pixels), else
+    # SIGMA_SCALE's pooled one; see sigma_scale().
+    sigma_scale: float = 0.0
+    sigma_scale_rgb: float = 0.0  # without depth
     usual_residual: float = 0.03
     # With depth, a warm-started frame whose Σ passed the limits below (its colour residual far above
     # usual_residual) gets a second round of iterations from where the first ended, before its status.
@@ -168,8 +179,8 @@ class TrackOptions:
         need(self.solver in SOLVERS, "solver", f"must be one of {', '.join(SOLVERS)}")
         need(self.reinit_solver in ("robust", "gauss-newton"), "reinit_solver", "must be 'robust' or 'gauss-newton'")
         need(self.uncertainty_rays >= 0, "uncertainty_rays", "must be >= 0")
-        need(self.sigma_scale > 0, "sigma_scale", "must be > 0")
-        need(self.sigma_scale_rgb > 0, "sigma_scale_rgb", "must be > 0")
+        need(self.sigma_scale >= 0, "sigma_scale", "must be >= 0 (0 = the model's own)")
+        need(self.sigma_scale_rgb >= 0, "sigma_scale_rgb", "must be >= 0 (0 = the model's own)")
         need(self.usual_residual >= 0, "usual_residual", "must be >= 0")
         need(self.silhouette_weight >= 0, "silhouette_weight", "must be >= 0")
         need(self.silhouette_weight_rgb >= 0, "silhouette_weight_rgb", "must be >= 0")
@@ -484,7 +495,8 @@ def refine_frame(
     projects near it). An iteration takes the lattice samples of its rays in that band
     (:func:`frame_band`), keeps those the occupancy grid holds at the iteration's pose
     (:func:`occupied`) and evaluates the field there: no marching rounds, one field call; with
-    depth, only at those light reaches (:func:`visible`), so that the backward pass skips what lies
+    depth (without it, in a box larger than ``options.reference_box_px``: ``_PRUNE_LARGE_RGB``),
+    only at those light reaches (:func:`visible`), so that the backward pass skips what lies
     behind the surface. The final loss (``options.eval_rays`` rays) and the covariance
     (``options.uncertainty_rays`` rays) take their samples the same way. ``narf`` mode; where the
     band cannot be trusted (surface points behind the camera) this is :func:`refine`.
@@ -516,6 +528,7 @@ def refine_frame(
     obs.scale = scale
     param = _Parameterisation.around(T0, model)
     uses_depth = depth is not None and options.depth_weight > 0
+    prune = uses_depth or (scale > 1 and _PRUNE_LARGE_RGB)  # keep only the samples light reaches (visible)
 
     def result(status: str, p: Tensor | None, loss: float | None, iterations: int = 0, trace=(),
                uncertainty=None, recovered: bool = False) -> EstimateResult:
@@ -543,7 +556,7 @@ def refine_frame(
             th = theta[0].to(rays_obj.origins)
             lattice = frame_band(near[self.index], far[self.index], model.step)
             samples = occupied(grid, rays_obj, lattice, th)
-            if torch.is_grad_enabled() and uses_depth:  # (not shown harmless without depth: docs/benchmarks.md)
+            if torch.is_grad_enabled() and prune:
                 samples = visible(field, rays_obj, samples, th)
             out = composite(field, rays_obj, samples, theta=th, outputs=outputs)
             return out.rgb, out.opacity, out.depth
@@ -601,7 +614,7 @@ def refine_frame(
                                                 options.uncertainty_rays, torch.Generator().manual_seed(options.seed + 1))
         rays_obj, th = _object_rays(rays_box[index], T[None]), theta.to(rays_box.origins)
         lattice = occupied(grid, rays_obj, frame_band(near[index], far[index], model.step), th)
-        lattice = visible(field, rays_obj, lattice, th) if uses_depth else lattice
+        lattice = visible(field, rays_obj, lattice, th) if prune else lattice
         problem = Problem(model, options, param.radius, uses_depth, samples=lattice)
         uncertainty = _uncertainty(model, options, obs, camera, param, T, theta, uses_depth, problem,
                                    (index, cluster, weight))
@@ -700,6 +713,16 @@ def _uncertainty(result: EstimateResult, sigma_scale: float = 1.0) -> tuple[dict
     return u.to_dict(), cov
 
 
+def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool) -> float:
+    """The factor on a warm-started frame's σ, with ``depth`` or without: the option where set (> 0),
+    else the model's own (its bundle's ``metadata["uncertainty"]["track"]``, keys ``rgbd`` / ``rgb``),
+    else :data:`SIGMA_SCALE`'s."""
+    key = "rgbd" if depth else "rgb"
+    chosen = options.sigma_scale if depth else options.sigma_scale_rgb
+    own = ((model.metadata.get("uncertainty") or {}).get("track") or {}).get(key)
+    return float(chosen or own or SIGMA_SCALE[key])
+
+
 def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None,
                  T: np.ndarray, joints: Mapping[str, float], opts: TrackOptions) -> EstimateResult:
     """A warm-started frame's iterations from ``T`` and ``joints``: :func:`refine_frame` (narf mode,
@@ -783,14 +806,16 @@ def _step(
             T_pred = depth_aligned(model, camera, T_pred, joints_pred, mask, depth)
         result = _warm_refine(model, camera, frame.image, mask, depth, T_pred, joints_pred, opts)
         iterations += result.iterations
-        if depth is not None and opts.retry_uncertain and _too_uncertain(_uncertainty(result, opts.sigma_scale)[0], opts):
+        retry_scale = opts.sigma_scale or SIGMA_SCALE["rgbd"]
+        if depth is not None and opts.retry_uncertain and _too_uncertain(_uncertainty(result, retry_scale)[0], opts):
             # Σ grew past the limits with the colour residual: the estimate explains the image much worse
-            # than the model usually does (a track turning away); one more round from where it ended.
+            # than the model usually does (a track turning away); one more round from where it ended. (Judged
+            # at the pooled factor, not the model's own: a model's calibration changes Σ, never the track.)
             result = _warm_refine(model, camera, frame.image, mask, depth, result.T_cam_obj, result.joints, opts)
             iterations += result.iterations
         score = overlap(model, camera, mask, result.T_cam_obj, result.joints) if result.loss is not None else 0.0
         if result.status not in ("no_overlap", "non_finite") and score >= opts.lost_overlap:
-            info, cov = _uncertainty(result, opts.sigma_scale if depth is not None else opts.sigma_scale_rgb)
+            info, cov = _uncertainty(result, sigma_scale(model, opts, depth is not None))
             status, reason = "tracking", None
             if score < opts.uncertain_overlap:
                 status, reason = "uncertain", f"the estimate explains only {score:.0%} of the mask (occlusion?)"

@@ -319,8 +319,8 @@ def test_first_frame_warm_and_sigma_scale(clamp, clamp_sequence: Path) -> None:
     with pytest.raises(TrackInputError, match=r"options\.first_frame must be one of multi-start, warm"):
         TrackOptions(first_frame="label")
     for name in ("sigma_scale", "sigma_scale_rgb"):
-        with pytest.raises(TrackInputError, match=rf"options\.{name} must be > 0"):
-            TrackOptions(**{name: 0.0})
+        with pytest.raises(TrackInputError, match=rf"options\.{name} must be >= 0 \(0 = the model's own\)"):
+            TrackOptions(**{name: -1.0})
     assert TrackOptions().first_frame == "multi-start" and FIRST_FRAMES == ("multi-start", "warm")
     dataset = Dataset.open(clamp_sequence)
     frames = sequence_frames(dataset)[:3]
@@ -396,14 +396,14 @@ def _close(a, b) -> bool:
 
 
 def test_depth_frame_sigma_is_in_pixel_footprints_below_the_usual_residual(clamp, clamp_sequence: Path) -> None:
-    """With depth a warm-started frame's position σ is ``sigma_scale`` times the model's error in
+    """With depth a warm-started frame's position σ is its ``sigma_scale`` times the model's error in
     pixel footprints at the object (its colour residual is below ``usual_residual`` on the clamp's
     own render) plus the small statistical part, and no smaller on a darkened image (a larger
     residual); without depth the refiner's Σ follows the residual from the calibration's reference,
     and grows on the darkened image."""
     from narf_core.data.dataset import Dataset
     from narf_core.estimate import _error_class, model_error
-    from narf_core.track import TrackFrame, TrackInputError, TrackOptions, TrackState, step
+    from narf_core.track import TrackFrame, TrackInputError, TrackOptions, TrackState, sigma_scale, step
 
     with pytest.raises(TrackInputError, match=r"options\.usual_residual must be >= 0"):
         TrackOptions(usual_residual=-0.1)
@@ -425,7 +425,7 @@ def test_depth_frame_sigma_is_in_pixel_footprints_below_the_usual_residual(clamp
                 centre_depth = float(result.T_cam_obj[2, :3] @ ((aabb[0] + aabb[1]) / 2) + result.T_cam_obj[2, 3])
                 pixel = centre_depth / float(dataset.camera.K[0, 0])
                 kind = _error_class(options.step_options(True), True)
-                expected = options.sigma_scale * float(model_error(clamp, kind, pixel, 1.0, 0.0, usual=1.0)[0])
+                expected = sigma_scale(clamp, options, True) * float(model_error(clamp, kind, pixel, 1.0, 0.0, usual=1.0)[0])
                 assert expected <= sigmas[False, 1.0].min() and sigmas[False, 1.0].max() <= 1.3 * expected
     assert sigmas[False, 0.5].min() >= 0.95 * sigmas[False, 1.0].min()
     assert sigmas[True, 0.5].min() > 1.5 * sigmas[True, 1.0].max()  # RGB only: the colour residual scales σ
@@ -769,3 +769,115 @@ def test_bench_track_can_leave_the_depth_alignment_off() -> None:
     for align in (True, False):
         table = markdown({"frames": 3, "runs": [], "options": TrackOptions(first_frame="warm", depth_align=align).__dict__})
         assert ("not aligned to the depth" in table) is not align
+
+
+def test_sigma_scale_is_the_option_else_the_models_own_else_the_pooled_one(clamp, clamp_sequence: Path,
+                                                                             monkeypatch) -> None:
+    """A warm-started frame's factor on σ: ``TrackOptions.sigma_scale`` / ``sigma_scale_rgb`` where
+    set (> 0), else the bundle's ``metadata["uncertainty"]["track"]`` (fitted per model), else
+    :data:`SIGMA_SCALE`. The model's own factor scales Σ and never changes the track: the second
+    round for a Σ over the limits is judged at the pooled factor (here σ 5-6 mm at 3.0, over a 4 mm
+    limit, and 2-3 mm at the model's 1.3)."""
+    from narf_core.data.dataset import Dataset
+    from narf_core.track import SIGMA_SCALE, TrackFrame, TrackOptions, TrackState, sigma_scale, step
+
+    own = {"rgbd": 1.3, "rgb": 2.6}
+    assert TrackOptions().sigma_scale == TrackOptions().sigma_scale_rgb == 0
+    monkeypatch.setitem(clamp.metadata, "uncertainty", {k: v for k, v in clamp.metadata.get("uncertainty", {}).items()
+                                                          if k != "track"})
+    for depth, key in ((True, "rgbd"), (False, "rgb")):
+        assert sigma_scale(clamp, TrackOptions(), depth) == SIGMA_SCALE[key]
+    monkeypatch.setitem(clamp.metadata["uncertainty"], "track", own)
+    for depth, key in ((True, "rgbd"), (False, "rgb")):
+        assert sigma_scale(clamp, TrackOptions(), depth) == own[key]
+        assert sigma_scale(clamp, TrackOptions(sigma_scale=0.7, sigma_scale_rgb=0.9), depth) == (0.7 if depth else 0.9)
+
+    dataset = Dataset.open(clamp_sequence)
+    frame = dataset.frames()[1]
+    images = dataset.load(frame)
+    observed = TrackFrame(images.rgb, images.labels > 0, frame.time, images.depth)
+    options = TrackOptions(iterations=2, rays_per_iteration=128, uncertainty_rays=64, max_position_sigma_m=0.004)
+    answers = []
+    for track_factor in (own, None):
+        monkeypatch.setitem(clamp.metadata["uncertainty"], "track", track_factor)
+        state = TrackState.initial(clamp, frame.T_cam_obj, frame.joints, frame.time - 1 / 30, status="tracking")
+        answers.append(step(clamp, dataset.camera, observed, state, options)[0])
+    assert answers[0].iterations == answers[1].iterations == 2 * options.iterations  # a second round in both
+    np.testing.assert_allclose(answers[0].T_cam_obj, answers[1].T_cam_obj)
+    np.testing.assert_allclose(answers[0].covariance, (own["rgbd"] / SIGMA_SCALE["rgbd"]) ** 2 * answers[1].covariance)
+    assert max(answers[0].uncertainty["position_sigma_m"]) < options.max_position_sigma_m
+    assert answers[0].status == "tracking" and answers[1].status == "uncertain"
+
+
+def test_the_trackers_factor_is_fitted_to_hold_the_share_asked_and_stored_beside_the_rest(clamp, tmp_path: Path) -> None:
+    """``narf_benchmarks.calibration.fit_track_scale``: the smallest factor (0.1 steps) whose 95 %
+    regions hold the share asked of the errors (a factor ``s`` divides a NEES by ``s²``);
+    ``write_calibration`` stores it in the bundle's ``metadata["uncertainty"]["track"]`` and keeps the
+    model-error constants there, which :func:`~narf_core.track.sigma_scale` then reads."""
+    from narf_benchmarks.calibration import fit_track_scale, write_calibration
+    from narf_core.bundle import load_bundle, save_bundle
+    from narf_core.estimate import chi2_quantile
+    from narf_core.track import TrackOptions, sigma_scale
+
+    bound = chi2_quantile(0.95, 7)
+    nees = [0.1 * bound] * 18 + [4.0 * bound, 9.0 * bound]  # at factor 2 the 19th holds, at 3 all 20
+    assert fit_track_scale(nees, 7, share=0.95) == pytest.approx(2.0)
+    assert fit_track_scale(nees, 7, share=1.0) == pytest.approx(3.0)
+    assert fit_track_scale(nees, 7, share=0.9) == pytest.approx(0.4)  # sqrt(0.1) = 0.32 -> 0.4
+    assert fit_track_scale([1e-9], 7) == pytest.approx(0.1)
+    with pytest.raises(ValueError, match="no tracked frame"):
+        fit_track_scale([], 7)
+
+    path = tmp_path / "clamp.narf"
+    save_bundle(path, clamp)
+    write_calibration(path, None, {"pixels": {"shape": 0.5}})
+    write_calibration(path, "track", {"rgbd": 1.7, "rgb": 2.2})
+    stored = load_bundle(path)
+    assert stored.metadata["uncertainty"]["pixels"] == {"shape": 0.5}
+    assert stored.metadata["uncertainty"]["track"] == {"rgbd": 1.7, "rgb": 2.2}
+    assert sigma_scale(stored, TrackOptions(), True) == 1.7 and sigma_scale(stored, TrackOptions(), False) == 2.2
+
+
+def test_bench_track_prints_joint_errors_in_mm_or_degrees() -> None:
+    """``narf bench track``'s table gives a prismatic joint's error in mm and a revolute one's in
+    degrees (the result keeps metres and radians)."""
+    from narf_benchmarks.track import markdown
+    from narf_core.track import TrackOptions
+
+    def run(joint_type: str, error: float) -> dict:
+        stats = {"mean": error, "p95": 2 * error, "max": 3 * error}
+        return {"tool": "t", "size": [160, 120], "modality": "rgbd", "events": False, "frames_per_second": 10.0,
+                "frames_per_second_tracking": 10.0, "frames_per_cpu_second_tracking": 10.0, "lost": 0,
+                "reinitialised": 0, "nees_coverage_95": 0.95, "add_m": {"mean": 0.01, "p95": 0.02, "max": 0.03},
+                "joint_error/j": stats, "joint_types": {"j": joint_type}}
+
+    table = markdown({"frames": 3, "options": TrackOptions(first_frame="warm").__dict__,
+                      "runs": [run("prismatic", 0.0009), run("revolute", math.radians(0.57))]})
+    assert "| 0.9 / 1.8 / 2.7 mm |" in table
+    assert "| 0.57° / 1.14° / 1.71° |" in table
+
+
+def test_without_depth_only_a_large_box_prunes_the_unreached_samples(clamp, clamp_sequence: Path, monkeypatch) -> None:
+    """Without depth a warm-started frame's iterations keep only the samples light reaches
+    (:func:`~narf_core.track.visible`) where the mask's box is larger than the reference (a finer
+    camera), and keep every sample at the reference size (where the RGB-only track is bistable);
+    with depth always."""
+    from dataclasses import replace
+
+    from narf_core import track
+    from narf_core.data.dataset import Dataset
+
+    dataset = Dataset.open(clamp_sequence)
+    frame = dataset.frames()[1]
+    images = dataset.load(frame)
+    calls = []
+    real = track.visible
+    monkeypatch.setattr(track, "visible", lambda *a, **k: calls.append(1) or real(*a, **k))
+    options = replace(track.TrackOptions(iterations=2, rays_per_iteration=64, uncertainty_rays=0).step_options(False),
+                      reference_box_px=0)
+    for depth, reference, pruned in ((None, 0, False), (None, 20, True), (images.depth, 0, True)):
+        calls.clear()
+        result = track.refine_frame(clamp, dataset.camera, images.rgb, images.labels > 0, depth, frame.T_cam_obj,
+                                    frame.joints, replace(options, reference_box_px=reference))
+        assert result.status == "max_iterations"
+        assert (len(calls) == options.iterations) is pruned and (len(calls) == 0) is not pruned, (depth is None, reference)
