@@ -803,7 +803,8 @@ def _start_rows(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Para
     a rough guide (the refinement compares the starts again after a third of its iterations).
     The pose starts: the turns of :func:`_pose_turns` about the object's centre, each also moved
     onto the observation (:func:`_aligned`). With ``options.align_start`` the given pose of each θ
-    start is first that pose or its moved copy, whichever scores lower on the same rays. With
+    start is first that pose or its moved copy, whichever scores lower on the same rays (not where the
+    search below kept its own poses). With
     ``options.theta_search`` and two joints or more, the θ starts are first those the search fits best
     (:func:`_theta_search`; ``thetas[0]`` is among its candidates), with the search's poses where it had a depth."""
     opts = loss_fn.options
@@ -811,14 +812,17 @@ def _start_rows(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Para
         rows = _theta_search(loss_fn, obs, camera, param, thetas[0], max(opts.theta_search, len(thetas)), len(thetas))
     else:
         rows = torch.cat([torch.zeros(len(thetas), 6, dtype=torch.float64), param.u_of(thetas)], dim=1)
-    if opts.pose_starts == 1 and not opts.align_start:
+    # The search's poses, where it kept them, are fitted to the observed surface already; moving them onto
+    # the mask's centroid and depth again loses that fit (a gripper's fingers).
+    align = opts.align_start and not bool(rows[:, :6].any())
+    if opts.pose_starts == 1 and not align:
         return rows
     n_pixels = obs.pixels.shape[0]
     g = torch.Generator().manual_seed(opts.seed + 2)
     index = torch.arange(n_pixels) if n_pixels <= _SCORE_RAYS else torch.randperm(n_pixels, generator=g)[:_SCORE_RAYS]
     index = index.to(obs.pixels.device)
     rays = camera.rays(obs.pixels[index].to(torch.float32))
-    if opts.align_start:
+    if align:
         both = torch.cat([rows, _aligned(loss_fn, obs, camera, param, rows, index, rays)])
         losses = loss_fn(rays, obs.levels[0], index, param.poses(both), param.thetas(both)).cpu()
         losses = torch.where(torch.isfinite(losses), losses, math.inf).reshape(2, -1)  # [given, moved] per θ start

@@ -742,7 +742,7 @@ def test_search_with_depth_holds_the_distance_and_starts_gauss_newton_at_the_fit
     from types import SimpleNamespace
 
     from narf_core.estimate import (_camera_points, _chamfer, _observation, _Parameterisation, _search_fit,
-                                    _surface_sample, _theta_search)
+                                    _start_rows, _surface_sample, _theta_search)
 
     chain = _chain(tmp_path)
     kin = chain.kinematics
@@ -781,6 +781,10 @@ def test_search_with_depth_holds_the_distance_and_starts_gauss_newton_at_the_fit
     loss_fn.options, loss_fn.uses_depth = gauss, False
     no_depth = _theta_search(loss_fn, obs, camera, param, kin.mid_configuration(), 16, 4)
     assert torch.equal(no_depth[:, :6], torch.zeros(4, 6, dtype=torch.float64))
+
+    # align_start leaves the search's kept poses as they are (the loss, here not callable, scores nothing)
+    loss_fn.options, loss_fn.uses_depth = replace(gauss, align_start=True), True
+    assert torch.equal(_start_rows(loss_fn, obs, camera, param, kin.mid_configuration().expand(4, -1)), found)
 
 
 def test_the_gauss_newton_preset_searches_configurations():
