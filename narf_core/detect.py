@@ -120,10 +120,12 @@ class DetectOptions:
             need(getattr(self, name) > 0, name, "must be > 0 metres")
 
     def refine_options(self, **overrides) -> EstimateOptions:
-        """The refiner's options for one kept candidate (its θ is the refinement's first start)."""
+        """The refiner's options for one kept candidate (its θ is the refinement's first start; every
+        orientation was scored already, so no pose starts)."""
         return EstimateOptions.preset(self.preset, **{"iterations": self.iterations,
                                                       "theta_starts": self.refine_theta_starts,
-                                                      "seed": self.seed, "rgb_refinements": 0, **overrides})
+                                                      "seed": self.seed, "rgb_refinements": 0,
+                                                      "pose_starts": 1, **overrides})
 
 
 # --------------------------------------------------------------------------------------------

@@ -80,7 +80,11 @@ right jaw start to pull ahead (docs/benchmarks.md). ``pose_starts = P`` widens t
 pose: the given pose and P - 1 turned about the object's centre (out of the image plane first,
 where a silhouette changes least for a wrong angle), each also moved onto the mask and the observed
 depth, are scored with every θ start once, on one set of rays without gradients, and each θ start
-is refined from the given pose and from its best other one. With two joints or more,
+is refined from the given pose and from its best other one. With ``pose_starts_overlap`` (on in
+``gauss-newton``) the pose starts are refined only where they are needed: after a refinement from the
+given pose whose estimate's silhouette overlaps the mask less than that (intersection over union), a
+second one from them, the estimate of lower loss kept (:func:`_adaptive_refinement`); a start within the
+basin then costs one render of the eval rays. With two joints or more,
 ``theta_search = N`` (on in ``robust`` and ``gauss-newton``) first fits N configurations to the mask
 (and the observed depth's surface) through the model's surface points, and the S that fit best are
 the θ starts (:func:`_theta_search`): a few spread starts leave most of a several-joint box unvisited
@@ -138,6 +142,8 @@ _EVAL_RAYS = 4096  # starts are compared, and the final loss measured, on at mos
 _CHOICE_RAYS = 16384  # box rays on which several refinements' estimates are compared (refinements)
 _SCORE_RAYS = 1024  # box rays on which every (pose, θ) start is scored before the refinement
 _POSES_KEPT = 1  # pose starts refined per θ start besides the given pose (the best scored; docs/benchmarks.md)
+# ... and per θ start in the second refinement of pose_starts_overlap, which has no given pose's starts beside it
+_RETRY_POSES_KEPT = 2
 # The configuration search (_theta_search): surface points per link and mask pixels matched, Adam steps and
 # their rates (pose in radians and object radii, configuration in u), and how far in front of the observed
 # depth a point may lie before it costs.
@@ -155,6 +161,8 @@ _ADAM_EPS = 1e-8
 GN_ITERATIONS = 30  # the gauss-newton preset's Levenberg-Marquardt iterations (at most)
 GN_DEPTH_WEIGHT = 50.0  # the gauss-newton preset's depth_weight (see EstimateOptions.gauss_newton)
 GN_UNCERTAINTY_RAYS = 1024  # the gauss-newton preset's uncertainty_rays
+GN_POSE_STARTS = 9  # the gauss-newton preset's pose_starts, refined only below ...
+GN_POSE_OVERLAP = 0.8  # ... this overlap of the first estimate's silhouette with the mask (pose_starts_overlap)
 # The robust preset's reference_box_px: the largest mask box (grown by box_margin) of the bundled
 # clamp's test and novel views at 160x120, its training size; boxes up to it keep the plain sampling.
 ROBUST_BOX_PX = 144
@@ -237,6 +245,11 @@ class EstimateOptions:
     # (twice the starts in the first third of the iterations). 1 = the given pose only.
     pose_starts: int = 1
     pose_spread_deg: float = 30.0
+    # > 0, with pose_starts > 1: the wider basin only where it is needed. The refinement runs from the given
+    # pose first, and only where its estimate's silhouette overlaps the mask less than this (intersection over
+    # union on eval_rays box rays: _silhouette_overlap) once more from the pose starts (_turned_rows), the
+    # estimate of lower loss kept (_adaptive_refinement). 0: every pose start from the beginning.
+    pose_starts_overlap: float = 0.0
     # Every θ start's given pose replaced by its copy moved onto the mask's centroid and the observed depth
     # (_aligned) where that copy scores lower on the pose starts' rays: for a start centimetres off along
     # the line of sight, which Gauss-Newton's narrower basin does not pull back; on in `gauss-newton` (whose
@@ -297,6 +310,7 @@ class EstimateOptions:
         need(self.eval_rays >= 16, "eval_rays", "must be >= 16")
         need(1 <= self.pose_starts <= len(_POSE_TURNS), "pose_starts", f"must be in [1, {len(_POSE_TURNS)}]")
         need(0 < self.pose_spread_deg <= 90, "pose_spread_deg", "must be in (0, 90] degrees")
+        need(0 <= self.pose_starts_overlap < 1, "pose_starts_overlap", "must be in [0, 1) (0 = every pose start at once)")
         need(0 <= self.theta_search <= 256, "theta_search", "must be in [0, 256] (0 = off)")
         need(1 <= self.uncertainty_patch <= 64, "uncertainty_patch", "must be in [1, 64]")
         for name in ("sigma_floor_position", "sigma_floor_rotation", "sigma_floor_joint", "uncertainty_usual_residual"):
@@ -332,7 +346,10 @@ class EstimateOptions:
         ``adam_iterations`` runs Adam first instead of the pyramid. Each configuration start begins at the
         given pose or its copy moved onto the mask and the depth, whichever scores lower (``align_start``):
         a thin tool's start 2 cm off along the line of sight otherwise ends there, or in a wrong joint
-        basin (docs/benchmarks.md).
+        basin (docs/benchmarks.md). Where the estimate's silhouette then overlaps the mask less than
+        ``GN_POSE_OVERLAP`` (intersection over union), it refines once more from ``GN_POSE_STARTS`` pose starts
+        (``pose_starts_overlap``): Gauss-Newton's basin is narrower than Adam's, and a start 30 deg off
+        often ends in a wrong minimum, while one within the basin explains the mask and pays only the check.
 
         ``depth_weight`` is ``GN_DEPTH_WEIGHT``, not the robust preset's 1: Gauss-Newton sums its
         residuals (three colour channels, the silhouette and the depth of every ray) where Adam's
@@ -344,23 +361,28 @@ class EstimateOptions:
             "solver": "gauss-newton", "iterations": GN_ITERATIONS, "silhouette_weight": 1.0,
             "depth_weight": GN_DEPTH_WEIGHT, "theta_starts": 4, "coarse_to_fine": 2, "robust_loss": "huber",
             "tolerance": 3e-3, "patience": 2, "uncertainty_rays": GN_UNCERTAINTY_RAYS, "theta_search": 16,
-            "align_start": True, **overrides,
+            "align_start": True, "pose_starts": GN_POSE_STARTS, "pose_starts_overlap": GN_POSE_OVERLAP, **overrides,
         })
 
     def max_rays(self, depth: bool = True) -> int:
         """An upper bound on the rays a refinement traces, known before any work: every iteration
         (Adam's first with ``adam_iterations``) at the largest box scale, for every start and refinement,
-        the scoring of the pose starts and the choice among refinements. ``depth``: whether the view comes
+        the scoring of the pose starts, the choice among refinements and, with ``pose_starts_overlap``, the
+        overlap check and the choice between its two estimates (the given pose's starts, then
+        ``_RETRY_POSES_KEPT`` turned ones per θ start). ``depth``: whether the view comes
         with a depth image (without one: ``rgb_refinements``, and a mask trusted partially only where
         ``mask_trust`` is "partial", as nothing else contradicts it)."""
         scale = _MAX_BOX_SCALE if self.reference_box_px else 1
         partial = depth or self.mask_trust == "partial"
         theta_starts = max(self.theta_starts, self.partial_theta_starts) if partial else self.theta_starts
-        starts = theta_starts * (1 + _POSES_KEPT) if self.pose_starts > 1 else theta_starts
+        adaptive = self.pose_starts > 1 and self.pose_starts_overlap > 0  # _adaptive_refinement
+        kept = _RETRY_POSES_KEPT if adaptive else _POSES_KEPT
+        starts = theta_starts * (1 + kept) if self.pose_starts > 1 else theta_starts
         scoring = 3 * self.pose_starts * theta_starts * _SCORE_RAYS if self.pose_starts > 1 else 0  # _start_rows
         scoring += 3 * theta_starts * _SCORE_RAYS if self.align_start else 0
         runs = max(1, self.refinements, 0 if depth else self.rgb_refinements)
         choice = runs * _CHOICE_RAYS if runs > 1 else 0  # _best_refinement
+        choice += 3 * self.eval_rays if adaptive else 0  # the overlap check, the choice between both estimates
         return runs * (self.iterations + self.adam_iterations) * self.rays_per_iteration * scale * starts + scoring + choice
 
     @classmethod
@@ -796,13 +818,11 @@ def _pose_turns(count: int, spread_deg: float) -> Tensor:
 @torch.no_grad()
 def _start_rows(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, thetas: Tensor) -> Tensor:
     """The refinement's start rows for the θ starts ``thetas [S, k]``: ``[S, 6 + k]`` at the given
-    pose, or (``options.pose_starts > 1``) ``[(1 + K) * S, 6 + k]``: those, then each θ start at
-    the ``K = _POSES_KEPT`` other pose starts whose loss is the lowest on one fixed set of up to
-    ``_SCORE_RAYS`` box rays at the coarsest level, where the target is smoothest. The given pose
-    stays whatever the score: from a small error its own start is the best, and a start's score is
-    a rough guide (the refinement compares the starts again after a third of its iterations).
-    The pose starts: the turns of :func:`_pose_turns` about the object's centre, each also moved
-    onto the observation (:func:`_aligned`). With ``options.align_start`` the given pose of each θ
+    pose, or (``options.pose_starts > 1`` without ``pose_starts_overlap``, which turns them only after a
+    refinement: :func:`_adaptive_refinement`) ``[(1 + K) * S, 6 + k]``: those, then :func:`_turned_rows` of
+    them. The given pose stays whatever the score: from a small error its own
+    start is the best, and a start's score is a rough guide (the refinement compares the starts again
+    after a third of its iterations). With ``options.align_start`` the given pose of each θ
     start is first that pose or its moved copy, whichever scores lower on the same rays (not where the
     search below kept its own poses). With
     ``options.theta_search`` and two joints or more, the θ starts are first those the search fits best
@@ -815,20 +835,36 @@ def _start_rows(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Para
     # The search's poses, where it kept them, are fitted to the observed surface already; moving them onto
     # the mask's centroid and depth again loses that fit (a gripper's fingers).
     align = opts.align_start and not bool(rows[:, :6].any())
-    if opts.pose_starts == 1 and not align:
-        return rows
-    n_pixels = obs.pixels.shape[0]
-    g = torch.Generator().manual_seed(opts.seed + 2)
-    index = torch.arange(n_pixels) if n_pixels <= _SCORE_RAYS else torch.randperm(n_pixels, generator=g)[:_SCORE_RAYS]
-    index = index.to(obs.pixels.device)
-    rays = camera.rays(obs.pixels[index].to(torch.float32))
+    wide = opts.pose_starts > 1 and opts.pose_starts_overlap == 0
     if align:
+        index, rays = _score_rays(obs, camera, opts.seed)
         both = torch.cat([rows, _aligned(loss_fn, obs, camera, param, rows, index, rays)])
         losses = loss_fn(rays, obs.levels[0], index, param.poses(both), param.thetas(both)).cpu()
         losses = torch.where(torch.isfinite(losses), losses, math.inf).reshape(2, -1)  # [given, moved] per θ start
         rows = both.reshape(2, len(rows), -1)[losses.argmin(0), torch.arange(len(rows))]
-    if opts.pose_starts == 1:
-        return rows
+    return torch.cat([rows, _turned_rows(loss_fn, obs, camera, param, rows)]) if wide else rows
+
+
+def _score_rays(obs: _Observation, camera: Pinhole, seed: int) -> tuple[Tensor, Rays]:
+    """The box pixels ``index [n]`` (up to ``_SCORE_RAYS``, drawn with ``seed``) on which starts are scored
+    before the refinement, and their camera rays: the same for every call with the same seed."""
+    n_pixels = obs.pixels.shape[0]
+    g = torch.Generator().manual_seed(seed + 2)
+    index = torch.arange(n_pixels) if n_pixels <= _SCORE_RAYS else torch.randperm(n_pixels, generator=g)[:_SCORE_RAYS]
+    index = index.to(obs.pixels.device)
+    return index, camera.rays(obs.pixels[index].to(torch.float32))
+
+
+@torch.no_grad()
+def _turned_rows(
+    loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, rows: Tensor, kept: int = _POSES_KEPT
+) -> Tensor:
+    """``[K * S, 6 + k]``: each start row of ``rows [S, 6 + k]`` at the ``K = kept`` other pose
+    starts whose loss is the lowest on the scoring rays (:func:`_score_rays`) at the coarsest level, where
+    the target is smoothest. The pose starts: the turns of :func:`_pose_turns` about the object's centre,
+    each also moved onto the observation (:func:`_aligned`)."""
+    opts = loss_fn.options
+    index, rays = _score_rays(obs, camera, opts.seed)
     turns = _pose_turns(opts.pose_starts, opts.pose_spread_deg)
     n_turns, n_starts = len(turns), len(rows)
     turned = rows.repeat(n_turns, 1)  # turn-major: row t * S + s is θ start s under turn t
@@ -836,9 +872,9 @@ def _start_rows(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Para
     candidates = torch.cat([turned, _aligned(loss_fn, obs, camera, param, turned, index, rays)])
     losses = loss_fn(rays, obs.levels[0], index, param.poses(candidates), param.thetas(candidates)).cpu()
     losses = torch.where(torch.isfinite(losses), losses, math.inf).reshape(-1, n_starts)[1:]  # all but the given pose
-    best = losses.topk(min(_POSES_KEPT, len(losses)), dim=0, largest=False).indices + 1  # [K, S], per θ start
+    best = losses.topk(min(kept, len(losses)), dim=0, largest=False).indices + 1  # [K, S], per θ start
     chosen = candidates.reshape(-1, n_starts, candidates.shape[1])[best, torch.arange(n_starts)]
-    return torch.cat([rows, chosen.reshape(-1, candidates.shape[1])])
+    return chosen.reshape(-1, candidates.shape[1])
 
 
 def _theta_search(
@@ -1310,48 +1346,130 @@ def refine(
     if not _overlaps(camera, obs.pixels, T0, model.aabb):
         return result("no_overlap", None, None)
     loss_fn = _Loss(model, opts, param.radius, uses_depth, camera)
+    adaptive = opts.pose_starts > 1 and opts.pose_starts_overlap > 0  # the pose starts only where needed
     params0 = _start_rows(loss_fn, obs, camera, param, _theta_starts(theta0, param, opts.theta_starts))
-    if opts.solver == "gauss-newton":
-        from narf_core.gauss_newton import GaussNewtonRun, Problem
 
-        warm = None
-        if opts.adam_iterations > 0:  # Adam finds the basin (and the best θ start), Gauss-Newton the bottom
-            warm_opts = replace(opts, solver="adam", iterations=opts.adam_iterations, early_stop=False)
-            warm = _Run(model, warm_opts, obs, camera, param, loss_fn, params0, start_time)
-            warm.should_stop = should_stop
-            warm.optimise()
-            choice = _final_choice(loss_fn, obs, camera, param, warm.adam.params, warm.best_params, warm.rng)
-            if choice is not None:
-                params0 = choice[0]
-        run = GaussNewtonRun(Problem(model, opts, param.radius, uses_depth, camera), obs, camera, param, params0, start_time,
-                             opts.seed)
-
-        def snapshot(params: Tensor, losses: Tensor, iteration: int, elapsed: float) -> Snapshot:
-            return _snapshot(model, param, params, losses, iteration, elapsed)
-
-        run.should_stop = should_stop
-        run.fine_only = warm is not None
-        if warm is None or warm.status in ("max_iterations", "converged"):
-            run.optimise(snapshot)
-        else:  # the warm start stopped: non-finite, or cancelled through should_stop
-            run.status = warm.status
-        if warm is not None:
-            run.iteration += warm.iteration
-            run.trace = warm.trace + run.trace
-            run.history = warm.history + run.history
-            run.recovered |= warm.recovered
-        last = run.params
-    else:
+    def refinement(starts: Tensor):
+        if opts.solver == "gauss-newton":
+            return _gauss_newton_refinement(model, opts, obs, camera, param, loss_fn, starts, start_time, should_stop)
         count = max(opts.refinements, opts.rgb_refinements if rgb_only else 0) if partial or not uses_depth else 1
-        run, last = _best_refinement(lambda o, ob: _Run(model, o, ob, camera, param, loss_fn, params0, start_time),
-                                     opts, obs, count, should_stop)
-    final = _final_choice(loss_fn, obs, camera, param, last, run.best_params, run.rng)
+        return _best_refinement(lambda o, ob: _Run(model, o, ob, camera, param, loss_fn, starts, start_time),
+                                opts, obs, count, should_stop)
+
+    if adaptive:
+        run, final = _adaptive_refinement(refinement, loss_fn, obs, camera, param, params0)
+    else:
+        run, last = refinement(params0)
+        final = _final_choice(loss_fn, obs, camera, param, last, run.best_params, run.rng)
     if final is None:
         run.recovered = True
         return result("non_finite", None, None, run)
     row, loss, replaced = final
     run.recovered |= replaced
     return result(run.status, row, loss, run)
+
+
+def _gauss_newton_refinement(
+    model: NarfModel,
+    opts: EstimateOptions,
+    obs: _Observation,
+    camera: Pinhole,
+    param: _Parameterisation,
+    loss_fn: _Loss,
+    params0: Tensor,
+    start_time: float,
+    should_stop: Callable[[], str | None] | None,
+):
+    """One Levenberg-Marquardt run (narf_core/gauss_newton.py) from the start rows ``params0 [S, d]``,
+    after ``opts.adam_iterations`` Adam iterations where those are asked for (Adam finds the basin and the
+    best start, Gauss-Newton the bottom). Returns the run (its iterations, trace and history cover both
+    solvers) and its last parameters."""
+    from narf_core.gauss_newton import GaussNewtonRun, Problem
+
+    warm = None
+    if opts.adam_iterations > 0:
+        warm_opts = replace(opts, solver="adam", iterations=opts.adam_iterations, early_stop=False)
+        warm = _Run(model, warm_opts, obs, camera, param, loss_fn, params0, start_time)
+        warm.should_stop = should_stop
+        warm.optimise()
+        choice = _final_choice(loss_fn, obs, camera, param, warm.adam.params, warm.best_params, warm.rng)
+        if choice is not None:
+            params0 = choice[0]
+    run = GaussNewtonRun(Problem(model, opts, loss_fn.radius, loss_fn.uses_depth, camera), obs, camera, param, params0,
+                         start_time, opts.seed)
+
+    def snapshot(params: Tensor, losses: Tensor, iteration: int, elapsed: float) -> Snapshot:
+        return _snapshot(model, param, params, losses, iteration, elapsed)
+
+    run.should_stop = should_stop
+    run.fine_only = warm is not None
+    if warm is None or warm.status in ("max_iterations", "converged"):
+        run.optimise(snapshot)
+    else:  # the warm start stopped: non-finite, or cancelled through should_stop
+        run.status = warm.status
+    if warm is not None:
+        run.iteration += warm.iteration
+        run.trace = warm.trace + run.trace
+        run.history = warm.history + run.history
+        run.recovered |= warm.recovered
+    return run, run.params
+
+
+def _adaptive_refinement(
+    refinement: Callable[[Tensor], tuple],
+    loss_fn: _Loss,
+    obs: _Observation,
+    camera: Pinhole,
+    param: _Parameterisation,
+    starts: Tensor,
+) -> tuple:
+    """``options.pose_starts_overlap``: a refinement (``refinement(start rows)`` runs one and returns it and
+    its last parameters) from the given pose's ``starts [S, d]``, and only where its estimate's silhouette
+    overlaps the mask less than ``pose_starts_overlap`` (:func:`_silhouette_overlap`) a second one from the
+    turned pose starts (:func:`_turned_rows`), the ``_RETRY_POSES_KEPT`` best scored of them per θ start (the
+    given pose's start has had its refinement). Returns the run (the second where there was one, its
+    iterations and trace covering both) and the :func:`_final_choice` of both estimates, on the same rays.
+
+    Why: the pose starts widen the basin (a start 30 deg off) but double the refinement's starts, whatever the
+    start. A start within the basin ends where the render explains the mask; one outside ends in a wrong
+    minimum, whose silhouette misses part of the mask. So a close start pays one render of the eval rays. Not
+    caught: a wrong minimum that draws nearly the mask's silhouette (a turn out of the image plane that the
+    silhouette barely shows). A mask that misses part of the object (an occluder) lowers the overlap of a right
+    estimate too: there the second refinement runs, at its cost, and the lower loss decides."""
+    opts = loss_fn.options
+    run, last = refinement(starts)
+    final = _final_choice(loss_fn, obs, camera, param, last, run.best_params, run.rng)
+    if (final is None or run.status not in ("max_iterations", "converged")
+            or _silhouette_overlap(loss_fn, obs, camera, param, final[0]) >= opts.pose_starts_overlap):
+        return run, final
+    again, last = refinement(_turned_rows(loss_fn, obs, camera, param, starts, _RETRY_POSES_KEPT))
+    rows = torch.cat([final[0], last.to(final[0])])
+    chosen = _final_choice(loss_fn, obs, camera, param, rows, torch.cat([final[0], again.best_params.to(final[0])]),
+                           again.rng)
+    again.iteration += run.iteration
+    again.trace = run.trace + again.trace
+    again.history = run.history + again.history
+    again.recovered |= run.recovered
+    if again.status == "non_finite":  # the first estimate stands
+        again.status = run.status
+    return again, chosen
+
+
+@torch.no_grad()
+def _silhouette_overlap(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, row: Tensor) -> float:
+    """Intersection over union of the rendered silhouette of ``row [1, d]`` and the mask, on up to
+    ``options.eval_rays`` box pixels (drawn with ``options.seed``): near 1 where the estimate explains
+    the mask, lower where a wrong minimum draws part of the object beside it."""
+    opts = loss_fn.options
+    n_pixels = obs.pixels.shape[0]
+    g = torch.Generator().manual_seed(opts.seed)
+    index = torch.arange(n_pixels) if n_pixels <= opts.eval_rays else torch.randperm(n_pixels, generator=g)[:opts.eval_rays]
+    index = index.to(obs.pixels.device)
+    rays = _object_rays(camera.rays(obs.pixels[index].to(torch.float32)), param.poses(row))
+    _, opacity, _ = loss_fn._render(rays, param.thetas(row), ("opacity",))
+    opacity, mask = opacity.reshape(-1).double(), obs.levels[-1].mask[index].double()
+    union = (opacity + mask - opacity * mask).sum()
+    return float((opacity * mask).sum() / union.clamp_min(1e-9))
 
 
 def _uncertainty(

@@ -195,14 +195,15 @@ class TrackOptions:
         need(self.march in MARCHES, "march", f"must be one of {', '.join(MARCHES)}")
 
     def step_options(self, depth: bool) -> EstimateOptions:
-        """The refiner's options for a warm-started frame."""
+        """The refiner's options for a warm-started frame (from the prediction alone: a frame that misses
+        is the re-initialisation's to find, so no pose starts)."""
         common = {"iterations": self.iterations, "rays_per_iteration": self.rays_per_iteration, "mode": self.mode,
                   "theta_starts": 1, "coarse_to_fine": 1, "early_stop": False, "seed": self.seed,
                   "band_m": self.band_m, "eval_rays": self.eval_rays,
                   "ray_sampling": self.ray_sampling if depth else self.ray_sampling_rgb,
                   "uncertainty": self.uncertainty_rays > 0, "uncertainty_rays": max(self.uncertainty_rays, 16),
                   "uncertainty_usual_residual": self.usual_residual if depth else 0.0,
-                  "occlusion_margin": self.occlusion_margin, "rgb_refinements": 0}
+                  "occlusion_margin": self.occlusion_margin, "rgb_refinements": 0, "pose_starts": 1}
         if self.solver != "adam":
             return EstimateOptions.preset(self.solver, **common)
         return EstimateOptions.preset("robust", lr_pose=self.lr_pose, lr_theta=self.lr_theta, lr_decay=self.lr_decay,

@@ -399,6 +399,85 @@ def test_align_start_begins_each_joint_start_from_the_moved_pose_where_it_scores
         assert all(error(e) for e in distance), (align, distance)
 
 
+def test_pose_starts_overlap_refines_from_the_pose_starts_only_where_the_estimate_misses_the_mask(model, monkeypatch):
+    """``pose_starts_overlap`` (on in ``gauss-newton``): from a start 45 deg out of the image plane one refinement
+    ends in a wrong minimum 7 cm off whose silhouette overlaps the mask little, and a second one from the turned
+    pose starts finds the truth; both refinements' iterations count. From
+    a close start the estimate explains the mask: no pose start is scored or refined, and the result is the
+    single-start refinement's, to the bit."""
+    from narf_core import estimate
+
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    adaptive = EstimateOptions.gauss_newton(uncertainty=False)
+    assert (adaptive.pose_starts, adaptive.pose_starts_overlap) == (estimate.GN_POSE_STARTS, estimate.GN_POSE_OVERLAP)
+    assert EstimateOptions.robust().pose_starts_overlap == 0  # the Adam presets: one pose start
+    single = replace(adaptive, pose_starts=1)
+    overlaps, turned_rows = [], estimate._turned_rows
+    silhouette_overlap = estimate._silhouette_overlap
+    monkeypatch.setattr(estimate, "_silhouette_overlap", lambda *a: overlaps.append(silhouette_overlap(*a)) or overlaps[-1])
+    turns = []
+    monkeypatch.setattr(estimate, "_turned_rows", lambda *a: turns.append(len(a[4])) or turned_rows(*a))
+
+    far = turned(T, (-1.0, 0.0, 0.0), 45.0)
+    one = refine(model, image, mask, CAMERA, far, depth=depth, options=single, ground_truth=(T, TRUTH))
+    assert one.metrics["add"] > 0.008 and not overlaps and not turns  # one pose start: no check, no turns
+    two = refine(model, image, mask, CAMERA, far, depth=depth, options=adaptive, ground_truth=(T, TRUTH))
+    assert len(overlaps) == 1 and overlaps[0] < adaptive.pose_starts_overlap and turns == [adaptive.theta_starts]
+    assert two.metrics["add"] < 0.003 and two.metrics["rotation_error_deg"] < 3
+    assert two.iterations > one.iterations
+
+    overlaps.clear()
+    turns.clear()
+    close = perturbed(T, 5, 0.01, seed=1)
+    near = refine(model, image, mask, CAMERA, close, depth=depth, options=adaptive, ground_truth=(T, TRUTH))
+    plain = refine(model, image, mask, CAMERA, close, depth=depth, options=single, ground_truth=(T, TRUTH))
+    assert len(overlaps) == 1 and overlaps[0] >= adaptive.pose_starts_overlap and not turns
+    assert np.array_equal(near.T_cam_obj, plain.T_cam_obj) and near.joints == plain.joints
+    assert near.iterations == plain.iterations and near.metrics["add"] < 0.003
+
+
+def test_pose_starts_overlap_with_adam_finds_the_pose_within_max_rays(model, monkeypatch):
+    """The option works with either solver: with Adam (whose iterations trace one render each) a start 45 deg
+    out of the image plane ends 2 cm off, its silhouette beside the mask's, the turned starts' refinement comes
+    within a few millimetres, and both refinements, the scoring, the check and the choice stay within
+    ``max_rays``."""
+    from narf_core import estimate
+
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    start = turned(T, (-1.0, 0.0, 0.0), 45.0)
+    options = EstimateOptions.robust(depth_weight=1.0, uncertainty=False, pose_starts=5, pose_spread_deg=20.0,
+                                     pose_starts_overlap=0.8, **FAST)
+    one = refine(model, image, mask, CAMERA, start, depth=depth, options=replace(options, pose_starts=1),
+                 ground_truth=(T, TRUTH))
+    turns, turned_rows = [], estimate._turned_rows
+    monkeypatch.setattr(estimate, "_turned_rows", lambda *a: turns.append(len(a[4])) or turned_rows(*a))
+    calls = spy_on_renders(model, monkeypatch)
+    found = refine(model, image, mask, CAMERA, start, depth=depth, options=options, ground_truth=(T, TRUTH))
+    assert one.metrics["add"] > 0.015 and turns == [options.theta_starts] and found.metrics["add"] < 0.006
+    assert sum(n for n, _, _ in calls) <= options.max_rays()
+
+
+def test_silhouette_overlap_is_near_one_at_the_truth_and_lower_beside_it(model):
+    """The check behind ``pose_starts_overlap``: intersection over union of the rendered silhouette and the
+    mask, on the same box rays for every row."""
+    from narf_core.estimate import _Loss, _mask_box, _observation, _Parameterisation, _silhouette_overlap
+
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    options = EstimateOptions.gauss_newton()
+    obs = _observation(image, mask, depth, _mask_box(mask, options.box_margin), 2, "cpu")
+    param = _Parameterisation.around(torch.from_numpy(T), model)
+    loss_fn = _Loss(model, options, param.radius, True, CAMERA)
+    truth = torch.cat([torch.zeros(1, 6, dtype=torch.float64), param.u_of(model.joint_vector(TRUTH)[None].double())], 1)
+    beside = truth.clone()
+    beside[0, 0] = 0.02 / param.radius  # 2 cm along the camera's x axis
+    at_truth = _silhouette_overlap(loss_fn, obs, CAMERA, param, truth)
+    assert at_truth > 0.9 and _silhouette_overlap(loss_fn, obs, CAMERA, param, truth) == at_truth
+    assert _silhouette_overlap(loss_fn, obs, CAMERA, param, beside) < 0.6
+
+
 @pytest.mark.parametrize("levels", [1, 2, 3, 6])
 @pytest.mark.parametrize("iterations", [1, 2, 7, 80, 150])
 def test_coarse_levels_come_before_the_fine_one(iterations, levels):
@@ -455,6 +534,8 @@ def test_options_round_trip_through_json():
         (dict(theta_starts=0), "options.theta_starts must be in [1, 64]"),
         (dict(pose_starts=0), "options.pose_starts must be in [1, 11]"),
         (dict(pose_spread_deg=0.0), "options.pose_spread_deg must be in (0, 90] degrees"),
+        (dict(pose_starts_overlap=1.0), "options.pose_starts_overlap must be in [0, 1)"),
+        (dict(pose_starts_overlap=-0.1), "options.pose_starts_overlap must be in [0, 1)"),
     ],
 )
 def test_bad_options_are_refused(kwargs, message):
@@ -571,9 +652,15 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     robust = EstimateOptions.preset("robust")  # a box larger than the reference draws up to 4x the rays
     most = max(robust.theta_starts, robust.partial_theta_starts)  # a partially trusted mask raises the θ starts
     assert robust.max_rays() == robust.iterations * robust.rays_per_iteration * 4 * most
-    warm = EstimateOptions.preset("gauss-newton", adam_iterations=20, align_start=False)
+    warm = EstimateOptions.preset("gauss-newton", adam_iterations=20, align_start=False, pose_starts=1)
     assert warm.max_rays() == (warm.iterations + 20) * warm.rays_per_iteration * warm.theta_starts
     assert replace(warm, align_start=True).max_rays() == warm.max_rays() + 3 * 4 * 1024  # the alignment, then 2 x 4 scored
+    # The preset's pose starts, refined only where the first estimate misses the mask: the given pose's 4 starts, then
+    # 2 turned ones for each (all at once: 1 each), their scoring, the overlap check and the choice between both.
+    gauss = EstimateOptions.preset("gauss-newton")
+    every = replace(gauss, pose_starts_overlap=0.0)
+    assert every.max_rays() == gauss.iterations * gauss.rays_per_iteration * 8 + 3 * (9 + 1) * 4 * 1024
+    assert gauss.max_rays() == every.max_rays() + gauss.iterations * gauss.rays_per_iteration * 4 + 3 * gauss.eval_rays
 
 
 def test_bench_estimate_takes_pose_starts_and_seed_from_the_command_line(model, tmp_path):
