@@ -64,10 +64,6 @@ _FRAME_MARGIN_M = 0.006
 _DEPTH_WINDOW_M = 0.005
 _DEPTH_ROUNDS = 3
 _DEPTH_CELL = 0.7  # its cells' side over the mean spacing of the projected points (a pixel at least)
-# Without depth, refine_frame's iterations and Σ drop the samples light does not reach (visible) only in
-# a mask box larger than the reference (a finer camera, where the silhouette pins the distance): at the
-# reference size the RGB-only track is bistable and the pruning was not harmless (docs/benchmarks.md).
-_PRUNE_LARGE_RGB = True
 # A warm-started frame's σ over the refiner's (TrackOptions.sigma_scale), with depth and without, for a
 # model whose bundle carries no factor of its own: fitted on four tools' seed-1 sequences pooled (with
 # depth) and on the clamp's (without; docs/benchmarks.md).
@@ -496,9 +492,10 @@ def refine_frame(
     projects near it). An iteration takes the lattice samples of its rays in that band
     (:func:`frame_band`), keeps those the occupancy grid holds at the iteration's pose
     (:func:`occupied`) and evaluates the field there: no marching rounds, one field call; with
-    depth (without it, in a box larger than ``options.reference_box_px``: ``_PRUNE_LARGE_RGB``),
-    only at those light reaches (:func:`visible`), so that the backward pass skips what lies
-    behind the surface. The final loss (``options.eval_rays`` rays) and the covariance
+    depth (without it, only in a box larger than ``options.reference_box_px``, a finer camera where the
+    silhouette pins the distance: at the reference size the RGB-only track is bistable and the pruning
+    was not harmless, docs/benchmarks.md), only at those light reaches (:func:`visible`), so that the
+    backward pass skips what lies behind the surface. The final loss (``options.eval_rays`` rays) and the covariance
     (``options.uncertainty_rays`` rays) take their samples the same way. ``narf`` mode; where the
     band cannot be trusted (surface points behind the camera) this is :func:`refine`.
     ``distance_prior`` (for a view without depth) adds that weight times the squared motion of the
@@ -529,7 +526,7 @@ def refine_frame(
     obs.scale = scale
     param = _Parameterisation.around(T0, model)
     uses_depth = depth is not None and options.depth_weight > 0
-    prune = uses_depth or (scale > 1 and _PRUNE_LARGE_RGB)  # keep only the samples light reaches (visible)
+    prune = uses_depth or scale > 1  # keep only the samples light reaches (visible)
 
     def result(status: str, p: Tensor | None, loss: float | None, iterations: int = 0, trace=(),
                uncertainty=None, recovered: bool = False) -> EstimateResult:
