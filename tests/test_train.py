@@ -437,6 +437,13 @@ def test_occluder_rays_are_the_other_links_pixels_crossing_the_part_box(tiny_dat
         assert bool((occluders[p].depth > 0).all())
         _, _, hit = ray_aabb(occluders[p].rays.origins, occluders[p].rays.directions, boxes[p])
         assert bool(hit.all())
+    # Without the free-space term: the same supervising rays, no occluders and no incidence computed
+    plain, none = part_rays(dataset, kin, boxes, free_space=False)
+    full, _ = part_rays(dataset, kin, boxes)
+    assert none is None and all(r.incidence is None for r in plain)
+    for p in range(len(kin.parts)):
+        torch.testing.assert_close(plain[p].rgb, full[p].rgb)
+        torch.testing.assert_close(plain[p].depth, full[p].depth)
 
 
 def test_random_views_look_at_the_centre_from_the_shell():

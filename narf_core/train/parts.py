@@ -95,10 +95,10 @@ def _pad(x: Tensor, axis: int, front: bool) -> Tensor:
     return torch.cat([fill, x] if front else [x, fill], dim=axis)
 
 
-def _frames(dataset: Dataset, kin: KinematicTree, split: str):
+def _frames(dataset: Dataset, kin: KinematicTree, split: str, incidence: bool):
     """Per frame of ``split``: ``(rays [HW], rgb [HW,3], depth [HW] (0 = none), incidence [HW]
-    (:func:`surface_incidence`), pixel_part [HW] (-1 = background), T_part_cam [n_parts,4,4])``, the
-    rays in the camera frame."""
+    (:func:`surface_incidence`; None unless ``incidence``), pixel_part [HW] (-1 = background),
+    T_part_cam [n_parts,4,4])``, the rays in the camera frame."""
     cam_rays = dataset.camera.rays()
     link_part = torch.tensor([kin.part_of_link[kin.links.index(name)] for name in dataset.links])
     for frame in dataset.frames(split):
@@ -111,8 +111,8 @@ def _frames(dataset: Dataset, kin: KinematicTree, split: str):
         theta = kin.joint_vector(frame.joints)
         T_cam_part = torch.from_numpy(frame.T_cam_obj).float() @ kin.part_poses(theta).float()
         pixel_part = torch.where(labels > 0, link_part[(labels - 1).clamp_min(0)], torch.full_like(labels, -1))
-        incidence = surface_incidence(cam_rays, depth, dataset.camera.height, dataset.camera.width)
-        yield cam_rays, rgb, depth, incidence, pixel_part, invert_pose(T_cam_part)
+        cos = surface_incidence(cam_rays, depth, dataset.camera.height, dataset.camera.width) if incidence else None
+        yield cam_rays, rgb, depth, cos, pixel_part, invert_pose(T_cam_part)
 
 
 def _in_box(cam_rays: Rays, keep: Tensor, T_part_cam: Tensor, box: Tensor) -> tuple[Tensor, Rays]:
@@ -140,22 +140,25 @@ class FreeRays:
 
 
 def part_rays(
-    dataset: Dataset, kin: KinematicTree, boxes: list[Tensor], split: str = "train"
-) -> tuple[list[RayTargets], list[FreeRays]]:
+    dataset: Dataset, kin: KinematicTree, boxes: list[Tensor], split: str = "train", free_space: bool = True
+) -> tuple[list[RayTargets], list[FreeRays] | None]:
     """For every part, in the part frame and in one pass over ``split``: the supervising rays that
-    cross its box (its own pixels and the background's), and the rays of other links' pixels with a
-    measured depth that cross it (its occluders)."""
+    cross its box (its own pixels and the background's), and, for the free-space term (``free_space``;
+    else None and no :func:`surface_incidence`), the rays of other links' pixels with a measured depth
+    that cross it (its occluders)."""
     targets: list[list[RayTargets]] = [[] for _ in kin.parts]
     occluders: list[list[FreeRays]] = [[] for _ in kin.parts]
-    for cam_rays, rgb, depth, incidence, pixel_part, T_part_cam in _frames(dataset, kin, split):
+    for cam_rays, rgb, depth, incidence, pixel_part, T_part_cam in _frames(dataset, kin, split, free_space):
         for p, box in enumerate(boxes):
             mine = pixel_part == p
             keep, rays = _in_box(cam_rays, (mine | (pixel_part < 0)).nonzero().squeeze(-1), T_part_cam[p], box)
-            targets[p].append(RayTargets(rays, rgb[keep], mine[keep].float(), depth[keep] * mine[keep], incidence[keep]))
-            other = (pixel_part >= 0) & ~mine & (depth > 0)
-            keep, rays = _in_box(cam_rays, other.nonzero().squeeze(-1), T_part_cam[p], box)
-            occluders[p].append(FreeRays(rays, depth[keep], incidence[keep]))
-    return [concat_targets(chunks) for chunks in targets], [concat_free(chunks) for chunks in occluders]
+            cos = None if incidence is None else incidence[keep]
+            targets[p].append(RayTargets(rays, rgb[keep], mine[keep].float(), depth[keep] * mine[keep], cos))
+            if free_space:
+                other = (pixel_part >= 0) & ~mine & (depth > 0)
+                keep, rays = _in_box(cam_rays, other.nonzero().squeeze(-1), T_part_cam[p], box)
+                occluders[p].append(FreeRays(rays, depth[keep], incidence[keep]))
+    return [concat_targets(chunks) for chunks in targets], [concat_free(c) for c in occluders] if free_space else None
 
 
 def concat_rays(chunks: list[Rays]) -> Rays:

@@ -214,9 +214,9 @@ def train(
             timings[f"part{p}_s"] = float(state["seconds"])
         else:
             if rays_per_part is None:
-                rays_per_part, all_occluders = part_rays(dataset, kin, boxes)
-                if config.free_space_weight > 0:
-                    occluders = all_occluders
+                rays_per_part, found = part_rays(dataset, kin, boxes, free_space=config.free_space_weight > 0)
+                if found is not None:
+                    occluders = found
             grid, seconds = _train_part(
                 field, box, rays_per_part[p], config, work / f"part{p}.ckpt", budget_parts, progress, kin.part_names[p],
                 occluders[p],
