@@ -848,11 +848,16 @@ def _start_rows(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Para
 def _score_rays(obs: _Observation, camera: Pinhole, seed: int) -> tuple[Tensor, Rays]:
     """The box pixels ``index [n]`` (up to ``_SCORE_RAYS``, drawn with ``seed``) on which starts are scored
     before the refinement, and their camera rays: the same for every call with the same seed."""
-    n_pixels = obs.pixels.shape[0]
-    g = torch.Generator().manual_seed(seed + 2)
-    index = torch.arange(n_pixels) if n_pixels <= _SCORE_RAYS else torch.randperm(n_pixels, generator=g)[:_SCORE_RAYS]
-    index = index.to(obs.pixels.device)
+    index = _box_pixels(obs, _SCORE_RAYS, torch.Generator().manual_seed(seed + 2))
     return index, camera.rays(obs.pixels[index].to(torch.float32))
+
+
+def _box_pixels(obs: _Observation, n: int, rng: torch.Generator) -> Tensor:
+    """``[min(n, N)]`` indices into the box's ``N`` pixels, on their device: all of them where they fit,
+    else ``n`` drawn without repeats with ``rng``."""
+    n_pixels = obs.pixels.shape[0]
+    index = torch.arange(n_pixels) if n_pixels <= n else torch.randperm(n_pixels, generator=rng)[:n]
+    return index.to(obs.pixels.device)
 
 
 @torch.no_grad()
@@ -1461,10 +1466,7 @@ def _silhouette_overlap(loss_fn: _Loss, obs: _Observation, camera: Pinhole, para
     ``options.eval_rays`` box pixels (drawn with ``options.seed``): near 1 where the estimate explains
     the mask, lower where a wrong minimum draws part of the object beside it."""
     opts = loss_fn.options
-    n_pixels = obs.pixels.shape[0]
-    g = torch.Generator().manual_seed(opts.seed)
-    index = torch.arange(n_pixels) if n_pixels <= opts.eval_rays else torch.randperm(n_pixels, generator=g)[:opts.eval_rays]
-    index = index.to(obs.pixels.device)
+    index = _box_pixels(obs, opts.eval_rays, torch.Generator().manual_seed(opts.seed))
     rays = _object_rays(camera.rays(obs.pixels[index].to(torch.float32)), param.poses(row))
     _, opacity, _ = loss_fn._render(rays, param.thetas(row), ("opacity",))
     opacity, mask = opacity.reshape(-1).double(), obs.levels[-1].mask[index].double()
@@ -1812,9 +1814,7 @@ def _fixed_rays_loss(
 ) -> Tensor:
     """Loss ``[S]`` of every row of ``params [S, d]`` on the same up to ``n`` (0: ``options.eval_rays``)
     pixels of the box, at the finest level."""
-    n_pixels, n = obs.pixels.shape[0], n or loss_fn.options.eval_rays
-    index = torch.arange(n_pixels) if n_pixels <= n else torch.randperm(n_pixels, generator=rng)[:n]
-    index = index.to(obs.pixels.device)
+    index = _box_pixels(obs, n or loss_fn.options.eval_rays, rng)
     return loss_fn(camera.rays(obs.pixels[index]), obs.levels[-1], index, param.poses(params), param.thetas(params))
 
 
