@@ -8,6 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from narf_core.fields import ArticulatedField, FastNeRFField, KPlanesField, RadianceField, make_field
+from narf_core.fields import articulated
 from narf_core.fields.articulated import chain_spec
 from narf_core.fields.base import SIGMA_MAX_LOG, trunc_exp
 from narf_core.fields.encodings import frequency_encoding, frequency_encoding_size, sample_plane, spherical_harmonics
@@ -316,6 +317,35 @@ def test_articulated_field_kinematics_match_the_urdf(assets, urdf):
     expected = kin.part_poses(theta).float()
     torch.testing.assert_close(field.part_poses(theta.float()), expected, atol=1e-5, rtol=0)
     torch.testing.assert_close(field.part_poses(theta[2].float()), expected[2], atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize("urdf", ["synth_articulated.urdf", "mimic"])
+@pytest.mark.parametrize("runs", [1, 3])
+def test_rows_of_one_configuration_get_each_their_own_theta_derivative(assets, urdf, runs, monkeypatch):
+    """Rows in runs of one θ (a render's samples, start by start) are looked up one run at a time, yet
+    each row's θ, a leaf of its own, gets the derivative of that row alone, as looking every row up
+    with its own FK gives: a Gauss-Newton Jacobian needs each ray's ∂/∂θ, not the run's total."""
+    kin = KinematicTree.from_urdf_string(MIMIC_URDF) if urdf == "mimic" else KinematicTree.from_urdf(assets / urdf, load_meshes=False)
+    field = articulated_field(kin)
+    g = torch.Generator().manual_seed(1)
+    n = 60
+    x, d = points(n), torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    values = kin.lower + (kin.upper - kin.lower) * torch.rand(runs, kin.n_joints, generator=g, dtype=torch.float64)
+    theta = values.float().repeat_interleave(n // runs, 0)
+    weights = torch.randn(n, 4, generator=g)
+
+    def evaluate():
+        th = theta.clone().requires_grad_(True)
+        sigma, rgb = field(x, d, th)
+        out = torch.cat([sigma[:, None], rgb], -1)
+        return out.detach(), torch.autograd.grad((out * weights).sum(), th)[0]
+
+    out, grad = evaluate()
+    assert int((grad.abs().sum(-1) > 0).sum()) > 2 * runs  # rows of moving parts see θ, not one row per run
+    monkeypatch.setattr(articulated, "_MAX_RUNS", 0)  # every row through its own FK
+    out_rows, grad_rows = evaluate()
+    torch.testing.assert_close(out, out_rows, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(grad, grad_rows, rtol=1e-4, atol=1e-5)
 
 
 def test_articulated_field_config_round_trip_and_errors(assets):

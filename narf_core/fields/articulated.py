@@ -41,6 +41,7 @@ JOINT_TYPES = ("fixed", "revolute", "continuous", "prismatic")
 _BOX_MARGIN = 0.01  # cells: a part's occupied box is grown by this, so float rounding never clips an occupied sample
 _BLOCK = 4  # cells per block (per axis) of the coarse part grids a ray's span is narrowed with
 _SPAN_SAMPLES = 128  # at most this many coarse samples per ray; a longer span keeps its boxes' bounds
+_MAX_RUNS = 64  # configurations mapped run by run (one FK each); rows of more are mapped one by one
 
 
 def chain_spec(kin) -> dict:
@@ -155,7 +156,7 @@ class ArticulatedField(RadianceField):
         self.register_buffer("origins", torch.tensor(self.chain["origins"], dtype=torch.float32).reshape(-1, 4, 4), persistent=False)
         self.register_buffer("axes", torch.tensor(self.chain["axes"], dtype=torch.float32).reshape(-1, 3), persistent=False)
         self._grids_state: tuple | None = None  # (buffer key, part grids, their lookup table), replaced whole
-        self._pose_cache: tuple[tuple, Tensor] | None = None
+        self._pose_cache: dict[tuple, Tensor] = {}  # (θ, device) -> T_part_obj [p, 4, 4]
 
     @property
     def n_parts(self) -> int:
@@ -254,28 +255,103 @@ class ArticulatedField(RadianceField):
     def part_from_object(self, theta: Tensor | None, n: int) -> Tensor:
         """``T_part_obj``: ``[p,4,4]`` for a shared ``θ`` (``[k]``, or rows that are one), else ``[n,p,4,4]``.
 
-        Without gradients, the last shared ``θ``'s poses are reused (a render asks once per round)."""
+        Rows equal in value are one ``θ`` only where no row needs a gradient of its own (an expanded
+        ``θ``'s rows are one tensor); without gradients the poses of the last ``_MAX_RUNS`` shared ``θ``
+        are reused (a render asks once per round, for each of its configurations)."""
+        theta = self._check_theta(theta, n)
+        if theta.dim() == 2 and (n == 0 or theta.stride(0) == 0 or (
+                not _needs_grad(theta) and bool((theta == theta[:1]).all()))):
+            theta = theta[0] if n else theta.new_zeros(self.n_theta)
+        cacheable = theta.dim() == 1 and not _needs_grad(theta)
+        if cacheable:
+            key = (tuple(theta.tolist()), str(theta.device))
+            if key in self._pose_cache:
+                return self._pose_cache[key]
+        T = invert_pose(self.part_poses(theta))
+        if cacheable:
+            if len(self._pose_cache) >= _MAX_RUNS:
+                self._pose_cache.clear()
+            self._pose_cache[key] = T
+        return T
+
+    def _check_theta(self, theta: Tensor | None, n: int) -> Tensor:
         k = self.n_theta
         if theta is None:
             raise ValueError(f"this field needs a configuration theta with {k} values, got None")
         if theta.shape not in ((k,), (n, k)):
             raise ValueError(f"theta must be [{k}] or [{n}, {k}], got shape {tuple(theta.shape)}")
-        if theta.dim() == 2 and (n == 0 or theta.stride(0) == 0 or bool((theta == theta[:1]).all())):
-            theta = theta[0] if n else theta.new_zeros(k)
-        cacheable = theta.dim() == 1 and not (torch.is_grad_enabled() and theta.requires_grad)
-        if cacheable:
-            key = (tuple(theta.tolist()), str(theta.device))
-            if self._pose_cache is not None and self._pose_cache[0] == key:
-                return self._pose_cache[1]
-        T = invert_pose(self.part_poses(theta))
-        if cacheable:
-            self._pose_cache = (key, T)
-        return T
+        return theta
 
-    def lookup_maps(self, theta: Tensor | None, n: int, dtype: torch.dtype, columns: slice = slice(None)) -> Tensor:
-        """``A [p, 4, K]`` (a shared ``θ``) or ``[n, p, 4, K]``: object-frame points ``[x, y, z, 1]`` to their
-        lookup coordinates in every part (:meth:`_lookup_coordinates`, its ``columns``) at ``θ``."""
-        return self.part_from_object(theta, n).to(dtype).transpose(-1, -2) @ self._grid_state()[3][..., columns].to(dtype)
+    def lookup_coordinates(self, x: Tensor, theta: Tensor | None, columns: slice = slice(None), translate: bool = True) -> Tensor:
+        """``x [n, 3]`` (object frame; directions with ``translate=False``) to their lookup coordinates in
+        every part (:meth:`_lookup_coordinates`, its ``columns``) at ``θ`` (``[k]``, or ``[n, k]`` one per
+        row): ``[n, p, K]``.
+
+        A render's rows come in runs of one configuration (its samples ray after ray, a start's rays
+        together): each run is one matrix product with the maps of its ``θ``, the FK once per run, and
+        rows of more than ``_MAX_RUNS`` configurations are mapped one by one. Where ``θ`` needs a
+        gradient, each row gets its own ``∂/∂θ`` from the term ``(θ_row - θ_run) ∂A/∂θ``, zero in value,
+        with the maps' derivative at the run's ``θ`` (:meth:`_pose_derivatives`): a Gauss-Newton
+        Jacobian needs every ray's derivative, not the run's total."""
+        n = x.shape[0]
+        theta = self._check_theta(theta, n)
+        C = self._grid_state()[3][..., columns].to(x.dtype)
+        if theta.dim() == 1 or n == 0 or theta.stride(0) == 0:  # one θ for all rows (an expanded one: its gradient sums)
+            return _affine(x, self.part_from_object(theta, n).to(x.dtype).transpose(-1, -2) @ C, translate)
+        starts = _runs(theta.detach())
+        if starts is None:  # many configurations: the FK per row
+            return _affine(x, self.part_from_object(theta, n).to(x.dtype).transpose(-1, -2) @ C, translate)
+        values = theta.detach()[starts[:-1]]  # [U, k]
+        spans = list(zip(starts[:-1], starts[1:]))
+        maps = [self.part_from_object(v, 1).to(x.dtype).transpose(-1, -2) @ C for v in values]  # U x [p, 4, K]
+        out = torch.cat([_affine(x[a:b], A, translate) for (a, b), A in zip(spans, maps)])
+        if not _needs_grad(theta):
+            return out
+        dmaps = self._pose_derivatives(values).to(x.dtype).transpose(-1, -2) @ C  # [U, k, p, 4, K]
+        x0 = x.detach()
+        term = torch.cat([torch.stack([_affine(x0[a:b], dA, translate) for dA in dmaps[u]], -1)  # [m, p, K, k]
+                          for u, (a, b) in enumerate(spans)])
+        delta = (theta - theta.detach()).to(x.dtype)  # zero, with ∂/∂θ = 1 in every row
+        return out + (term * delta[:, None, None, :]).sum(-1)
+
+    def _pose_derivatives(self, values: Tensor) -> Tensor:
+        """``∂T_part_obj / ∂θ_j [U, k, p, 4, 4]`` at each configuration of ``values [U, k]``: the chain's
+        forward kinematics differentiated joint by joint (``∂T⁻¹ = -T⁻¹ ∂T T⁻¹``), in closed form; torch's
+        forward mode would import its compiler stack (about half a second) into every estimating process."""
+        theta = values.to(self.origins.dtype)
+        U, k = theta.shape
+        eye = torch.eye(4, dtype=theta.dtype, device=theta.device)
+        poses, grads = [eye.expand(U, 4, 4)], [theta.new_zeros(U, k, 4, 4)]  # T_obj_link and ∂/∂θ_j per link
+        chain = self.chain
+        for i, kind in enumerate(chain["types"]):
+            origin, parent = self.origins[i], chain["parents"][i]
+            local, dlocal = origin.expand(U, 4, 4), None
+            if kind != "fixed":
+                m, o = chain["mimic"][i]
+                q = theta[:, chain["theta_index"][i]] * m + o
+                axis = self.axes[i]
+                if kind == "prismatic":
+                    direction = origin[:3, :3] @ axis
+                    local = make_pose(origin[:3, :3].expand(U, 3, 3), origin[:3, 3] + q[:, None] * direction)
+                    dlocal = torch.zeros(4, 4, dtype=theta.dtype, device=theta.device)
+                    dlocal[:3, 3] = direction * m
+                    dlocal = dlocal.expand(U, 4, 4)
+                else:
+                    R = origin[:3, :3] @ _rotation_about(axis, q)
+                    local = make_pose(R, origin[:3, 3].expand(U, 3))
+                    dlocal = theta.new_zeros(U, 4, 4)
+                    dlocal[:, :3, :3] = m * (origin[:3, :3] @ skew(axis) @ _rotation_about(axis, q))
+            poses.append(poses[parent] @ local)
+            grad = grads[parent] @ local[:, None]
+            if dlocal is not None:
+                j = chain["theta_index"][i]
+                grad = grad.clone()
+                grad[:, j] = grad[:, j] + poses[parent] @ dlocal
+            grads.append(grad)
+        links = chain["part_links"]
+        T_part_obj = invert_pose(torch.stack([poses[i] for i in links], dim=1))  # [U, p, 4, 4]
+        dT_obj_part = torch.stack([grads[i] for i in links], dim=2)  # [U, k, p, 4, 4]
+        return -T_part_obj[:, None] @ dT_obj_part @ T_part_obj[:, None]
 
     def occupancy(self, theta: Tensor) -> PosedGrids:
         """The object-frame occupancy at ``θ [k]`` (or ``[n,k]``, one per ray): the part grids posed by FK."""
@@ -290,12 +366,12 @@ class ArticulatedField(RadianceField):
         weighted = x.new_zeros(n, 3) if color else None
         if n == 0:
             return sigma, weighted
-        maps = self.lookup_maps(theta, n, x.dtype)  # [(n,) p, 4, 3 + 2N]
-        occupied = self.part_lookup().occupied_cells(_affine(x, maps[..., :3]))  # [n, p]
+        coords = self.lookup_coordinates(x, theta)  # [n, p, 3 + 2N]
+        occupied = self.part_lookup().occupied_cells(coords[..., :3])  # [n, p]
         part, sample = occupied.t().nonzero(as_tuple=True)  # (sample, part) pairs grouped by part
         if sample.numel() == 0:
             return sigma, weighted
-        features = self._plane_features(_affine(x, maps[..., 3:])[sample, part].to(self.atlas.dtype))  # [m, F * S]
+        features = self._plane_features(coords[..., 3:][sample, part].to(self.atlas.dtype))  # [m, F * S]
         counts = occupied.sum(0).tolist()
         out = torch.cat([self.decoders[i](f) for i, f in enumerate(features.split(counts)) if f.shape[0]])
         raw = out[:, 0]
@@ -415,6 +491,19 @@ class _PartLookup:
         return hit
 
 
+def _needs_grad(theta: Tensor) -> bool:
+    return torch.is_grad_enabled() and theta.requires_grad
+
+
+def _runs(theta: Tensor) -> list[int] | None:
+    """Where the runs of equal rows of ``theta [n, k]`` start, with ``n`` last; ``None`` for more than
+    ``_MAX_RUNS`` runs."""
+    change = (theta[1:] != theta[:-1]).any(-1)
+    if int(change.sum()) >= _MAX_RUNS:
+        return None
+    return [0, *(change.nonzero()[:, 0] + 1).tolist(), theta.shape[0]]
+
+
 def _affine(x: Tensor, A: Tensor, translate: bool = True) -> Tensor:
     """``x [n,3]`` mapped by each part's affine map ``A [p, 4, K]`` (or one per row, ``[n, p, 4, K]``; rows
     ``x, y, z, 1``) -> ``[n, p, K]``; ``translate=False`` for directions. A shared map is one matrix product."""
@@ -486,8 +575,8 @@ class PosedGrids:
 
     def occupied(self, x: Tensor, theta: Tensor | None = None) -> Tensor:
         theta = self.theta if theta is None else theta.detach()
-        A = self.field.lookup_maps(theta, x.shape[0], x.dtype, slice(0, 3))  # to cell units, as the field looks up
-        return self.field.part_lookup().occupied_cells(_affine(x, A)).any(-1)
+        cells = self.field.lookup_coordinates(x, theta, slice(0, 3))  # cell units, as the field looks up
+        return self.field.part_lookup().occupied_cells(cells).any(-1)
 
     def bounds(self, theta: Tensor | None = None) -> Tensor | None:
         """The object-frame box around the posed parts' tight boxes (over every ray's ``θ`` if per ray)."""
@@ -500,7 +589,8 @@ class PosedGrids:
         boxes = [(i, box) for i, box in boxes if box is not None]
         if not boxes:
             return None
-        T = invert_pose(self._part_from_object(theta)).reshape(-1, len(grids), 4, 4)
+        configurations = shared if shared.dim() == 1 else torch.unique(shared, dim=0)  # rays share a few θ
+        T = invert_pose(self._part_from_object(configurations)).reshape(-1, len(grids), 4, 4)
         index = [i for i, _ in boxes]
         corners = transform_points(T[:, index, None], torch.stack([box_corners(box) for _, box in boxes])).reshape(-1, 3)
         box = torch.stack([corners.amin(0), corners.amax(0)])
@@ -510,8 +600,9 @@ class PosedGrids:
 
     def along(self, origins: Tensor, directions: Tensor, theta: Tensor | None = None) -> PosedGridRays:
         theta = self.theta if theta is None else theta.detach()
-        A = self.field.lookup_maps(theta, origins.shape[0], origins.dtype, slice(0, 3))  # to cell units
-        c, cd = _affine(origins, A), _affine(directions, A, translate=False)  # [m, p, 3]
+        cells = slice(0, 3)  # cell units
+        c = self.field.lookup_coordinates(origins, theta, cells)  # [m, p, 3]
+        cd = self.field.lookup_coordinates(directions, theta, cells, translate=False)
         return PosedGridRays(self.field.part_lookup(), c.float(), cd.float())
 
 
