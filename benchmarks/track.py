@@ -14,7 +14,8 @@ per-frame settings head the table; ``--band-m`` marches only a band around the m
 (``EstimateOptions.band_m``), to compare with the whole box, and ``--march iteration`` marches at
 every iteration instead of sampling the band found once per frame (``TrackOptions.march``);
 ``--no-depth-align`` leaves the prediction where the motion model puts it (``TrackOptions.depth_align``). With
-``--events`` the sequence with a glance away and an occluding bar is tracked as well. The error
+``--events`` the sequence with a glance away and an occluding bar is tracked as well. ``--seed`` picks the
+sequences' seed (default 0), so that other motions of the same tools can be tracked; the result names it. The error
 against time is plotted per run (``<work>/track/<tool>-<size>-<modality>.png``) and every per-frame row is kept in
 ``<work>/track/result.json``. With ``--service-clients N``, N clients track the 160x120 sequence at
 once through ``POST /v1/track`` on a loopback server, and each one's frames per second is reported.
@@ -122,15 +123,16 @@ def plot(rows: list[dict], title: str, path: Path) -> Path:
 
 
 def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, modalities=MODALITIES,
-        events: bool = False, options: TrackOptions | None = None) -> dict:
-    """Every tool x size x modality (x smooth/events); returns the summary (rows saved beside it)."""
+        events: bool = False, options: TrackOptions | None = None, seed: int = 0) -> dict:
+    """Every tool x size x modality (x smooth/events) on the sequences synthesised with ``seed``;
+    returns the summary (rows saved beside it)."""
     options = options or TrackOptions(first_frame="warm")
     out_dir = work / "track"
     runs = []
     for tool, model in models.items():
         for size in sizes:
             for with_events in (False, True) if events else (False,):
-                dataset = Dataset.open(sequence(work, tool, size, frames, with_events))
+                dataset = Dataset.open(sequence(work, tool, size, frames, with_events, seed=seed))
                 for modality in modalities:
                     start = time.perf_counter()
                     one = run_one(model, dataset, modality == "rgb", options)
@@ -141,7 +143,7 @@ def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, m
                     runs.append(one)
                     print(f"narf bench track: {name}: {one['frames_per_second']:.1f} frames/s, ADD mean "
                           f"{one['add_m']['mean'] * 100:.2f} cm, lost {one['lost']}", file=sys.stderr)
-    result = {"frames": frames, "options": options.__dict__, "runs": runs}
+    result = {"frames": frames, "seed": seed, "options": options.__dict__, "runs": runs}
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "result.json").write_text(json.dumps(result, indent=1))
     return result
@@ -155,7 +157,8 @@ def markdown(result: dict) -> str:
     if not o["band_m"] and o.get("march") == "frame":
         band = "sampled in the band around the surface found once per frame (no marching)"
     lines = [
-        f"Tracking, {result['frames']}-frame sequences (30 fps), from the first frame's label "
+        f"Tracking, {result['frames']}-frame sequences (30 fps, seed {result.get('seed', 0)}), "
+        f"from the first frame's label "
         f"({'as exact' if o.get('first_frame') == 'warm' else 'refined by the multi-start refiner'}); per frame "
         f"{o['iterations']} {o['solver']} iterations of {o['rays_per_iteration']} rays {band}"
         + ("" if o.get("depth_align", True) else ", the prediction not aligned to the depth"),
@@ -201,8 +204,8 @@ def _joint_cell(run: dict) -> str:
 
 def main(args: argparse.Namespace) -> int:
     """``narf bench track``: ``args`` has ``work``, ``models``, ``tools``, ``frames``, ``sizes``,
-    ``modalities``, ``events``, ``iterations``, ``band_m``, ``march``, ``depth_align``, ``service_clients``,
-    ``json``."""
+    ``modalities``, ``events``, ``seed``, ``iterations``, ``band_m``, ``march``, ``depth_align``,
+    ``service_clients``, ``json``."""
     tools = args.tools or sorted(p.stem for p in args.models.glob("*.narf"))
     models, missing = {}, []
     for tool in tools:
@@ -220,10 +223,10 @@ def main(args: argparse.Namespace) -> int:
                  "march": getattr(args, "march", None), "depth_align": getattr(args, "depth_align", None)}
     options = TrackOptions(first_frame="warm", **{k: v for k, v in overrides.items() if v is not None})
     result = run(models, args.work, frames=args.frames, sizes=sizes, modalities=tuple(args.modalities),
-                 events=args.events, options=options)
+                 events=args.events, options=options, seed=getattr(args, "seed", 0))
     if args.service_clients:
         tool = next(iter(models))
-        dataset = Dataset.open(sequence(args.work, tool, (160, 120), args.frames, False))
+        dataset = Dataset.open(sequence(args.work, tool, (160, 120), args.frames, False, seed=result["seed"]))
         result["service"] = service_run(args.models / f"{tool}.narf", dataset, args.service_clients,
                                         min(args.frames, 40))
     if args.json:

@@ -929,6 +929,8 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
                      help="image size, repeatable (default: 160 120 and 640 480)")
     sub.add_argument("--modalities", nargs="+", choices=("rgbd", "rgb"), default=["rgbd", "rgb"])
     sub.add_argument("--events", action="store_true", help="also sequences with a glance away and an occluder")
+    sub.add_argument("--seed", type=_non_negative_int, default=0, metavar="S",
+                     help="seed of the synthesised sequences (default: %(default)s)")
     sub.add_argument("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame")
     sub.add_argument("--band-m", type=_non_negative_float, metavar="M",
                      help="march only this far around the model's surface (0: the whole box; default: the tracker's)")

@@ -771,6 +771,39 @@ def test_bench_track_can_leave_the_depth_alignment_off() -> None:
         assert ("not aligned to the depth" in table) is not align
 
 
+def test_bench_track_tracks_the_sequence_of_the_seed_asked(tmp_path: Path, capfd) -> None:
+    """``narf bench track --seed S`` synthesises and tracks the seed-S sequence (its own folder, its own
+    motion) and its result and table name the seed; a negative or non-integer seed is one error line."""
+    pytest.importorskip("pybullet")
+    from narf_benchmarks.track import markdown
+    from narf_core.data.dataset import Dataset
+
+    first_poses, tables = {}, {}
+    for seed in (0, 1):
+        code = narf(["--threads", "1", "bench", "track", "--work", str(tmp_path), "--models", str(CLAMP.parent),
+                     "--tools", "clamp", "--frames", "2", "--size", "32", "24", "--modalities", "rgbd",
+                     "--seed", str(seed), "--json"])
+        out, err = capfd.readouterr()
+        assert code == 0, err
+        result = json.loads(out)
+        assert result["seed"] == seed and [r["frames"] for r in result["runs"]] == [2]
+        first_poses[seed] = Dataset.open(tmp_path / "sequences" / ("clamp-32x24-2" + ("-s1" if seed else ""))
+                                         ).frames()[0].T_cam_obj
+        tables[seed] = markdown(result)
+    assert sorted(p.name for p in (tmp_path / "sequences").iterdir()) == ["clamp-32x24-2", "clamp-32x24-2-s1"]
+    assert not np.allclose(first_poses[0], first_poses[1], atol=1e-3)
+    assert "seed 0)" in tables[0] and "seed 1)" in tables[1]
+
+    for bad, reason in (("-1", "-1 is not an integer >= 0"), ("1.5", "'1.5' is not an integer")):
+        with pytest.raises(SystemExit) as exited:
+            narf(["bench", "track", "--work", str(tmp_path), "--seed", bad])
+        _, err = capfd.readouterr()
+        lines = [line for line in err.splitlines() if line.strip()]
+        assert exited.value.code == 2 and "Traceback" not in err
+        assert [line for line in lines if "error" in line] == [f"narf bench track: error: argument --seed: {reason}"]
+        assert lines[-1] == f"narf bench track: error: argument --seed: {reason}"
+
+
 def test_sigma_scale_is_the_option_else_the_models_own_else_the_pooled_one(clamp, clamp_sequence: Path,
                                                                              monkeypatch) -> None:
     """A warm-started frame's factor on σ: ``TrackOptions.sigma_scale`` / ``sigma_scale_rgb`` where
