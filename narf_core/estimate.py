@@ -371,19 +371,62 @@ class EstimateOptions:
         overlap check and the choice between its two estimates (the given pose's starts, then
         ``_RETRY_POSES_KEPT`` turned ones per θ start). ``depth``: whether the view comes
         with a depth image (without one: ``rgb_refinements``, and a mask trusted partially only where
-        ``mask_trust`` is "partial", as nothing else contradicts it)."""
+        ``mask_trust`` is "partial", as nothing else contradicts it). With ``solver = "gauss-newton"``
+        also what its iterations render besides the linearisation: see :meth:`_gauss_newton_rays`."""
         scale = _MAX_BOX_SCALE if self.reference_box_px else 1
         partial = depth or self.mask_trust == "partial"
         theta_starts = max(self.theta_starts, self.partial_theta_starts) if partial else self.theta_starts
         adaptive = self.pose_starts > 1 and self.pose_starts_overlap > 0  # _adaptive_refinement
         kept = _RETRY_POSES_KEPT if adaptive else _POSES_KEPT
-        starts = theta_starts * (1 + kept) if self.pose_starts > 1 else theta_starts
         scoring = 3 * self.pose_starts * theta_starts * _SCORE_RAYS if self.pose_starts > 1 else 0  # _start_rows
         scoring += 3 * theta_starts * _SCORE_RAYS if self.align_start else 0
+        if self.solver == "gauss-newton":
+            return scoring + self._gauss_newton_rays(theta_starts, scale, adaptive)
+        starts = theta_starts * (1 + kept) if self.pose_starts > 1 else theta_starts
         runs = max(1, self.refinements, 0 if depth else self.rgb_refinements)
         choice = runs * _CHOICE_RAYS if runs > 1 else 0  # _best_refinement
         choice += 3 * self.eval_rays if adaptive else 0  # the overlap check, the choice between both estimates
         return runs * (self.iterations + self.adam_iterations) * self.rays_per_iteration * scale * starts + scoring + choice
+
+    def _gauss_newton_rays(self, theta_starts: int, scale: int, adaptive: bool) -> int:
+        """The Gauss-Newton refinement's share of :meth:`max_rays` (one refinement: ``refinements`` is
+        Adam's), after the starts are scored: its run (with ``pose_starts_overlap``, one from the θ starts
+        and one from ``_RETRY_POSES_KEPT`` turned poses per θ start, the overlap check between them), the
+        :func:`_final_choice` of each run's last and best rows (every row, as a run stopped early still
+        has them all) and the covariance. Not counted: ``parts`` mode's forward differences in θ (one more
+        render per joint at each linearisation), which depend on the model."""
+        if adaptive:
+            first, second = theta_starts, theta_starts * _RETRY_POSES_KEPT
+            runs = self._gauss_newton_run_rays(first, scale) + self._gauss_newton_run_rays(second, scale)
+            choices = (2 * first + 1 + 2 * (1 + second)) * self.eval_rays  # the first's, the check, both estimates'
+        else:
+            starts = theta_starts * (1 + _POSES_KEPT) if self.pose_starts > 1 else theta_starts
+            runs = self._gauss_newton_run_rays(starts, scale)
+            choices = 2 * starts * self.eval_rays
+        # cluster_sample draws at most uncertainty_rays squares of uncertainty_patch² pixels each
+        covariance = self.uncertainty_rays * self.uncertainty_patch**2 if self.uncertainty else 0
+        return runs + choices + covariance
+
+    def _gauss_newton_run_rays(self, starts: int, scale: int) -> int:
+        """The rays of one ``GaussNewtonRun`` from ``starts`` rows (narf_core/gauss_newton.py), after the
+        Adam warm start (``adam_iterations``, its pruning and its final choice) where there is one. Each
+        iteration renders the linearisation and then every trial step: while several starts run, half the
+        rays each and ``_STEP_FACTORS``; one start alone at the fine level of a pyramid (the polish), all
+        the rays and ``_POLISH_STEP_FACTORS``; several starts are pruned on up to ``_EVAL_RAYS`` rays
+        (:func:`_gauss_newton_prunings`)."""
+        from narf_core.gauss_newton import _GROUP, _POLISH_STEP_FACTORS, _STEP_FACTORS
+
+        rays = self.rays_per_iteration * scale
+        polish_steps = len(_POLISH_STEP_FACTORS) if self.coarse_to_fine > 1 else len(_STEP_FACTORS)
+        iteration = max(rays, _GROUP) * (1 + polish_steps)  # at a coarse level a pixel's _GROUP rays at least
+        prunings = 0
+        if starts > 1:
+            iteration = max(iteration, starts * max(rays // 2, _GROUP) * (1 + len(_STEP_FACTORS)))
+            prunings = _gauss_newton_prunings(self.iterations) * starts * _EVAL_RAYS
+        warm = 0
+        if self.adam_iterations:  # Adam's iterations as in max_rays, its pruning and its final choice
+            warm = starts * (self.adam_iterations * rays + 3 * self.eval_rays)
+        return warm + self.iterations * iteration + prunings
 
     @classmethod
     def preset(cls, name: str = "paper", **overrides) -> EstimateOptions:
@@ -397,6 +440,18 @@ class EstimateOptions:
             return cls.gauss_newton(**overrides)
         reason = f"must be one of {', '.join(PRESETS)}, got {name!r}"
         raise EstimateInputError(f"options.preset {reason}", "options.preset", reason)
+
+
+def _gauss_newton_prunings(iterations: int) -> int:
+    """The most times a ``GaussNewtonRun`` of ``iterations`` prunes its starts: once at ``_PRUNE_SHARE``
+    of them (at the first at the earliest), then at every iteration from ``_LAST_PRUNE_SHARE`` on while
+    several starts tie exactly (a joint no ray sees, or no start with a finite cost)."""
+    from narf_core.gauss_newton import _LAST_PRUNE_SHARE
+
+    if iterations < 1:
+        return 0
+    first = max(int(iterations * _PRUNE_SHARE), 1)
+    return 1 + max(0, iterations - max(first + 1, int(iterations * _LAST_PRUNE_SHARE)) + 1)
 
 
 @dataclass

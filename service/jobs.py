@@ -212,8 +212,9 @@ def check_work(options: EstimateOptions, max_rays: int, field: str, depth: bool)
     """422 naming ``field`` if the refinement would trace more than ``max_rays`` rays in all.
 
     The cost is the core's bound, :meth:`EstimateOptions.max_rays` (iterations x rays_per_iteration
-    x the largest box scale x theta_starts x refinements), known before any work; ``depth``: whether
-    the request carries a depth image (without one, the RGB-only refinements count).
+    x the largest box scale x theta_starts x refinements; with gauss-newton also its trial steps,
+    prunings and covariance), known before any work; ``depth``: whether the request carries a depth
+    image (without one, the RGB-only refinements count).
     """
     rays = options.max_rays(depth=depth)
     if rays > max_rays:

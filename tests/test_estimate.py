@@ -652,15 +652,62 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     robust = EstimateOptions.preset("robust")  # a box larger than the reference draws up to 4x the rays
     most = max(robust.theta_starts, robust.partial_theta_starts)  # a partially trusted mask raises the θ starts
     assert robust.max_rays() == robust.iterations * robust.rays_per_iteration * 4 * most
-    warm = EstimateOptions.preset("gauss-newton", adam_iterations=20, align_start=False, pose_starts=1)
-    assert warm.max_rays() == (warm.iterations + 20) * warm.rays_per_iteration * warm.theta_starts
+    # Gauss-Newton, 30 iterations of 1024 rays: one start alone renders the linearisation and up to 6 trial
+    # steps (the polish); several render both and up to 3 trial steps, on half the rays each, and are pruned
+    # on up to 4096 rays at iteration 10 and at every one from 15 on while they tie (17 times). Then the
+    # final choice of the last and best rows on eval_rays, and the covariance: at most uncertainty_rays
+    # squares of 4 x 4 pixels.
+    gauss = EstimateOptions.preset("gauss-newton")
+    rays, iterations, covariance = gauss.rays_per_iteration, gauss.iterations, gauss.uncertainty_rays * 16
+
+    def run(starts: int) -> int:
+        return iterations * max(7 * rays, starts * rays // 2 * 4) + (17 * starts * 4096 if starts > 1 else 0)
+
+    single = replace(gauss, theta_starts=1, pose_starts=1, align_start=False)
+    assert single.max_rays() == iterations * 7 * rays + 2 * gauss.eval_rays + covariance
+    assert replace(single, coarse_to_fine=1).max_rays() == single.max_rays() - iterations * 3 * rays  # no polish
+    assert replace(single, uncertainty=False).max_rays() == single.max_rays() - covariance
+    warm = replace(gauss, adam_iterations=20, align_start=False, pose_starts=1)  # Adam's 20, pruning, final choice
+    assert warm.max_rays() == 4 * (20 * rays + 3 * gauss.eval_rays) + run(4) + 2 * 4 * gauss.eval_rays + covariance
     assert replace(warm, align_start=True).max_rays() == warm.max_rays() + 3 * 4 * 1024  # the alignment, then 2 x 4 scored
     # The preset's pose starts, refined only where the first estimate misses the mask: the given pose's 4 starts, then
     # 2 turned ones for each (all at once: 1 each), their scoring, the overlap check and the choice between both.
-    gauss = EstimateOptions.preset("gauss-newton")
     every = replace(gauss, pose_starts_overlap=0.0)
-    assert every.max_rays() == gauss.iterations * gauss.rays_per_iteration * 8 + 3 * (9 + 1) * 4 * 1024
-    assert gauss.max_rays() == every.max_rays() + gauss.iterations * gauss.rays_per_iteration * 4 + 3 * gauss.eval_rays
+    scoring = 3 * (9 + 1) * 4 * 1024
+    assert every.max_rays() == scoring + run(8) + 2 * 8 * gauss.eval_rays + covariance
+    choices = (2 * 4 + 1 + 2 * (1 + 8)) * gauss.eval_rays  # the first run's rows, the check, both estimates' rows
+    assert gauss.max_rays() == scoring + run(4) + run(8) + choices + covariance
+    assert gauss.max_rays(depth=False) == gauss.max_rays()  # one refinement whatever the view: rgb_refinements is Adam's
+
+
+@pytest.mark.parametrize("starts", ["one", "the preset's"])
+def test_max_rays_bounds_every_ray_a_gauss_newton_refinement_traces(model, monkeypatch, starts):
+    """Every render of a ``gauss-newton`` refinement run to its last iteration stays within ``max_rays``:
+    the scoring, the linearisations, the trial steps, the prunings, the final choice and the covariance.
+    From a start 45 deg out of the image plane the preset refines twice (``pose_starts_overlap``); one
+    start renders at least one trial step per iteration besides its linearisation."""
+    from narf_core import estimate
+
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    if starts == "one":
+        overrides = dict(theta_starts=1, pose_starts=1, align_start=False, iterations=12, rays_per_iteration=128)
+    else:
+        overrides = dict(iterations=6, rays_per_iteration=256)
+    options = EstimateOptions.gauss_newton(early_stop=False, **overrides)
+    turns, turned_rows = [], estimate._turned_rows
+    monkeypatch.setattr(estimate, "_turned_rows", lambda *a: turns.append(len(a[4])) or turned_rows(*a))
+    calls = spy_on_renders(model, monkeypatch)
+    result = refine(model, image, mask, CAMERA, turned(T, (-1.0, 0.0, 0.0), 45.0), depth=depth, options=options)
+    traced = sum(n for n, _, _ in calls)
+    assert result.uncertainty is not None and result.mode == "narf"
+    assert traced <= options.max_rays()
+    if starts == "one":
+        trial_steps = [n for n, _, grad in calls if not grad and n == options.rays_per_iteration]
+        assert result.iterations == options.iterations <= len(trial_steps)
+        assert traced > options.iterations * options.rays_per_iteration  # what one render per iteration would be
+    else:
+        assert turns == [options.theta_starts] and result.iterations == 2 * options.iterations  # both refinements
 
 
 def test_bench_estimate_takes_pose_starts_and_seed_from_the_command_line(model, tmp_path):

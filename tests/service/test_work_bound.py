@@ -21,11 +21,12 @@ from narf_service.settings import Settings
 from test_adversarial import H, W, SlowEngine, estimate_parts, post_estimate, settings_for
 
 
-def test_the_default_limit_admits_robust_with_and_without_a_depth_image() -> None:
+def test_the_default_limit_admits_robust_and_gauss_newton_with_and_without_a_depth_image() -> None:
     limit = Settings.model_fields["max_work_rays"].default
     robust = EstimateOptions.robust()
-    for depth in (True, False):
-        jobs.check_work(robust, limit, "request.options", depth=depth)  # no 422
+    for options in (robust, EstimateOptions.gauss_newton()):
+        for depth in (True, False):
+            jobs.check_work(options, limit, "request.options", depth=depth)  # no 422
     assert robust.max_rays(depth=False) > robust.max_rays(depth=True) * 1.4  # three runs of 4 starts vs one of 8
 
 
