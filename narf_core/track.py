@@ -116,24 +116,15 @@ class TrackOptions:
     # re-initialisation). Off: the robust preset's 1 cm drifted the track (docs/benchmarks.md).
     occlusion_margin: float = 0.0
     uncertainty_rays: int = 256  # rays for Σ per frame; 0 = no Σ
-    # A warm-started frame's σ over the single-image refiner's: a few iterations from a prediction
-    # leave a part of the error that a converged estimate's Σ does not model, more so without depth.
-    # With depth the refiner's model error is in pixel footprints alone wherever the frame's colour
-    # residual is at most usual_residual (EstimateOptions.uncertainty_usual_residual), and grows with
-    # it only above: the residual measures how well the field renders each tool's surface more than
-    # how far the track is off (one tool's was 3x another's at the same error, a third's the clamp's
-    # at 3x the error), and scaled by it from the clamp's level Σ was too large on some tools and too
-    # small on others; far above every tool's usual level (0.008-0.036, median per track) it marks a
-    # track turning away. Fitted on the seed-1 160x120 sequences of the clamp, lineman-a, lineman-b
-    # and longnose: the smallest factor (0.1 steps) whose 95 % regions hold at least 94 % of their
-    # pooled errors; checked on the benchmarks' seed-0 sequences (docs/benchmarks.md). Without depth
-    # the residual follows the error (a drift in distance shows in the colour) and the refiner's Σ is
-    # kept, times sigma_scale_rgb (fitted on the clamp's seed-1 sequence). 0 (the default): the
-    # model's own factor where its bundle has one (metadata["uncertainty"]["track"], fitted on held-out
-    # sequences of that model by benchmarks/calibration.py: tools track 3-6x apart in pixels), else
-    # SIGMA_SCALE's pooled one; see sigma_scale().
+    # A warm-started frame's σ over the single-image refiner's, with depth (sigma_scale_rgb: without): a
+    # few iterations from a prediction leave a part of the error that a converged estimate's Σ does not
+    # model. 0 (the default): the model's own factor where its bundle has one (metadata["uncertainty"]
+    # ["track"], from benchmarks/calibration.py), else SIGMA_SCALE's pooled one; see sigma_scale().
     sigma_scale: float = 0.0
     sigma_scale_rgb: float = 0.0  # without depth
+    # With depth, the colour residual up to which the refiner's model error is in pixel footprints alone
+    # (EstimateOptions.uncertainty_usual_residual); above it σ grows with the residual, which there marks a
+    # track turning away. Without depth the refiner's Σ is kept (the residual follows the error there).
     usual_residual: float = 0.03
     # With depth, a warm-started frame whose Σ passed the limits below (its colour residual far above
     # usual_residual) gets a second round of iterations from where the first ended, before its status.
