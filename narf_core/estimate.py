@@ -29,7 +29,7 @@ jaw from mid-range: its 18 cm travel is 7 jaw widths, and where the rendered and
 not overlap the photometric loss is flat in θ. The robust preset does, and the depth term fixes the
 distance that a 160x120 view hardly constrains. ``gauss-newton`` (``solver = "gauss-newton"``,
 narf_core/gauss_newton.py) uses the robust preset's terms with Levenberg-Marquardt steps and Huber
-weights for at most 30 iterations, with a heavier depth weight (:meth:`EstimateOptions.gauss_newton`):
+weights for at most ``GN_ITERATIONS`` iterations, with a heavier depth weight (:meth:`EstimateOptions.gauss_newton`):
 about half the robust preset's CPU time for a similar error from the paper's 10 deg / 2 cm, but
 its basin is narrower (a wrong jaw start or a 3x perturbation more often ends in a wrong minimum;
 docs/benchmarks.md), so it is not the default.
@@ -158,7 +158,7 @@ _POSE_TURNS = ((0, 0, 0), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0),
                (1, 1, 0), (-1, -1, 0), (1, -1, 0), (-1, 1, 0), (0, 0, 1), (0, 0, -1))
 _ADAM_BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
-GN_ITERATIONS = 30  # the gauss-newton preset's Levenberg-Marquardt iterations (at most)
+GN_ITERATIONS = 25  # the gauss-newton preset's Levenberg-Marquardt iterations (at most; docs/benchmarks.md)
 GN_DEPTH_WEIGHT = 50.0  # the gauss-newton preset's depth_weight (see EstimateOptions.gauss_newton)
 GN_UNCERTAINTY_RAYS = 1024  # the gauss-newton preset's uncertainty_rays
 GN_POSE_STARTS = 9  # the gauss-newton preset's pose_starts, refined only below ...

@@ -652,16 +652,17 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     robust = EstimateOptions.preset("robust")  # a box larger than the reference draws up to 4x the rays
     most = max(robust.theta_starts, robust.partial_theta_starts)  # a partially trusted mask raises the θ starts
     assert robust.max_rays() == robust.iterations * robust.rays_per_iteration * 4 * most
-    # Gauss-Newton, 30 iterations of 1024 rays: one start alone renders the linearisation and up to 6 trial
+    # Gauss-Newton, 25 iterations of 1024 rays: one start alone renders the linearisation and up to 6 trial
     # steps (the polish); several render both and up to 3 trial steps, on half the rays each, and are pruned
-    # on up to 4096 rays at iteration 10 and at every one from 15 on while they tie (17 times). Then the
+    # on up to 4096 rays at iteration 8 and at every one from 12 on while they tie (15 times). Then the
     # final choice of the last and best rows on eval_rays, and the covariance: at most uncertainty_rays
     # squares of 4 x 4 pixels.
     gauss = EstimateOptions.preset("gauss-newton")
+    assert gauss.iterations == 25
     rays, iterations, covariance = gauss.rays_per_iteration, gauss.iterations, gauss.uncertainty_rays * 16
 
     def run(starts: int) -> int:
-        return iterations * max(7 * rays, starts * rays // 2 * 4) + (17 * starts * 4096 if starts > 1 else 0)
+        return iterations * max(7 * rays, starts * rays // 2 * 4) + (15 * starts * 4096 if starts > 1 else 0)
 
     single = replace(gauss, theta_starts=1, pose_starts=1, align_start=False)
     assert single.max_rays() == iterations * 7 * rays + 2 * gauss.eval_rays + covariance
