@@ -193,23 +193,47 @@ class ArticulatedField(RadianceField):
 
     def part_poses(self, theta: Tensor) -> Tensor:
         """``T_obj_part [..., p, 4, 4]`` for ``θ [..., k]`` (float32): the chain's forward kinematics."""
+        return self._chain(theta, derivatives=False)[0]
+
+    def _chain(self, theta: Tensor, derivatives: bool) -> tuple[Tensor, Tensor | None]:
+        """``T_obj_part [..., p, 4, 4]`` for ``θ [..., k]`` and, with ``derivatives``, ``∂T_obj_part / ∂θ_j
+        [..., k, p, 4, 4]``: the chain's forward kinematics, joint by joint (a joint's local pose depends on
+        its own coordinate alone, through its mimic multiplier)."""
         theta = theta.to(self.origins.dtype)
-        batch = theta.shape[:-1]
-        poses = [torch.eye(4, dtype=theta.dtype, device=theta.device).expand(*batch, 4, 4)]
+        batch, k = theta.shape[:-1], theta.shape[-1]
+        poses = [torch.eye(4, dtype=theta.dtype, device=theta.device).expand(*batch, 4, 4)]  # T_obj_link
+        grads = [theta.new_zeros(*batch, k, 4, 4)] if derivatives else []  # ∂T_obj_link / ∂θ_j
         chain = self.chain
         for i, kind in enumerate(chain["types"]):
-            origin = self.origins[i]
+            origin, parent, dlocal = self.origins[i], chain["parents"][i], None
             if kind == "fixed":
                 local = origin.expand(*batch, 4, 4)
             else:
                 m, o = chain["mimic"][i]
                 q = theta[..., chain["theta_index"][i]] * m + o
                 if kind == "prismatic":
-                    local = make_pose(origin[:3, :3].expand(*batch, 3, 3), origin[:3, 3] + q[..., None] * (origin[:3, :3] @ self.axes[i]))
+                    direction = origin[:3, :3] @ self.axes[i]
+                    local = make_pose(origin[:3, :3].expand(*batch, 3, 3), origin[:3, 3] + q[..., None] * direction)
+                    if derivatives:
+                        dlocal = theta.new_zeros(*batch, 4, 4)
+                        dlocal[..., :3, 3] = m * direction
                 else:
-                    local = make_pose(origin[:3, :3] @ _rotation_about(self.axes[i], q), origin[:3, 3].expand(*batch, 3))
-            poses.append(poses[chain["parents"][i]] @ local)
-        return torch.stack([poses[i] for i in chain["part_links"]], dim=-3)
+                    rotation = _rotation_about(self.axes[i], q)
+                    local = make_pose(origin[:3, :3] @ rotation, origin[:3, 3].expand(*batch, 3))
+                    if derivatives:
+                        dlocal = theta.new_zeros(*batch, 4, 4)
+                        dlocal[..., :3, :3] = m * (origin[:3, :3] @ skew(self.axes[i]) @ rotation)
+            poses.append(poses[parent] @ local)
+            if derivatives:
+                grad = grads[parent] @ local[..., None, :, :]
+                if dlocal is not None:
+                    j = chain["theta_index"][i]
+                    grad = grad.clone()
+                    grad[..., j, :, :] += poses[parent] @ dlocal
+                grads.append(grad)
+        links = chain["part_links"]
+        T = torch.stack([poses[i] for i in links], dim=-3)
+        return T, (torch.stack([grads[i] for i in links], dim=-3) if derivatives else None)
 
     def part_grids(self) -> list[OccupancyGrid]:
         """Each part's occupancy grid (its frame), rebuilt when the grid buffers change."""
@@ -315,43 +339,12 @@ class ArticulatedField(RadianceField):
         return out + (term * delta[:, None, None, :]).sum(-1)
 
     def _pose_derivatives(self, values: Tensor) -> Tensor:
-        """``∂T_part_obj / ∂θ_j [U, k, p, 4, 4]`` at each configuration of ``values [U, k]``: the chain's
-        forward kinematics differentiated joint by joint (``∂T⁻¹ = -T⁻¹ ∂T T⁻¹``), in closed form; torch's
-        forward mode would import its compiler stack (about half a second) into every estimating process."""
-        theta = values.to(self.origins.dtype)
-        U, k = theta.shape
-        eye = torch.eye(4, dtype=theta.dtype, device=theta.device)
-        poses, grads = [eye.expand(U, 4, 4)], [theta.new_zeros(U, k, 4, 4)]  # T_obj_link and ∂/∂θ_j per link
-        chain = self.chain
-        for i, kind in enumerate(chain["types"]):
-            origin, parent = self.origins[i], chain["parents"][i]
-            local, dlocal = origin.expand(U, 4, 4), None
-            if kind != "fixed":
-                m, o = chain["mimic"][i]
-                q = theta[:, chain["theta_index"][i]] * m + o
-                axis = self.axes[i]
-                if kind == "prismatic":
-                    direction = origin[:3, :3] @ axis
-                    local = make_pose(origin[:3, :3].expand(U, 3, 3), origin[:3, 3] + q[:, None] * direction)
-                    dlocal = torch.zeros(4, 4, dtype=theta.dtype, device=theta.device)
-                    dlocal[:3, 3] = direction * m
-                    dlocal = dlocal.expand(U, 4, 4)
-                else:
-                    R = origin[:3, :3] @ _rotation_about(axis, q)
-                    local = make_pose(R, origin[:3, 3].expand(U, 3))
-                    dlocal = theta.new_zeros(U, 4, 4)
-                    dlocal[:, :3, :3] = m * (origin[:3, :3] @ skew(axis) @ _rotation_about(axis, q))
-            poses.append(poses[parent] @ local)
-            grad = grads[parent] @ local[:, None]
-            if dlocal is not None:
-                j = chain["theta_index"][i]
-                grad = grad.clone()
-                grad[:, j] = grad[:, j] + poses[parent] @ dlocal
-            grads.append(grad)
-        links = chain["part_links"]
-        T_part_obj = invert_pose(torch.stack([poses[i] for i in links], dim=1))  # [U, p, 4, 4]
-        dT_obj_part = torch.stack([grads[i] for i in links], dim=2)  # [U, k, p, 4, 4]
-        return -T_part_obj[:, None] @ dT_obj_part @ T_part_obj[:, None]
+        """``∂T_part_obj / ∂θ_j [U, k, p, 4, 4]`` at each configuration of ``values [U, k]``, from the chain's
+        (:meth:`_chain`) by ``∂T⁻¹ = -T⁻¹ ∂T T⁻¹``; in closed form, as torch's forward mode would import its
+        compiler stack (about half a second) into every estimating process."""
+        T, dT = self._chain(values, derivatives=True)
+        T_part_obj = invert_pose(T)[:, None]  # [U, 1, p, 4, 4]
+        return -T_part_obj @ dT @ T_part_obj
 
     def occupancy(self, theta: Tensor) -> PosedGrids:
         """The object-frame occupancy at ``θ [k]`` (or ``[n,k]``, one per ray): the part grids posed by FK."""
