@@ -12,7 +12,7 @@ from narf_core.fields import articulated
 from narf_core.fields.articulated import chain_spec
 from narf_core.fields.base import SIGMA_MAX_LOG, trunc_exp
 from narf_core.fields.encodings import frequency_encoding, frequency_encoding_size, sample_plane, spherical_harmonics
-from narf_core.fields.composed import compose_parts
+from narf_core.fields.composed import ComposedField, compose_parts
 from narf_core.fields.kplanes import total_variation
 from narf_core.geometry import Rays
 from narf_core.kinematics import KinematicTree
@@ -347,6 +347,27 @@ def test_rows_of_one_configuration_get_each_their_own_theta_derivative(assets, u
     torch.testing.assert_close(out, out_rows, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(grad, grad_rows, rtol=1e-4, atol=1e-5)
 
+
+
+def test_the_composition_gives_rows_of_one_configuration_each_their_own_theta_derivative(tiny_model):
+    """Equal rows of θ that are leaves of their own (a Jacobian's per-ray θ) each get the derivative of
+    their own sample, as evaluating every sample alone gives, not the total on one row."""
+    model = tiny_model
+    field = ComposedField(model.part_fields, model.part_grids, model.kinematics.part_poses)
+    g = torch.Generator().manual_seed(0)
+    theta = (model.lower + model.upper) / 2
+    x = model.aabb[0] + (model.aabb[1] - model.aabb[0]) * torch.rand(4000, 3, generator=g)
+    x = x[field(x, torch.zeros_like(x), theta)[0] > 0][:24]
+    assert x.shape[0] == 24
+    d = torch.zeros_like(x)
+    rows = theta.expand(len(x), -1).clone().requires_grad_(True)
+    grad = torch.autograd.grad(field(x, d, rows)[0].sum(), rows)[0]
+    alone = []
+    for i in range(len(x)):
+        one = theta.clone().requires_grad_(True)
+        alone.append(torch.autograd.grad(field(x[i:i + 1], d[i:i + 1], one)[0].sum(), one)[0])
+    torch.testing.assert_close(grad, torch.stack(alone), rtol=1e-4, atol=1e-6)
+    assert int((grad.abs().sum(-1) > 0).sum()) > 1
 
 def test_articulated_field_config_round_trip_and_errors(assets):
     kin = KinematicTree.from_urdf(assets / "synth_articulated.urdf", load_meshes=False)
