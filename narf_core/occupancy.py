@@ -85,6 +85,20 @@ class PointwiseRays:
         return PointwiseRays(self.occupied, self.origins[keep], self.directions[keep], theta)
 
 
+def needs_theta_grad(theta: Tensor) -> bool:
+    """Whether a field must carry the gradient of ``theta`` (grad mode on, ``theta`` requiring it)."""
+    return torch.is_grad_enabled() and theta.requires_grad
+
+
+def one_configuration(theta: Tensor) -> bool:
+    """Whether a field may take the rows of ``theta [n, k]`` as one configuration (its kinematics once): an
+    expanded θ (one tensor, whose rows' gradients sum into it), or rows equal in value none of which needs a
+    gradient of its own (a Gauss-Newton Jacobian's per-ray θ leaves each need theirs). True for no rows."""
+    if theta.shape[0] == 0 or theta.stride(0) == 0:
+        return True
+    return not needs_theta_grad(theta) and bool((theta == theta[:1]).all())
+
+
 def density_fn(field) -> Callable[[Tensor, Tensor | None], Tensor]:
     """``(x [n,3], theta) -> sigma [n]`` of ``field``: its ``density_only`` if it has one, else its
     density at ``d = 0``."""

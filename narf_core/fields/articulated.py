@@ -34,7 +34,7 @@ from narf_core.fields.base import SIGMA_MAX_LOG, RadianceField, trunc_exp
 from narf_core.fields.encodings import _EDGE_SHRINK  # the same border shrink as K-planes' lookups
 from narf_core.fields.kplanes import KPlanesField
 from narf_core.geometry import box_corners, invert_pose, make_pose, skew, transform_points
-from narf_core.occupancy import OccupancyGrid
+from narf_core.occupancy import OccupancyGrid, needs_theta_grad, one_configuration
 from narf_core.sampling import ray_aabb
 
 JOINT_TYPES = ("fixed", "revolute", "continuous", "prismatic")
@@ -279,14 +279,13 @@ class ArticulatedField(RadianceField):
     def part_from_object(self, theta: Tensor | None, n: int) -> Tensor:
         """``T_part_obj``: ``[p,4,4]`` for a shared ``θ`` (``[k]``, or rows that are one), else ``[n,p,4,4]``.
 
-        Rows equal in value are one ``θ`` only where no row needs a gradient of its own (an expanded
-        ``θ``'s rows are one tensor); without gradients the poses of the last ``_MAX_RUNS`` shared ``θ``
-        are reused (a render asks once per round, for each of its configurations)."""
+        Rows are one ``θ`` where :func:`~narf_core.occupancy.one_configuration` says so; without gradients
+        the poses of the last ``_MAX_RUNS`` shared ``θ`` are reused (a render asks once per round, for each
+        of its configurations)."""
         theta = self._check_theta(theta, n)
-        if theta.dim() == 2 and (n == 0 or theta.stride(0) == 0 or (
-                not _needs_grad(theta) and bool((theta == theta[:1]).all()))):
+        if theta.dim() == 2 and one_configuration(theta):
             theta = theta[0] if n else theta.new_zeros(self.n_theta)
-        cacheable = theta.dim() == 1 and not _needs_grad(theta)
+        cacheable = theta.dim() == 1 and not needs_theta_grad(theta)
         if cacheable:
             key = (tuple(theta.tolist()), str(theta.device))
             if key in self._pose_cache:
@@ -329,7 +328,7 @@ class ArticulatedField(RadianceField):
         spans = list(zip(starts[:-1], starts[1:]))
         maps = [self.part_from_object(v, 1).to(x.dtype).transpose(-1, -2) @ C for v in values]  # U x [p, 4, K]
         out = torch.cat([_affine(x[a:b], A, translate) for (a, b), A in zip(spans, maps)])
-        if not _needs_grad(theta):
+        if not needs_theta_grad(theta):
             return out
         dmaps = self._pose_derivatives(values).to(x.dtype).transpose(-1, -2) @ C  # [U, k, p, 4, K]
         x0 = x.detach()
@@ -482,10 +481,6 @@ class _PartLookup:
             occupied = self.flat[flat.add_(offset).int()]  # exact in float32: the table has fewer than 2^24 cells
             hit = occupied if hit is None else hit.logical_or_(occupied)
         return hit
-
-
-def _needs_grad(theta: Tensor) -> bool:
-    return torch.is_grad_enabled() and theta.requires_grad
 
 
 def _runs(theta: Tensor) -> list[int] | None:

@@ -24,7 +24,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from narf_core.geometry import box_corners, invert_pose, rotate_vectors, transform_points
-from narf_core.occupancy import Field, Occupancy, OccupancyGrid, PointwiseRays
+from narf_core.occupancy import Field, Occupancy, OccupancyGrid, PointwiseRays, one_configuration
 
 
 def compose(
@@ -80,8 +80,8 @@ class ComposedField(nn.Module):
 
     ``part_poses(θ [..., k]) -> T_obj_part [..., n_parts, 4, 4]`` is the object's forward
     kinematics; ``part_grids`` (optional) skip the samples that fall in a part's empty space. A
-    ``θ`` shared by all samples (``[k]``, an expanded one, or equal rows none of which needs a gradient of
-    its own) runs the kinematics once; rows that are leaves of their own get each their own ``∂/∂θ``.
+    ``θ`` shared by all samples (``[k]``, or rows that are one: :func:`~narf_core.occupancy.one_configuration`)
+    runs the kinematics once; rows that are leaves of their own get each their own ``∂/∂θ``.
     """
 
     def __init__(
@@ -98,8 +98,7 @@ class ComposedField(nn.Module):
     def forward(self, x: Tensor, d: Tensor, theta: Tensor | None) -> tuple[Tensor, Tensor]:
         if x.shape[0] == 0:
             return x.new_zeros(0), x.new_zeros(0, 3)
-        shared = theta is None or theta.dim() == 1 or (theta.shape[0] > 0 and (theta.stride(0) == 0 or (
-            not (torch.is_grad_enabled() and theta.requires_grad) and bool((theta == theta[:1]).all()))))
+        shared = theta is None or theta.dim() == 1 or one_configuration(theta)
         theta_one = theta if theta is None or theta.dim() == 1 else theta[0]
         T_part_obj = invert_pose(self.part_poses(theta_one if shared else theta).to(x.dtype))
         return compose(self.parts, self.grids, T_part_obj, x, d)
