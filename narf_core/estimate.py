@@ -365,51 +365,52 @@ class EstimateOptions:
         })
 
     def max_rays(self, depth: bool = True) -> int:
-        """An upper bound on the rays a refinement traces, known before any work: every iteration
-        (Adam's first with ``adam_iterations``) at the largest box scale, for every start and refinement,
-        the scoring of the pose starts, the choice among refinements and, with ``pose_starts_overlap``, the
-        overlap check and the choice between its two estimates (the given pose's starts, then
-        ``_RETRY_POSES_KEPT`` turned ones per θ start). ``depth``: whether the view comes
-        with a depth image (without one: ``rgb_refinements``, and a mask trusted partially only where
-        ``mask_trust`` is "partial", as nothing else contradicts it). With ``solver = "gauss-newton"``
-        also what its iterations render besides the linearisation: see :meth:`_gauss_newton_rays`."""
+        """An upper bound on the rays a refinement traces, known before any work: the scoring of the
+        pose starts (and ``align_start``'s), every refinement's iterations at the largest box scale for
+        every start (:meth:`_adam_rays`, :meth:`_gauss_newton_run_rays`), the final choice of the last and
+        best rows and, with ``pose_starts_overlap``, the overlap check and the choice between its two
+        estimates (the given pose's starts, then ``_RETRY_POSES_KEPT`` turned ones per θ start), and the
+        covariance. ``depth``: whether the view comes with a depth image (without one:
+        ``rgb_refinements``, and a mask trusted partially only where ``mask_trust`` is "partial", as
+        nothing else contradicts it). Not counted: ``parts`` mode's forward differences in θ for
+        ``gauss-newton`` (one more render per joint at each linearisation), which depend on the model."""
         scale = _MAX_BOX_SCALE if self.reference_box_px else 1
         partial = depth or self.mask_trust == "partial"
         theta_starts = max(self.theta_starts, self.partial_theta_starts) if partial else self.theta_starts
         adaptive = self.pose_starts > 1 and self.pose_starts_overlap > 0  # _adaptive_refinement
-        kept = _RETRY_POSES_KEPT if adaptive else _POSES_KEPT
         scoring = 3 * self.pose_starts * theta_starts * _SCORE_RAYS if self.pose_starts > 1 else 0  # _start_rows
         scoring += 3 * theta_starts * _SCORE_RAYS if self.align_start else 0
-        if self.solver == "gauss-newton":
-            return scoring + self._gauss_newton_rays(theta_starts, scale, adaptive)
-        starts = theta_starts * (1 + kept) if self.pose_starts > 1 else theta_starts
-        runs = max(1, self.refinements, 0 if depth else self.rgb_refinements)
-        choice = runs * _CHOICE_RAYS if runs > 1 else 0  # _best_refinement
-        choice += 3 * self.eval_rays if adaptive else 0  # the overlap check, the choice between both estimates
-        return runs * (self.iterations + self.adam_iterations) * self.rays_per_iteration * scale * starts + scoring + choice
+        if self.solver == "gauss-newton":  # one refinement: refinements and rgb_refinements are Adam's
+            def refinement(starts: int) -> int:
+                return self._gauss_newton_run_rays(starts, scale)
+        else:
+            runs = max(1, self.refinements, 0 if depth else self.rgb_refinements)
 
-    def _gauss_newton_rays(self, theta_starts: int, scale: int, adaptive: bool) -> int:
-        """The Gauss-Newton refinement's share of :meth:`max_rays` (one refinement: ``refinements`` is
-        Adam's), after the starts are scored: its run (with ``pose_starts_overlap``, one from the θ starts
-        and one from ``_RETRY_POSES_KEPT`` turned poses per θ start, the overlap check between them), the
-        :func:`_final_choice` of each run's last and best rows (every row, as a run stopped early still
-        has them all) and the covariance. Not counted: ``parts`` mode's forward differences in θ (one more
-        render per joint at each linearisation), which depend on the model."""
+            def refinement(starts: int) -> int:
+                return self._adam_rays(self.iterations, starts, scale, runs)
         if adaptive:
             first, second = theta_starts, theta_starts * _RETRY_POSES_KEPT
-            runs = self._gauss_newton_run_rays(first, scale) + self._gauss_newton_run_rays(second, scale)
+            work = refinement(first) + refinement(second)
             choices = (2 * first + 1 + 2 * (1 + second)) * self.eval_rays  # the first's, the check, both estimates'
         else:
             starts = theta_starts * (1 + _POSES_KEPT) if self.pose_starts > 1 else theta_starts
-            runs = self._gauss_newton_run_rays(starts, scale)
+            work = refinement(starts)
             choices = 2 * starts * self.eval_rays
         # cluster_sample draws at most uncertainty_rays squares of uncertainty_patch² pixels each
         covariance = self.uncertainty_rays * self.uncertainty_patch**2 if self.uncertainty else 0
-        return runs + choices + covariance
+        return scoring + work + choices + covariance
+
+    def _adam_rays(self, iterations: int, starts: int, scale: int, runs: int = 1) -> int:
+        """The rays of ``runs`` Adam refinements (``_Run``) of ``iterations`` from ``starts`` rows: every
+        iteration's rays for every start (half each while several run: bounded by all), the pruning to
+        the best start on up to ``eval_rays`` rays per start and each run's final choice of its last and
+        best rows; where several run (:func:`_best_refinement`), the choice among them."""
+        per_run = iterations * self.rays_per_iteration * scale * starts + 3 * starts * self.eval_rays
+        return runs * per_run + (runs * _CHOICE_RAYS if runs > 1 else 0)
 
     def _gauss_newton_run_rays(self, starts: int, scale: int) -> int:
         """The rays of one ``GaussNewtonRun`` from ``starts`` rows (narf_core/gauss_newton.py), after the
-        Adam warm start (``adam_iterations``, its pruning and its final choice) where there is one. Each
+        Adam warm start (``adam_iterations``: :meth:`_adam_rays`) where there is one. Each
         iteration renders the linearisation and then every trial step: while several starts run, half the
         rays each and ``_STEP_FACTORS``; one start alone at the fine level of a pyramid (the polish), all
         the rays and ``_POLISH_STEP_FACTORS``; several starts are pruned on up to ``_EVAL_RAYS`` rays
@@ -423,9 +424,7 @@ class EstimateOptions:
         if starts > 1:
             iteration = max(iteration, starts * max(rays // 2, _GROUP) * (1 + len(_STEP_FACTORS)))
             prunings = _gauss_newton_prunings(self.iterations) * starts * _EVAL_RAYS
-        warm = 0
-        if self.adam_iterations:  # Adam's iterations as in max_rays, its pruning and its final choice
-            warm = starts * (self.adam_iterations * rays + 3 * self.eval_rays)
+        warm = self._adam_rays(self.adam_iterations, starts, scale) if self.adam_iterations else 0
         return warm + self.iterations * iteration + prunings
 
     @classmethod

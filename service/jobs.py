@@ -212,16 +212,16 @@ def check_work(options: EstimateOptions, max_rays: int, field: str, depth: bool)
     """422 naming ``field`` if the refinement would trace more than ``max_rays`` rays in all.
 
     The cost is the core's bound, :meth:`EstimateOptions.max_rays` (iterations x rays_per_iteration
-    x the largest box scale x theta_starts x refinements; with gauss-newton also its trial steps,
-    prunings and covariance), known before any work; ``depth``: whether the request carries a depth
-    image (without one, the RGB-only refinements count).
+    x the largest box scale x starts x refinements, the choices between starts and estimates and the
+    covariance; with gauss-newton also its trial steps and prunings), known before any work; ``depth``:
+    whether the request carries a depth image (without one, the RGB-only refinements count).
     """
     rays = options.max_rays(depth=depth)
     if rays > max_rays:
         raise invalid(
             field,
-            f"would trace up to {rays} rays (iterations x rays_per_iteration x box scale x theta_starts "
-            f"x refinements), over this server's work limit of {max_rays}",
+            f"would trace up to {rays} rays (iterations x rays_per_iteration x box scale x starts "
+            f"x refinements, with the choices and the covariance), over this server's work limit of {max_rays}",
         )
 
 

@@ -55,7 +55,8 @@ class Settings(BaseSettings):
     )
     max_work_rays: int = Field(
         8_000_000, gt=0, description="Largest estimate, in rays traced: iterations x rays_per_iteration x box scale x "
-        "theta_starts x refinements (without a depth image: the RGB-only ones) (422 above, before any work)."
+        "starts x refinements (without a depth image: the RGB-only ones), with the choices and the covariance "
+        "(EstimateOptions.max_rays; 422 above, before any work)."
     )
     header_timeout_s: float = Field(
         10.0, gt=0, description="A connection that has not sent a request's full headers within this long "

@@ -346,7 +346,8 @@ def test_pose_starts_widen_the_basin_at_the_cost_of_two_renders_without_gradient
     assert n_aligned + n_scored + sum(n for n, _, _ in loop) <= wide.max_rays()
     most = max(wide.theta_starts, wide.partial_theta_starts)  # a partially trusted mask raises the θ starts
     loop_bound = wide.iterations * wide.rays_per_iteration * 4 * most  # the robust preset's box scale: 4
-    assert wide.max_rays() == 2 * loop_bound + 3 * 5 * most * 1024
+    choices = 5 * 2 * most * wide.eval_rays  # the pruning and the final choice, on eval_rays per start
+    assert wide.max_rays() == 2 * loop_bound + 3 * 5 * most * 1024 + choices
 
     calls.clear()  # one pose start: no scoring, the loop's first render is the first call
     refine(model, image, mask, CAMERA, start, depth=depth, options=replace(options, iterations=2))
@@ -647,11 +648,18 @@ def test_benchmark_writes_table_curves_and_sweep(model, tmp_path):
 
 
 def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_start():
+    # Adam: every iteration's rays for every start, the pruning (eval_rays per start) and the final choice of
+    # the last and best rows (twice eval_rays per start), then the covariance (uncertainty_rays squares of 4 x 4).
     paper = EstimateOptions.preset("paper")
-    assert paper.max_rays() == paper.iterations * paper.rays_per_iteration * paper.theta_starts
+    starts, evaluated = paper.theta_starts, paper.eval_rays
+    covariance = paper.uncertainty_rays * 16
+    assert paper.max_rays() == paper.iterations * paper.rays_per_iteration * starts + 5 * starts * evaluated + covariance
+    assert replace(paper, uncertainty=False).max_rays() == paper.max_rays() - covariance
+    assert replace(paper, adam_iterations=20).max_rays() == paper.max_rays()  # the Gauss-Newton warm start's alone
     robust = EstimateOptions.preset("robust")  # a box larger than the reference draws up to 4x the rays
     most = max(robust.theta_starts, robust.partial_theta_starts)  # a partially trusted mask raises the θ starts
-    assert robust.max_rays() == robust.iterations * robust.rays_per_iteration * 4 * most
+    assert robust.max_rays() == (robust.iterations * robust.rays_per_iteration * 4 * most + 5 * most * evaluated
+                                 + robust.uncertainty_rays * 16)
     # Gauss-Newton, 25 iterations of 1024 rays: one start alone renders the linearisation and up to 6 trial
     # steps (the polish); several render both and up to 3 trial steps, on half the rays each, and are pruned
     # on up to 4096 rays at iteration 8 and at every one from 12 on while they tie (15 times). Then the
@@ -679,6 +687,22 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     choices = (2 * 4 + 1 + 2 * (1 + 8)) * gauss.eval_rays  # the first run's rows, the check, both estimates' rows
     assert gauss.max_rays() == scoring + run(4) + run(8) + choices + covariance
     assert gauss.max_rays(depth=False) == gauss.max_rays()  # one refinement whatever the view: rgb_refinements is Adam's
+
+
+@pytest.mark.parametrize("preset", ["paper", "robust"])
+def test_max_rays_bounds_every_ray_an_adam_refinement_traces(model, monkeypatch, preset):
+    """Every render of an Adam refinement stays within ``max_rays``: the iterations, the pruning, the final
+    choice of the last and best rows and the covariance. With few iterations of few rays the last two are
+    most of the work (the bound once counted the iterations alone)."""
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    options = EstimateOptions.preset(preset, iterations=6, rays_per_iteration=64, early_stop=False)
+    calls = spy_on_renders(model, monkeypatch)
+    result = refine(model, image, mask, CAMERA, turned(T, (0.0, 0.0, 1.0), 5.0), depth=depth, options=options)
+    traced = sum(n for n, _, _ in calls)
+    loop = options.iterations * options.rays_per_iteration * options.theta_starts * 4  # the box scale's 4 at most
+    assert result.uncertainty is not None and result.iterations == options.iterations
+    assert loop < traced <= options.max_rays()
 
 
 @pytest.mark.parametrize("starts", ["one", "the preset's"])

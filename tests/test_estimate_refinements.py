@@ -129,12 +129,21 @@ def test_max_rays_bounds_the_rays_traced_without_a_depth_image(model, scene, mon
     options = EstimateOptions.robust()
     one = replace(options, rgb_refinements=0)
     loop = options.iterations * options.rays_per_iteration * estimate._MAX_BOX_SCALE
-    assert options.max_rays() == one.max_rays() == loop * options.partial_theta_starts  # with depth: as before
-    assert one.max_rays(depth=False) == loop * options.theta_starts
-    assert options.max_rays(depth=False) == 3 * loop * options.theta_starts + 3 * estimate._CHOICE_RAYS
+
+    def run(starts: int) -> int:  # one refinement: its iterations, its pruning and its final choice
+        return loop * starts + 3 * starts * options.eval_rays
+
+    def after(starts: int) -> int:  # once per estimate: the final choice and the covariance
+        return 2 * starts * options.eval_rays + options.uncertainty_rays * options.uncertainty_patch**2
+
+    most = options.partial_theta_starts
+    assert options.max_rays() == one.max_rays() == run(most) + after(most)  # with depth: one refinement
+    assert one.max_rays(depth=False) == run(options.theta_starts) + after(options.theta_starts)
+    assert options.max_rays(depth=False) == (3 * run(options.theta_starts) + 3 * estimate._CHOICE_RAYS
+                                             + after(options.theta_starts))
     assert options.max_rays(depth=False) <= 8_000_000  # the service's default work limit admits robust RGB-only
     partial = replace(options, mask_trust="partial")
-    assert partial.max_rays(depth=False) == 3 * loop * options.partial_theta_starts + 3 * estimate._CHOICE_RAYS
+    assert partial.max_rays(depth=False) == 3 * run(most) + 3 * estimate._CHOICE_RAYS + after(most)
     T, image, mask, _, T0 = scene
     rays = []
     real = model.render_rays
@@ -151,7 +160,8 @@ def test_max_rays_bounds_the_rays_traced_without_a_depth_image(model, scene, mon
 def test_max_rays_counts_every_refinement_and_the_choice():
     options = EstimateOptions.robust()
     several = replace(options, refinements=3)
-    assert several.max_rays() == 3 * options.max_rays() + 3 * estimate._CHOICE_RAYS
+    once = 2 * options.partial_theta_starts * options.eval_rays + options.uncertainty_rays * options.uncertainty_patch**2
+    assert several.max_rays() == 3 * (options.max_rays() - once) + 3 * estimate._CHOICE_RAYS + once
     assert replace(options, refinements=1).max_rays() == options.max_rays()
     with pytest.raises(EstimateInputError, match="options.refinements"):
         EstimateOptions(refinements=9)

@@ -189,7 +189,7 @@ def settings_for(models_dir: Path, **overrides) -> Settings:
         max_json_bytes=32 * 1024,
         max_image_pixels=64 * 64,
         max_seconds=30.0,
-        max_work_rays=100_000,
+        max_work_rays=200_000,
         header_timeout_s=TIMEOUT_S,
         body_timeout_s=TIMEOUT_S,
         keep_alive_timeout_s=TIMEOUT_S,
@@ -468,7 +468,8 @@ def test_work_beyond_the_budget_is_refused_before_it_starts(slow_server) -> None
     url, engine, _ = slow_server
     reply = post_estimate(url, estimate_parts(request={"iterations": 50, "options": {"rays_per_iteration": 4096}}))
     assert reply.status == 422 and reply.error()["field"] == "request.options", reply
-    assert "would trace up to 204800 rays" in reply.error()["message"] and engine.started == []
+    # 50 x 4096 rays, then the final choice and pruning on 5 x 4096 and the covariance on 4096 squares of 4 x 4
+    assert "would trace up to 290816 rays" in reply.error()["message"] and engine.started == []
 
 
 def test_a_one_pixel_mask_is_422_naming_the_mask(server: str) -> None:
