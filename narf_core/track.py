@@ -107,7 +107,7 @@ class TrackOptions:
     depth_align: bool = True
     mode: str = "auto"  # the render mode (narf_core/modes.py)
     # "frame": where a ray can meet the object is found once per frame, from the model's surface
-    # points at the prediction, and no iteration marches (refine_frame; narf mode, band_m 0);
+    # points at the prediction, and no iteration marches (refine_frame; Adam, narf mode, band_m 0);
     # "iteration": the refiner marches its rays at every iteration (refine), as with band_m or parts mode.
     march: str = "frame"
     band_m: float = 0.0  # march only this far around the model's surface (EstimateOptions.band_m); 0 = off
@@ -714,10 +714,11 @@ def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool) -> float:
 
 def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None,
                  T: np.ndarray, joints: Mapping[str, float], opts: TrackOptions) -> EstimateResult:
-    """A warm-started frame's iterations from ``T`` and ``joints``: :func:`refine_frame` (narf mode,
-    ``march = "frame"``, no band) or :func:`refine`."""
+    """A warm-started frame's iterations from ``T`` and ``joints``: :func:`refine_frame` (Adam, narf mode,
+    ``march = "frame"``, no band) or :func:`refine` (any other solver, mode or march)."""
     step_options = opts.step_options(depth is not None)
-    if opts.march == "frame" and opts.band_m == 0 and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf":
+    if (opts.solver == "adam" and opts.march == "frame" and opts.band_m == 0
+            and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf"):
         return refine_frame(model, camera, image, mask, depth, T, joints, step_options,
                             0.0 if depth is not None else opts.distance_prior_rgb)
     return refine(model, image, mask, camera, T, joints_init=joints, depth=depth, options=step_options)

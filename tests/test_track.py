@@ -198,7 +198,10 @@ def test_band_and_frame_options_are_validated() -> None:
     assert step.band_m == 0.02 and step.eval_rays == 512
 
 
-def test_march_option_is_validated_and_band_or_parts_march_per_iteration(clamp, clamp_sequence: Path, monkeypatch) -> None:
+def test_march_option_is_validated_and_band_parts_or_gauss_newton_march_per_iteration(clamp, clamp_sequence: Path,
+                                                                                      monkeypatch) -> None:
+    """The frame's band without marching is Adam's (``refine_frame``); a band, parts mode or another solver
+    runs :func:`refine` with that solver."""
     from narf_core import track as track_module
     from narf_core.data.dataset import Dataset
     from narf_core.track import MARCHES, TrackFrame, TrackInputError, TrackOptions, TrackState, step
@@ -221,9 +224,11 @@ def test_march_option_is_validated_and_band_or_parts_march_per_iteration(clamp, 
     used = []
     real_frame, real_refine = track_module.refine_frame, track_module.refine
     monkeypatch.setattr(track_module, "refine_frame", lambda *a, **k: used.append("frame") or real_frame(*a, **k))
-    monkeypatch.setattr(track_module, "refine", lambda *a, **k: used.append("iteration") or real_refine(*a, **k))
-    for options, expected in ((TrackOptions(), "frame"), (TrackOptions(march="iteration"), "iteration"),
-                              (TrackOptions(band_m=0.01), "iteration"), (TrackOptions(mode="parts"), "iteration")):
+    monkeypatch.setattr(track_module, "refine",
+                        lambda *a, **k: used.append(f"iteration {k['options'].solver}") or real_refine(*a, **k))
+    for options, expected in ((TrackOptions(), "frame"), (TrackOptions(march="iteration"), "iteration adam"),
+                              (TrackOptions(band_m=0.01), "iteration adam"), (TrackOptions(mode="parts"), "iteration adam"),
+                              (TrackOptions(solver="gauss-newton"), "iteration gauss-newton")):
         state = TrackState.initial(clamp, frame.T_cam_obj, frame.joints, frame.time - 0.033, status="tracking")
         result, _ = step(clamp, dataset.camera, observed, state, TrackOptions(**{**options.__dict__, "iterations": 2,
                                                                                  "uncertainty_rays": 0}))
