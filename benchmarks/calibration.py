@@ -63,7 +63,7 @@ def statistics(
                       options.uncertainty_patch, torch.Generator().manual_seed(options.seed + 1))
     return {"sigma": stat.sigma.numpy(), "colour_variance": stat.colour_variance,
             "pixel_m": float(T[2, :3] @ centre + T[2, 3]) / float(camera.K[0, 0]), "radius": param.radius,
-            "class": E._error_class(options, uses_depth)}
+            "joint_speeds": E._joint_speeds(model, param.radius).numpy(), "class": E._error_class(options, uses_depth)}
 
 
 def scene_rows(model: NarfModel, dataset: Dataset, scenes: int) -> list[dict]:
@@ -111,11 +111,11 @@ def track_rows(model: NarfModel, dataset: Dataset) -> list[dict]:
 
 
 def model_sigma(row: dict, calibration: dict) -> np.ndarray:
-    """The model error's σ ``[6 + k]`` of one row under ``calibration`` (joints taken as prismatic)."""
+    """The model error's σ ``[6 + k]`` of one row under ``calibration``, as
+    :func:`~narf_core.estimate.model_error` gives it (each joint's over the speed at which it moves the surface)."""
     fit = (row["colour_variance"] / calibration["reference_variance"]) ** calibration["exponent"]
     position = calibration["pixels"][row["class"]] * row["pixel_m"] * fit
-    k = len(row["e"]) - 6
-    return np.array([position] * 3 + [position / row["radius"]] * 3 + [position] * k)
+    return np.concatenate([[position] * 3 + [position / row["radius"]] * 3, position / row["joint_speeds"]])
 
 
 def inside(row: dict, calibration: dict) -> bool:

@@ -970,6 +970,12 @@ def test_model_error_of_a_revolute_joint_is_the_position_over_how_fast_it_moves_
     assert np.allclose(sd[6:], position / speeds)
     assert sd[7] > sd[6] > position / 0.25
     assert 0.04 < speeds[1] < 0.07  # the elbow: one 10 cm link's points, 0-10 cm from its axis
+    from narf_benchmarks.calibration import model_sigma
+    from narf_core.estimate import _joint_speeds
+
+    row = {"colour_variance": MODEL_ERROR["reference_variance"], "pixel_m": 0.004, "radius": 0.25, "class": "shape",
+           "joint_speeds": _joint_speeds(model, 0.25).numpy()}
+    assert np.allclose(model_sigma(row, MODEL_ERROR), sd)  # the calibration fits the σ the refiner reports
     bare = SimpleNamespace(metadata={}, joints=joints, kinematics=chain.kinematics, sample_points={})
     assert np.allclose(model_error(bare, "shape", 0.004, 0.25, MODEL_ERROR["reference_variance"]).numpy()[6:],
                        position / 0.25)
