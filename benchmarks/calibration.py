@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -39,7 +40,7 @@ from narf_core.modes import choose_mode
 from narf_core.geometry import Pinhole
 
 COVERAGE = 0.95
-PIXELS_GRID = np.geomspace(0.05, 5.0, 200)
+PIXELS_GRID = np.geomspace(0.05, 50.0, 300)
 
 
 def statistics(
@@ -132,10 +133,13 @@ def fit(rows: list[dict]) -> dict:
     for kind in calibration["pixels"]:
         group = [r for r in rows if r["class"] == kind]
         for pixels in PIXELS_GRID if group else ():
-            trial = {**calibration, "pixels": {**calibration["pixels"], kind: float(pixels)}}
-            if np.mean([inside(r, trial) for r in group]) >= COVERAGE:
-                calibration = trial
+            calibration["pixels"][kind] = float(pixels)  # the grid's largest where none holds the share
+            if np.mean([inside(r, calibration) for r in group]) >= COVERAGE:
                 break
+        else:
+            if group:
+                print(f"calibration: no factor up to {PIXELS_GRID[-1]:g} pixels holds {COVERAGE:.0%} of the "
+                      f"{kind!r} errors; kept the largest", file=sys.stderr)
     return calibration
 
 

@@ -1,0 +1,32 @@
+"""The model-error fit of ``narf_benchmarks.calibration`` on rows whose needed factor is known."""
+
+import numpy as np
+
+from narf_benchmarks.calibration import COVERAGE, PIXELS_GRID, coverage, fit
+from narf_core.estimate import chi2_quantile
+
+
+def rows(errors_m, kind="shape"):
+    """One 6 + 1 parameter row per position error along x: no statistical σ, a pixel of 1 mm, the
+    same colour residual everywhere (so the fitted reference is it and the residual factor 1)."""
+    return [{"preset": "robust", "class": kind, "sigma": np.zeros((7, 7)), "colour_variance": 0.02,
+             "pixel_m": 0.001, "radius": 0.1, "joint_speeds": np.array([0.05]),
+             "e": np.array([e, 0, 0, 0, 0, 0, 0])} for e in errors_m]
+
+
+def test_fit_finds_the_smallest_factor_that_holds_the_share_also_past_five_pixels(capsys):
+    group = rows(np.arange(1, 21) * 0.001)  # 19 of 20 inside needs σ >= 19 mm / sqrt(χ²₇(0.95)): 5.07 pixels
+    needed = 0.019 / 0.001 / np.sqrt(chi2_quantile(COVERAGE, 7))
+    calibration = fit(group)
+    pixels = calibration["pixels"]["shape"]
+    assert calibration["reference_variance"] == 0.02
+    assert needed <= pixels and pixels == PIXELS_GRID[np.searchsorted(PIXELS_GRID, needed)]
+    assert coverage(group, calibration) == {"robust": 0.95}
+    assert capsys.readouterr().err == ""
+
+
+def test_fit_says_when_no_factor_holds_the_share(capsys):
+    calibration = fit(rows([1.0] * 10))  # a metre off: 267 pixels needed
+    assert calibration["pixels"]["shape"] == PIXELS_GRID[-1]
+    assert "no factor up to 50 pixels holds 95% of the 'shape' errors" in capsys.readouterr().err
+    assert coverage(rows([1.0] * 10), calibration) == {"robust": 0.0}
