@@ -1,9 +1,17 @@
-"""The model-error fit of ``narf_benchmarks.calibration`` on rows whose needed factor is known."""
+"""The model-error fit of ``narf_benchmarks.calibration``: on rows whose needed factor is known, and
+end to end on a trained model's own labelled dataset."""
+
+import json
+import shutil
 
 import numpy as np
+import pytest
 
-from narf_benchmarks.calibration import COVERAGE, PIXELS_GRID, coverage, fit
+from narf_benchmarks.calibration import COVERAGE, PIXELS_GRID, coverage, fit, main
+from narf_core.bundle import load_bundle
 from narf_core.estimate import chi2_quantile
+
+pytest_plugins = ("conftest_model",)
 
 
 def rows(errors_m, kind="shape"):
@@ -30,3 +38,21 @@ def test_fit_says_when_no_factor_holds_the_share(capsys):
     assert calibration["pixels"]["shape"] == PIXELS_GRID[-1]
     assert "no factor up to 50 pixels holds 95% of the 'shape' errors" in capsys.readouterr().err
     assert coverage(rows([1.0] * 10), calibration) == {"robust": 0.0}
+
+
+def test_calibration_fits_a_bundle_on_a_labelled_dataset_of_its_own(tiny_bundle, tiny_dataset, tmp_path, capsys):
+    """``--data``: every preset on the dataset's test and novel frames, the fitted constants printed and
+    stored in the bundle; a missing dataset is one error line."""
+    bundle = tmp_path / "own.narf"
+    shutil.copy(tiny_bundle, bundle)
+    assert main(["--model", str(bundle), "--data", str(tiny_dataset), "--scenes", "1", "--write-bundle", str(bundle)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["rows"] == 2 * 3  # one test and one novel frame, three presets
+    own = load_bundle(bundle).metadata["uncertainty"]
+    assert own == printed["calibration"] and set(own["pixels"]) == {"colour", "shape", "shape-gauss-newton"}
+    assert all(value == 1.0 for value in printed["coverage_95_on_fit_data"].values())  # one row per class: inside
+    with pytest.raises(SystemExit):
+        main(["--model", str(bundle), "--data", str(tmp_path / "missing")])
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert error.endswith(f"error: --data {tmp_path / 'missing'}: {tmp_path / 'missing'}: not a dataset folder "
+                          "(no such directory)")
