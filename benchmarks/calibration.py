@@ -118,11 +118,10 @@ def track_rows(model: NarfModel, dataset: Dataset) -> list[dict]:
 
 
 def model_sigma(row: dict, calibration: dict) -> np.ndarray:
-    """The model error's σ ``[6 + k]`` of one row under ``calibration``, as
-    :func:`~narf_core.estimate.model_error` gives it (each joint's over the speed at which it moves the surface)."""
-    fit = (row["colour_variance"] / calibration["reference_variance"]) ** calibration["exponent"]
-    position = calibration["pixels"][row["class"]] * row["pixel_m"] * fit
-    return np.concatenate([[position] * 3 + [position / row["radius"]] * 3, position / row["joint_speeds"]])
+    """The model error's σ ``[6 + k]`` of one row under ``calibration``: the refiner's own
+    (:func:`~narf_core.estimate.model_error_sigma`)."""
+    return E.model_error_sigma(calibration, row["class"], row["pixel_m"], row["radius"], row["colour_variance"],
+                               torch.as_tensor(row["joint_speeds"])).numpy()
 
 
 def inside(row: dict, calibration: dict) -> bool:

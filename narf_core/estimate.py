@@ -1609,10 +1609,18 @@ def model_error(model: NarfModel, kind: str, pixel_m: float, radius: float, colo
     (``EstimateOptions.uncertainty_usual_residual``)."""
     own = model.metadata.get("uncertainty") or {}
     calibration = {**MODEL_ERROR, **own, "pixels": {**MODEL_ERROR["pixels"], **own.get("pixels", {})}}
+    return model_error_sigma(calibration, kind, pixel_m, radius, colour_variance, _joint_speeds(model, radius), usual)
+
+
+def model_error_sigma(calibration: Mapping, kind: str, pixel_m: float, radius: float, colour_variance: float,
+                      joint_speeds: Tensor, usual: float = 0.0) -> Tensor:
+    """:func:`model_error` under the constants ``calibration`` (:data:`MODEL_ERROR`'s keys), with each
+    joint's surface speed ``joint_speeds [k]`` given: the one formula the refiner reports and
+    ``narf_benchmarks.calibration`` fits."""
     reference = usual or calibration["reference_variance"]
     fit = (max(colour_variance, usual) / reference) ** calibration["exponent"]
     position = calibration["pixels"][kind] * pixel_m * fit
-    joints = position / _joint_speeds(model, radius)
+    joints = position / joint_speeds.to(torch.float64)
     return torch.cat([torch.tensor([position] * 3 + [position / radius] * 3, dtype=torch.float64), joints])
 
 
