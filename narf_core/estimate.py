@@ -350,6 +350,10 @@ class EstimateOptions:
         ``GN_POSE_OVERLAP`` (intersection over union), it refines once more from ``GN_POSE_STARTS`` pose starts
         (``pose_starts_overlap``): Gauss-Newton's basin is narrower than Adam's, and a start 30 deg off
         often ends in a wrong minimum, while one within the basin explains the mask and pays only the check.
+        Where a depth image contradicts the mask, the mask is trusted only partially, as in the robust
+        preset (``mask_trust = "auto"``, its 2-pixel edge band and 8 configuration starts): on path-traced
+        views with every sensor, mask and occlusion fault a fully trusted mask cost it several centimetres
+        (docs/benchmarks.md).
 
         ``depth_weight`` is ``GN_DEPTH_WEIGHT``, not the robust preset's 1: Gauss-Newton sums its
         residuals (three colour channels, the silhouette and the depth of every ray) where Adam's
@@ -361,7 +365,8 @@ class EstimateOptions:
             "solver": "gauss-newton", "iterations": GN_ITERATIONS, "silhouette_weight": 1.0,
             "depth_weight": GN_DEPTH_WEIGHT, "theta_starts": 4, "coarse_to_fine": 2, "robust_loss": "huber",
             "tolerance": 3e-3, "patience": 2, "uncertainty_rays": GN_UNCERTAINTY_RAYS, "theta_search": 16,
-            "align_start": True, "pose_starts": GN_POSE_STARTS, "pose_starts_overlap": GN_POSE_OVERLAP, **overrides,
+            "align_start": True, "pose_starts": GN_POSE_STARTS, "pose_starts_overlap": GN_POSE_OVERLAP,
+            "mask_trust": "auto", "partial_theta_starts": 8, "mask_band_px": 2, **overrides,
         })
 
     def max_rays(self, depth: bool = True) -> int:
@@ -372,10 +377,10 @@ class EstimateOptions:
         estimates (the given pose's starts, then ``_RETRY_POSES_KEPT`` turned ones per θ start), and the
         covariance. ``depth``: whether the view comes with a depth image (without one:
         ``rgb_refinements``, and a mask trusted partially only where ``mask_trust`` is "partial", as
-        nothing else contradicts it). Not counted: ``parts`` mode's forward differences in θ for
+        nothing else contradicts it; with one, also where it is "auto"). Not counted: ``parts`` mode's forward differences in θ for
         ``gauss-newton`` (one more render per joint at each linearisation), which depend on the model."""
         scale = _MAX_BOX_SCALE if self.reference_box_px else 1
-        partial = depth or self.mask_trust == "partial"
+        partial = self.mask_trust == "partial" or (depth and self.mask_trust == "auto")  # as _partial_trust
         theta_starts = max(self.theta_starts, self.partial_theta_starts) if partial else self.theta_starts
         adaptive = self.pose_starts > 1 and self.pose_starts_overlap > 0  # _adaptive_refinement
         scoring = 3 * self.pose_starts * theta_starts * _SCORE_RAYS if self.pose_starts > 1 else 0  # _start_rows

@@ -12,7 +12,11 @@ iteration:
   - depth, where a depth is observed inside the mask, ``sqrt(depth_weight) (depth - opacity z) / s``
     with ``s`` the object's radius, or the sensor's ``depth_sigma * z^2`` when that is set,
   - none at all for a ray whose observed depth lies more than ``occlusion_margin`` in front of the
-    rendered surface (an occluder, not the object).
+    rendered surface (an occluder, not the object);
+  - with a mask trusted only partially (``mask_trust``, narf_core/estimate.py), as in Adam's loss: on
+    the mask's edge band the colour against the unmasked image (``a_c rgb_c + (b_c - image_c)
+    opacity``) and no silhouette or depth, and every residual of a ray weighted by
+    :func:`narf_core.estimate._outside_weight` (square-rooted: it weighs the squares).
 
 Jacobian. The residuals of a ray depend on the parameters ``p [6 + k]`` only through the ray's
 object-frame origin and direction and its configuration ``θ``. The renderer is asked for one
@@ -313,18 +317,27 @@ class Problem:
             surface = P[..., 4] / opacity.clamp_min(1e-6)
             keep = ~((depth > 0) & (opacity > 0.5) & (depth < surface - opts.occlusion_margin))
         gain, bias = self._compensation(P, rgb_t, mask_t, keep)
+        edge = None if target.band is None or target.image is None else target.band[index].cpu()
         for c in range(3):
             M[..., c, c] = gain[:, None, c]
             M[..., c, 3] = bias[:, None, c]
         y[..., :3] = rgb_t
         used[..., :3] = True
+        if edge is not None:  # the render against the unmasked image where it draws the object; no mask there
+            image = target.image[index].double().cpu()  # [n, 3]
+            M[:, edge, :3, 3] -= image[edge]
+            y[:, edge, :3] = 0.0
         if opts.silhouette_weight > 0:
             w = math.sqrt(opts.silhouette_weight)
             M[..., 3, 3] = w
             y[..., 3] = w * mask_t
             used[..., 3] = True
+            if edge is not None:  # a segmenter's edge: neither object nor background for sure
+                M[:, edge, 3, 3], y[:, edge, 3], used[:, edge, 3] = 0.0, 0.0, False
         if depth is not None:
             valid = (depth > 0) & (mask_t > 0.5)
+            if edge is not None:  # a segmenter's edge pixel may be the table's
+                valid = valid & ~edge
             if opts.depth_sigma > 0:
                 scale = 1.0 / (opts.depth_sigma * depth.clamp_min(1e-3) ** 2)
             else:
@@ -333,6 +346,12 @@ class Problem:
             M[..., 4, 4] = w
             M[..., 4, 3] = -w * depth
             used[..., 4] = valid
+        if opts.mask_trust == "partial" and opts.outside_weight < 1:
+            from narf_core.estimate import _outside_weight
+
+            weight = _outside_weight(mask_t, edge, depth, P[..., 4], opacity, opts.outside_weight).sqrt()  # [S, n]
+            M, y = M * weight[..., None, None], y * weight[..., None]
+            keep = keep & (weight > 0)
         M = M * keep[..., None, None]
         y = y * keep[..., None]
         return M, y, used & keep[..., None]

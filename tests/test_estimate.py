@@ -665,7 +665,8 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     # on up to 4096 rays at iteration 8 and at every one from 12 on while they tie (15 times). Then the
     # final choice of the last and best rows on eval_rays, and the covariance: at most uncertainty_rays
     # squares of 4 x 4 pixels.
-    gauss = EstimateOptions.preset("gauss-newton")
+    preset = EstimateOptions.preset("gauss-newton")
+    gauss = replace(preset, mask_trust="full")  # (the preset's partial trust below)
     assert gauss.iterations == 25
     rays, iterations, covariance = gauss.rays_per_iteration, gauss.iterations, gauss.uncertainty_rays * 16
 
@@ -687,6 +688,11 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     choices = (2 * 4 + 1 + 2 * (1 + 8)) * gauss.eval_rays  # the first run's rows, the check, both estimates' rows
     assert gauss.max_rays() == scoring + run(4) + run(8) + choices + covariance
     assert gauss.max_rays(depth=False) == gauss.max_rays()  # one refinement whatever the view: rgb_refinements is Adam's
+    # The preset trusts the mask partially where a depth image contradicts it, with 8 θ starts: counted with
+    # depth; without one nothing contradicts the mask.
+    assert preset.mask_trust == "auto" and preset.partial_theta_starts == 8
+    partial = 3 * (9 + 1) * 8 * 1024 + run(8) + run(16) + (2 * 8 + 1 + 2 * (1 + 16)) * gauss.eval_rays + covariance
+    assert preset.max_rays() == partial and preset.max_rays(depth=False) == gauss.max_rays()
 
 
 @pytest.mark.parametrize("preset", ["paper", "robust"])

@@ -222,6 +222,45 @@ def test_robustness_options_run_and_stay_finite(model):
     json.dumps(result.to_dict(), allow_nan=False)
 
 
+def test_a_partly_trusted_mask_weighs_the_residuals_as_adams_loss_does():
+    """``mask_trust`` "partial" (a segmenter's mask, an occluder): on the mask's edge band the render is
+    compared with the unmasked image and neither the silhouette nor the depth counts; outside the mask
+    the residuals weigh ``outside_weight`` (square root on the residual, the weight on its square),
+    fully where the sensor sees past the render, not at all where something stands in front of it.
+    The weights are :func:`narf_core.estimate._outside_weight`'s, as in Adam's loss."""
+    from narf_core.estimate import _Target
+
+    radius, margin = 0.05, 0.01
+    # rays: inside the mask; on its edge band; outside with the observed depth behind the render; outside
+    # with it in front; outside with no depth
+    P = torch.tensor([[[0.5, 0.4, 0.3, 0.9, 0.9 * 0.60], [0.2, 0.2, 0.2, 0.6, 0.6 * 0.61],
+                       [0.3, 0.3, 0.3, 0.8, 0.8 * 0.60], [0.3, 0.3, 0.3, 0.8, 0.8 * 0.60],
+                       [0.1, 0.2, 0.3, 0.7, 0.7 * 0.60]]], dtype=torch.float64)
+    rgb = torch.tensor([[0.6, 0.4, 0.2], [0.0, 0.0, 0.0], [0.0] * 3, [0.0] * 3, [0.0] * 3], dtype=torch.float64)
+    mask = torch.tensor([1.0, 0.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    depth = torch.tensor([0.62, 0.61, 0.60 + 2 * margin, 0.60 - 2 * margin, 0.0], dtype=torch.float64)
+    image = torch.tensor([[0.6, 0.4, 0.2], [0.5, 0.6, 0.7], [0.1] * 3, [0.1] * 3, [0.1] * 3], dtype=torch.float64)
+    band = torch.tensor([False, True, False, False, False])
+    target = _Target(rgb, mask, depth, 1, band, image)
+    opts = EstimateOptions.preset("gauss-newton", mask_trust="partial", outside_weight=0.3, silhouette_weight=2.0,
+                                  depth_weight=4.0)
+    problem = gauss_newton.Problem(None, opts, radius, uses_depth=True)
+    M, y, used = problem._linear_map(P, target, torch.arange(5))
+    r, used = ((M @ P[..., None])[..., 0] - y)[0], used[0]
+    op = P[0, :, 3]
+    expected_colour = P[0, :, :3] - torch.stack([rgb[0], op[1] * image[1], rgb[2], rgb[3], rgb[4]])
+    weight = torch.tensor([1.0, 1.0, 1.0, 0.0, 0.3], dtype=torch.float64).sqrt()
+    torch.testing.assert_close(r[:, :3], expected_colour * weight[:, None])
+    torch.testing.assert_close(r[:, 3], math.sqrt(2.0) * (op - mask) * weight * torch.tensor([1.0, 0, 1, 1, 1]))
+    torch.testing.assert_close(r[0, 4], 2.0 / radius * (P[0, 0, 4] - op[0] * depth[0]))
+    assert r[1:, 4].abs().max() == 0  # no depth residual on the edge nor outside the mask
+    assert used.tolist() == [[True] * 5, [True, True, True, False, False], [True, True, True, True, False],
+                             [False] * 5, [True, True, True, True, False]]
+    full = gauss_newton.Problem(None, replace(opts, mask_trust="full"), radius, uses_depth=True)
+    M, y, used = full._linear_map(P, _Target(rgb, mask, depth, 1), torch.arange(5))
+    assert bool(used[0, :, :4].all()) and used[0, :, 4].tolist() == [True, False, False, False, False]
+
+
 def test_the_options_floors_add_to_the_diagonal(model):
     T = view()
     image, mask, _ = observe(model, T, TRUTH)
