@@ -4,8 +4,9 @@
 
 Renders a view of the model at a known pose and configuration (standing in for a camera's RGB-D
 image and its segmentation mask), perturbs the pose by 10 degrees and 2 cm (the paper's protocol),
-asks the service to estimate pose and joints from the view (with the ``robust`` options unless
-``--preset paper``), and prints the ADD, the joint errors and the time.
+asks the service to estimate pose and joints from the view (the ``auto`` preset unless ``--preset``
+names another: Gauss-Newton with the depth image, ``robust`` with ``--no-depth``), and prints the ADD,
+the joint errors and the time.
 Needs only the client package (httpx, numpy, pillow): ``pip install -e clients/python``.
 """
 
@@ -45,8 +46,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--model", default=None, help="default: the first served model")
     parser.add_argument("--size", type=int, nargs=2, default=(160, 120), metavar=("W", "H"))
-    parser.add_argument("--iterations", type=int, default=150)
-    parser.add_argument("--preset", choices=("paper", "robust"), default="robust", help="the refiner's options")
+    parser.add_argument("--iterations", type=int, default=None, help="default: the preset's")
+    parser.add_argument("--preset", choices=("auto", "gauss-newton", "robust", "paper"), default="auto",
+                        help="the refiner's options (default: auto, which the server resolves per view)")
     parser.add_argument("--no-depth", action="store_true", help="estimate from RGB alone")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--wait", type=float, default=60.0, help="seconds to wait for the server to be ready")
@@ -99,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({
             "model": model.name, "status": est.status, "iterations": est.iterations, "loss": est.loss,
             "joints_true": joints_true, "joints": est.joints, "metrics": metrics,
-            "seconds": est.seconds, "round_trip_seconds": elapsed,
+            "seconds": est.seconds, "round_trip_seconds": elapsed, "preset": est.preset,
         }))
         return 0
 
@@ -108,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
         return "n/a" if value is None else f"{value * scale:.2f} {unit}"
 
     print(f"model {model.name}: {len(model.links)} links, joints {', '.join(j.name for j in model.joints) or 'none'}")
-    print(f"status {est.status} after {est.iterations} iterations, final loss {est.loss}")
+    print(f"status {est.status} after {est.iterations} iterations ({est.preset}: {est.preset_reason}), final loss {est.loss}")
     print(f"ADD {show('add', 100, 'cm')} (started 10 deg and 2 cm off)")
     for j in model.joints:
         revolute = j.type == "revolute"

@@ -35,6 +35,7 @@ THREADS_ENV = "NARF_THREADS"
 SMALL_WORK_THREADS = 1  # 'auto' for rendering, refining and tracking: see _threads_for
 NOISE_PRESETS = ("none", "paper")  # generate.NOISE_PRESETS, named here so that --help imports no pybullet
 MODES = ("auto", "narf", "parts")  # narf_core.modes.MODES, named here so that --help imports no numpy
+PRESET_NAMES = ("auto", "paper", "robust", "gauss-newton")  # narf_core.estimate.PRESET_NAMES, likewise
 MODE_HELP = ("render mode: narf (the configuration field), parts (the composed part fields) or auto (default: "
              "the better one by the measurement training recorded in the bundle)")
 
@@ -664,10 +665,10 @@ def _add_estimate(commands: argparse._SubParsersAction) -> None:
     arg("--gt", metavar="JSON|FILE", help="ground truth {\"pose\": ..., \"joints\": {...}}: report ADD and joint error")
     arg("--iterations", type=_non_negative_int, metavar="N")
     arg("--mode", choices=MODES, default="auto", help=MODE_HELP)
-    arg("--preset", choices=("paper", "robust", "gauss-newton"), default="paper",
-        help="paper: the paper's loss and settings (default); robust: adds silhouette and depth (with --depth) "
-             "terms, several joint starts and coarse-to-fine; gauss-newton: the same terms with a "
-             "Levenberg-Marquardt solver and Huber weights")
+    arg("--preset", choices=PRESET_NAMES, default="auto",
+        help="auto (default): gauss-newton with --depth, robust without; paper: the paper's loss and settings; "
+             "robust: adds silhouette and depth (with --depth) terms, several joint starts and coarse-to-fine; "
+             "gauss-newton: the same terms with a Levenberg-Marquardt solver and Huber weights")
     arg("--pose-starts", type=_positive_int, metavar="N",
         help="the given pose and N - 1 turned by 30 deg, scored before refining (at most 11; default: the "
              "preset's, 1); robust with 9 finds the pose from 30 deg / 6 cm off")
@@ -683,7 +684,7 @@ def _run_estimate(args: argparse.Namespace) -> int:
 
     from narf_core.bundle import load_bundle
     from narf_core.data.dataset import read_depth
-    from narf_core.estimate import EstimateOptions, refine
+    from narf_core.estimate import EstimateOptions, choose_preset, refine
 
     image = _read_image(args.image, "--image", "RGB")
     mask = _read_image(args.mask, "--mask")
@@ -700,7 +701,8 @@ def _run_estimate(args: argparse.Namespace) -> int:
         ground_truth = (_pose_arg(json.dumps(gt["pose"]), "--gt pose"), _joints_arg(json.dumps(gt.get("joints", {})), "--gt joints"))
     chosen = {"iterations": args.iterations, "pose_starts": args.pose_starts, "refinements": args.refinements,
               "rgb_refinements": args.refinements}
-    options = EstimateOptions.preset(args.preset, mode=args.mode, **{k: v for k, v in chosen.items() if v is not None})
+    preset, preset_reason = choose_preset(args.preset, depth is not None)
+    options = EstimateOptions.preset(preset, mode=args.mode, **{k: v for k, v in chosen.items() if v is not None})
     model = load_bundle(args.model)
     _mode_arg(model, args.mode)  # a mode the model lacks, named as the flag
     result = refine(model, image, mask > 0, camera, T_init, joints_init=_joints_arg(args.init_joints, "--init-joints"),
@@ -713,12 +715,12 @@ def _run_estimate(args: argparse.Namespace) -> int:
         "recovered_non_finite": result.recovered_non_finite, "metrics": result.metrics,
         "warnings": list(result.warnings),
         "uncertainty": None if result.uncertainty is None else result.uncertainty.to_dict(),
-        "mode": result.mode, "mode_reason": result.mode_reason,
+        "mode": result.mode, "mode_reason": result.mode_reason, "preset": preset, "preset_reason": preset_reason,
     }
 
     def human(r: dict[str, Any]) -> str:
         p = r["pose"]["position"]
-        lines = [f"{r['status']} after {r['iterations']} iterations in {r['seconds']:.2f} s ({r['mode']}), "
+        lines = [f"{r['status']} after {r['iterations']} iterations in {r['seconds']:.2f} s ({r['preset']}, {r['mode']}), "
                  f"loss {r['loss']}" + _mode_line(r),
                  f"position [{p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}] m, joints " +
                  ", ".join(f"{k}={v:.4f}" for k, v in r["joints"].items())]
@@ -948,7 +950,7 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
         "--shift", action="store_true",
         help="on path-traced images with sensor, depth, mask and occlusion faults: `narf bench shift` with its defaults",
     )
-    which.choices["estimate"].add_argument("--presets", nargs="+", choices=("paper", "robust", "gauss-newton"),
+    which.choices["estimate"].add_argument("--presets", nargs="+", choices=PRESET_NAMES[1:],
                                            metavar="PRESET", help="refiner presets (default: all)")
     which.choices["estimate"].add_argument("--scenes", type=_positive_int, metavar="N",
                                            help="scenes per split (default: 17, 3 with --quick)")

@@ -32,7 +32,9 @@ narf_core/gauss_newton.py) uses the robust preset's terms with Levenberg-Marquar
 weights for at most ``GN_ITERATIONS`` iterations, with a heavier depth weight (:meth:`EstimateOptions.gauss_newton`):
 about half the robust preset's CPU time for a similar error from the paper's 10 deg / 2 cm, but
 its basin is narrower (a wrong jaw start or a 3x perturbation more often ends in a wrong minimum;
-docs/benchmarks.md), so it is not the default.
+docs/benchmarks.md), which its pose starts (``pose_starts_overlap``) widen again. ``auto`` (the
+default of the command line and the API; :func:`choose_preset`) is ``gauss-newton`` for a view with a
+depth image and ``robust`` for one without.
 
 Every estimate carries an :class:`Uncertainty` (``options.uncertainty``): one Gauss-Newton
 linearisation at the optimum, whatever the solver, plus the model's own error (:func:`model_error`).
@@ -126,7 +128,8 @@ from narf_core.render import ray_aabb
 if TYPE_CHECKING:
     from narf_core.bundle import NarfModel
 
-PRESETS = ("paper", "robust", "gauss-newton")
+PRESETS = ("paper", "robust", "gauss-newton")  # the named sets of options
+PRESET_NAMES = ("auto", *PRESETS)  # what a caller may ask for: "auto" is resolved per view (choose_preset)
 SOLVERS = ("adam", "gauss-newton")
 ROBUST_LOSSES = ("none", "huber", "cauchy")
 RAY_SAMPLINGS = ("uniform", "stratified", "edges", "auto")
@@ -433,17 +436,44 @@ class EstimateOptions:
         return warm + self.iterations * iteration + prunings
 
     @classmethod
-    def preset(cls, name: str = "paper", **overrides) -> EstimateOptions:
+    def preset(cls, name: str = "paper", *, depth: bool | None = None, **overrides) -> EstimateOptions:
         """The options of a named preset (``paper``: the defaults; ``robust``: :meth:`robust`;
-        ``gauss-newton``: :meth:`gauss_newton`) with ``overrides`` applied."""
+        ``gauss-newton``: :meth:`gauss_newton`; ``auto``: the one :func:`choose_preset` picks for a view
+        with a depth image or without, ``depth``) with ``overrides`` applied."""
+        if name == "auto":
+            if depth is None:
+                reason = "'auto' depends on the view: say whether it has a depth image (preset('auto', depth=...))"
+                raise EstimateInputError(f"options.preset {reason}", "options.preset", reason)
+            name = choose_preset(name, depth)[0]
         if name == "paper":
             return cls(**overrides)
         if name == "robust":
             return cls.robust(**overrides)
         if name == "gauss-newton":
             return cls.gauss_newton(**overrides)
-        reason = f"must be one of {', '.join(PRESETS)}, got {name!r}"
+        reason = f"must be one of {', '.join(PRESET_NAMES)}, got {name!r}"
         raise EstimateInputError(f"options.preset {reason}", "options.preset", reason)
+
+
+def choose_preset(name: str, depth: bool) -> tuple[str, str]:
+    """``(preset, reason)``: the named preset that ``name`` (one of :data:`PRESET_NAMES`) comes to for a
+    view with a depth image (``depth``) or without.
+
+    ``auto``: ``gauss-newton`` with a depth image, ``robust`` without. With depth, Gauss-Newton's
+    error is as small as the robust preset's or smaller, in less time where the mask is not
+    contradicted, on our renderer's views and on path-traced ones with sensor, mask and occlusion
+    faults; without depth, where the distance along the line of sight is weakly observed, Adam's
+    wider basin and its three refinements (``rgb_refinements``) are several times more exact at a
+    camera's native resolution (docs/benchmarks.md has the figures). A depth image the refiner finds
+    unusable (a wrong unit, off the mask: a warning) still counts as given here."""
+    if name not in PRESET_NAMES:
+        reason = f"must be one of {', '.join(PRESET_NAMES)}, got {name!r}"
+        raise EstimateInputError(f"options.preset {reason}", "options.preset", reason)
+    if name != "auto":
+        return name, "requested"
+    if depth:
+        return "gauss-newton", "a depth image: gauss-newton"
+    return "robust", "no depth image: robust (Adam's wider basin and three refinements hold the distance better)"
 
 
 def _gauss_newton_prunings(iterations: int) -> int:

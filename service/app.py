@@ -171,12 +171,12 @@ async def estimate(
     if params.ground_truth is not None:
         jobs.check_joints(model, params.ground_truth.joints, "request.ground_truth.joints", complete=True)
     engine: Engine = request.app.state.engine
-    options = jobs.refine_options(engine, params, "request.options")
     uploads = {
         "image": await image.read(),
         "mask": await mask.read(),
         "depth": await depth.read() if depth is not None else None,
     }
+    options, preset, preset_reason = jobs.refine_options(engine, params, "request.options", depth=bool(uploads["depth"]))
     jobs.check_work(options, settings.max_work_rays, "request.options", depth=bool(uploads["depth"]))
     return await run_job(
         request,
@@ -190,6 +190,7 @@ async def estimate(
             max_pixels=settings.max_image_pixels,
             started=started,
             should_stop=stop,
+            preset=(preset, preset_reason),
         ),
     )
 

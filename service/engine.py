@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 @dataclass(frozen=True)
 class Engine:
     """``load_bundle(path, device)``, ``refine(model, image, mask, camera, T_init, **kw)``, the
-    refiner's options from the request's ``options`` fields (``preset`` names the starting set) and
+    refiner's options from a named preset and the request's other ``options`` fields and
     the exception type ``refine`` raises for unusable input (answered 422)."""
 
     load_bundle: Callable[[Path, str], NarfModel]
@@ -32,7 +32,7 @@ class Engine:
         from narf_core.bundle import load_bundle
         from narf_core.estimate import EstimateInputError, EstimateOptions, refine
 
-        def options(preset: str = "paper", **fields) -> EstimateOptions:
+        def options(preset: str, **fields) -> EstimateOptions:
             return EstimateOptions.preset(preset, **fields)
 
         return cls(load_bundle=load_bundle, refine=refine, options=options, input_error=EstimateInputError)

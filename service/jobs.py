@@ -195,13 +195,18 @@ def _uncertainty_out(uncertainty: Any) -> UncertaintyOut | None:
     return UncertaintyOut(**out)
 
 
-def refine_options(engine: Engine, request: EstimateRequest, field: str) -> Any:
-    """The refiner's options for ``request`` (its ``options`` and ``iterations``); 422 naming ``field``."""
+def refine_options(engine: Engine, request: EstimateRequest, field: str, depth: bool) -> tuple[Any, str, str]:
+    """The refiner's options for ``request`` (its ``options`` and ``iterations``) on a view with a depth
+    image (``depth``) or without, the preset they start from and why (``auto`` resolved by
+    :func:`narf_core.estimate.choose_preset`); 422 naming ``field``."""
+    from narf_core.estimate import choose_preset
+
     fields = request.options.model_dump(exclude_none=True)
     if request.iterations is not None:
         fields["iterations"] = request.iterations
     try:
-        return engine.options(**fields)
+        preset, reason = choose_preset(fields.pop("preset", "auto"), depth)
+        return engine.options(preset, **fields), preset, reason
     except engine.input_error as e:
         if not isinstance(e, InputError) or e.field is None:
             raise invalid(field, str(e)) from None
@@ -263,8 +268,10 @@ def estimate(
     max_pixels: int,
     started: float,
     should_stop: Callable[[], str | None] | None = None,
+    preset: tuple[str, str] = ("paper", "requested"),
 ) -> EstimateResponse:
-    """Decode the uploads (``image``, ``mask``, optional ``depth``), check them against the camera and refine.
+    """Decode the uploads (``image``, ``mask``, optional ``depth``), check them against the camera and refine
+    with ``options``, which start from the preset ``preset`` (its name and why it was chosen).
 
     ``should_stop`` is polled once per iteration: a status (``"cancelled"``, ``"budget_exceeded"``)
     ends the refinement early with the best estimate so far.
@@ -322,4 +329,6 @@ def estimate(
         warnings=list(result.warnings),
         mode=result.mode or mode,  # (the core's refine says; a stand-in refiner may not)
         mode_reason=result.mode_reason or mode_reason,
+        preset=preset[0],
+        preset_reason=preset[1],
     )

@@ -18,7 +18,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
 from narf_core.checks import ROTATION_TOLERANCE, check_pose
-from narf_core.estimate import MASK_TRUSTS, MODES, PRESETS, RAY_SAMPLINGS, ROBUST_LOSSES, SOLVERS, EstimateOptions
+from narf_core.estimate import MASK_TRUSTS, MODES, PRESET_NAMES, PRESETS, RAY_SAMPLINGS, ROBUST_LOSSES, SOLVERS, EstimateOptions
 from narf_core.geometry import pose_from_position_quaternion, pose_to_position_quaternion
 from narf_core.modes import RENDER_MODES
 from narf_core.track import TrackOptions
@@ -274,9 +274,11 @@ def _options_model(
 RefineOptions = _options_model(
     "RefineOptions", EstimateOptions, _REFINE_OPTIONS, "the preset's value (paper: {})",
     "Refiner settings (``narf_core.estimate.EstimateOptions``); a field left out keeps the value of "
-    "the preset (``paper``, the default, follows the paper; ``robust`` adds silhouette and depth terms, "
-    "several joint starts and coarse-to-fine; ``gauss-newton`` uses Levenberg-Marquardt steps).",
-    preset=(Optional[Literal[PRESETS]], Field(None, description="The starting set of options (default: paper)")),
+    "the preset (``auto``, the default: ``gauss-newton`` with a depth image, ``robust`` without; ``paper`` "
+    "follows the paper; ``robust`` adds silhouette and depth terms, several joint starts and coarse-to-fine; "
+    "``gauss-newton`` uses Levenberg-Marquardt steps on the same terms).",
+    preset=(Optional[Literal[PRESET_NAMES]], Field(
+        None, description="The starting set of options (default: auto; the response says which it chose)")),
 )
 
 
@@ -313,7 +315,8 @@ class EstimateRequest(StrictModel):
     initial_pose: Pose
     initial_joints: Joints | None = None
     iterations: int | None = Field(
-        None, ge=0, le=100_000, description="Default: the library's (150); 0 scores the initial pose; capped by the server"
+        None, ge=0, le=100_000,
+        description="Default: the preset's (gauss-newton 25, the others 150); 0 scores the initial pose; capped by the server"
     )
     options: RefineOptions = Field(default_factory=RefineOptions)
     ground_truth: GroundTruth | None = None
@@ -344,6 +347,8 @@ class EstimateResponse(BaseModel):
     )
     mode: RenderMode = Field(description=_MODE_OUT)
     mode_reason: str = Field(description=_MODE_REASON)
+    preset: Literal[PRESETS] = Field(description="The refiner preset that ran (options.preset, 'auto' resolved) ...")
+    preset_reason: str = Field(description="... and why ('requested', or the rule 'auto' followed)")
 
 
 class ModelSummary(BaseModel):

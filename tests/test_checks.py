@@ -110,11 +110,15 @@ def test_the_service_request_options_are_the_core_options():
         "initial_pose": {"position": [0, 0, 0.5], "orientation": [0, 0, 0, 1]}, "options": {"lr_decay": 2.0},
     })
     with pytest.raises(ApiError) as info:
-        jobs.refine_options(Engine.narf_core(), request, "request.options")
+        jobs.refine_options(Engine.narf_core(), request, "request.options", depth=False)
     assert info.value.status_code == 422 and info.value.field == "request.options.lr_decay"
     assert info.value.message == "request.options.lr_decay: must be in (0, 1], got 2.0"
     ok = request.model_copy(update={"options": RefineOptions(preset="robust", lr_pose=0.05)})
-    assert jobs.refine_options(Engine.narf_core(), ok, "request.options") == EstimateOptions.robust(lr_pose=0.05)
+    assert jobs.refine_options(Engine.narf_core(), ok, "request.options", depth=True) == (
+        EstimateOptions.robust(lr_pose=0.05), "robust", "requested")
+    auto = request.model_copy(update={"options": RefineOptions(lr_pose=0.05)})
+    options, preset, _ = jobs.refine_options(Engine.narf_core(), auto, "request.options", depth=True)
+    assert (options, preset) == (EstimateOptions.gauss_newton(lr_pose=0.05), "gauss-newton")
 
 
 def test_option_types_are_checked_one_way_for_every_options_class():

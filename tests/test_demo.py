@@ -45,6 +45,7 @@ def test_example_client_recovers_pose_and_jaw(server):
     assert out.returncode == 0, out.stderr
     result = json.loads(out.stdout)
     assert result["status"] in ("converged", "max_iterations")
+    assert result["preset"] == "gauss-newton"  # the default, auto, on a view with a depth image
     # The paper's protocol start (10 deg / 2 cm off, jaw at mid-range) has an ADD of about 3 cm;
     # the refined pose must at least halve it (measured: 0.6 cm and 1.2 cm on this scene with two
     # revisions of the refiner). The benchmark, not this test, reports the accuracy.

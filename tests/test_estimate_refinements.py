@@ -180,9 +180,11 @@ def test_narf_estimate_takes_refinements(capsys, monkeypatch, tiny_bundle, tiny_
     seen, real = [], estimate.refine
     monkeypatch.setattr(estimate, "refine", lambda *a, options, **k: seen.append(options) or real(*a, options=options, **k))
     argv = estimate_argv(tiny_bundle, view.__wrapped__(tiny_dataset, tmp_path_factory), **{"--iterations": "1"})
-    for extra, refinements in ((["--preset", "robust", "--refinements", "2"], 2), ([], 0)):
+    # The default preset, auto, on a view without --depth: robust with its three refinements.
+    for extra, refinements in ((["--preset", "robust", "--refinements", "2"], (2, 2)), ([], (0, 3)),
+                               (["--preset", "paper"], (0, 0))):
         code, _, err = run(capsys, *argv, *extra, "--json")
-        assert code == 0 and seen[-1].refinements == seen[-1].rgb_refinements == refinements, err
+        assert code == 0 and (seen[-1].refinements, seen[-1].rgb_refinements) == refinements, err
         assert seen[-1].iterations == 1
     assert seen[0].theta_starts == 4  # the preset's, with the option on top
     assert_error(capsys, "estimate", [*argv, "--refinements", "0"], "--refinements")

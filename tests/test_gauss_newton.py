@@ -188,8 +188,24 @@ def test_chi2_quantile_matches_tables():
 def test_bad_solver_options_are_refused(kwargs, message):
     with pytest.raises(EstimateInputError, match=message.replace("[", r"\[").replace("]", r"\]").replace(".", r"\.")):
         EstimateOptions(**kwargs)
-    with pytest.raises(EstimateInputError, match="options.preset must be one of paper, robust, gauss-newton"):
+    with pytest.raises(EstimateInputError, match="options.preset must be one of auto, paper, robust, gauss-newton"):
         EstimateOptions.preset("newton")
+
+
+def test_the_preset_auto_is_gauss_newton_with_depth_and_robust_without():
+    from narf_core import cli
+    from narf_core.estimate import PRESET_NAMES, choose_preset
+
+    assert choose_preset("auto", True)[0] == "gauss-newton" and choose_preset("auto", False)[0] == "robust"
+    assert choose_preset("paper", True) == ("paper", "requested") and choose_preset("robust", False)[1] == "requested"
+    assert EstimateOptions.preset("auto", depth=True, iterations=7) == EstimateOptions.preset("gauss-newton", iterations=7)
+    assert EstimateOptions.preset("auto", depth=False) == EstimateOptions.preset("robust")
+    with pytest.raises(EstimateInputError, match="options.preset 'auto' depends on the view") as refused:
+        EstimateOptions.preset("auto")
+    assert refused.value.field == "options.preset"
+    with pytest.raises(EstimateInputError, match="options.preset must be one of auto, paper"):
+        choose_preset("fast", True)
+    assert cli.PRESET_NAMES == PRESET_NAMES  # named there so that --help imports no torch
 
 
 def test_preset_round_trips_and_keeps_paper_free_of_extras():
@@ -646,8 +662,10 @@ def test_narf_estimate_takes_pose_starts(capsys, monkeypatch, tiny_bundle, tiny_
     code, _, err = run(capsys, *argv, "--preset", "robust", "--pose-starts", "3", "--json")
     assert code == 0, err
     assert seen[-1].pose_starts == 3 and seen[-1].theta_starts == 4 and seen[-1].iterations == 1
-    code, _, err = run(capsys, *argv, "--json")
+    code, out, err = run(capsys, *argv, "--json")
     assert code == 0 and seen[-1].pose_starts == 1, err
+    chosen = json.loads(out)  # the default preset, auto, on a view without --depth
+    assert chosen["preset"] == "robust" and "no depth" in chosen["preset_reason"] and seen[-1].rgb_refinements == 3
     assert_error(capsys, "estimate", [*argv, "--pose-starts", "0"], "--pose-starts")
     assert_error(capsys, "estimate", [*argv, "--pose-starts", "12"], "pose_starts")
 

@@ -393,7 +393,7 @@ export class EstimateView {
     if (!this.files.image || !this.image) return showError(this.$("image-error"), "image: choose or drop an image first", this.$("image"));
     if (!this.files.mask) return showError(this.$("mask-error"), "mask: choose or drop a mask first", this.$("mask"));
     if (!this.#fieldsK()) return showError(this.$("camera-error"), "camera: fx, fy, cx and cy each need a number", this.$("fx"));
-    if (!Number.isFinite(this.$("iterations").valueAsNumber)) return showError(this.$("options-error"), "iterations: a whole number is needed", this.$("iterations"));
+    if (this.$("iterations").value !== "" && !Number.isFinite(this.$("iterations").valueAsNumber)) return showError(this.$("options-error"), "iterations: a whole number is needed (or empty: the preset's)", this.$("iterations"));
     const request = this.#request();
     this.controller = new AbortController();
     this.$("run").disabled = true;
@@ -422,6 +422,7 @@ export class EstimateView {
       ["status", `${response.status} after ${response.iterations} iterations${response.recovered_non_finite ? " (a non-finite step was undone)" : ""}`],
       ["loss", response.loss === null ? "not finite" : response.loss.toPrecision(4)],
       ["time", `${response.seconds.toFixed(2)} s refining, ${response.wall_seconds.toFixed(2)} s in the server`],
+      ["preset", response.preset_reason === "requested" ? response.preset : `${response.preset} (auto: ${response.preset_reason})`],
       ["field", response.mode_reason === "requested" ? response.mode : `${response.mode} (auto: ${response.mode_reason})`],
       ["position", `${response.pose.position.map((v) => v.toFixed(4)).join(", ")} m`],
       ["orientation", `[${response.pose.orientation.map((v) => v.toFixed(4)).join(", ")}] (qx, qy, qz, qw)`],

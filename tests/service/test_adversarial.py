@@ -131,7 +131,10 @@ def estimate_parts(**overrides) -> dict[str, tuple[str | None, bytes, str]]:
     rgb = np.zeros((H, W, 3), np.uint8)
     mask = np.zeros((H, W), np.uint8)
     mask[8:16, 10:22] = 255
-    request = {"model": "toy", "camera": camera_json(W, H), "initial_pose": pose_json(0.41), "iterations": 5}
+    # The paper's preset: the least work per iteration, so that the requests stay inside the work limit
+    # of these servers (settings_for) with a depth part or without.
+    request = {"model": "toy", "camera": camera_json(W, H), "initial_pose": pose_json(0.41), "iterations": 5,
+               "options": {"preset": "paper"}}
     parts = {
         "request": (None, json.dumps(request).encode(), "application/json"),
         "image": ("image.png", png(rgb), "image/png"),
@@ -466,7 +469,7 @@ def test_an_estimate_past_the_time_budget_stops_with_budget_exceeded(slow_server
 
 def test_work_beyond_the_budget_is_refused_before_it_starts(slow_server) -> None:
     url, engine, _ = slow_server
-    reply = post_estimate(url, estimate_parts(request={"iterations": 50, "options": {"rays_per_iteration": 4096}}))
+    reply = post_estimate(url, estimate_parts(request={"iterations": 50, "options": {"preset": "paper", "rays_per_iteration": 4096}}))
     assert reply.status == 422 and reply.error()["field"] == "request.options", reply
     # 50 x 4096 rays, then the final choice and pruning on 5 x 4096 and the covariance on 4096 squares of 4 x 4
     assert "would trace up to 290816 rays" in reply.error()["message"] and engine.started == []

@@ -13,6 +13,7 @@ import torch
 from PIL import Image
 
 from helpers import ON_BOTH_MODELS, GatedEngine, ToyModel, camera_json, make_client, pose_json, scene_for, wait_until
+from narf_core.estimate import EstimateOptions
 from narf_service.engine import Engine
 from narf_service.settings import Settings
 
@@ -362,7 +363,7 @@ def test_estimate_of_a_rendered_view_is_scored_against_the_truth(client, service
     start = scene.moved((0.01, 0.0, 0.01))
     iterations = 5 if toy else 30
     request = {"model": scene.model, "camera": scene.camera_json(), "initial_pose": scene.pose_json(start),
-               "iterations": iterations, "options": {"depth_weight": 1.0},
+               "iterations": iterations,
                "ground_truth": {"pose": scene.pose_json(), "joints": scene.joints}}
     files = {
         "image": ("image.png", png(rgb), "image/png"),
@@ -382,6 +383,7 @@ def test_estimate_of_a_rendered_view_is_scored_against_the_truth(client, service
     assert not body["recovered_non_finite"] and all(loss is not None for loss, _ in body["trace"])
     assert body["status"] in ("converged", "max_iterations")
     assert body["wall_seconds"] >= body["seconds"] > 0
+    assert body["preset"] == "gauss-newton"  # auto, with a depth image
     metrics = body["metrics"]
     assert set(metrics) >= {"add"} | {f"joint_error/{j}" for j in scene.joints}
     if toy:
@@ -402,6 +404,31 @@ def test_estimate_of_a_rendered_view_is_scored_against_the_truth(client, service
 def test_estimate_without_ground_truth_has_no_metrics(client, observation) -> None:
     r = client.post("/v1/estimate", files=estimate_parts(observation))
     assert r.status_code == 200 and r.json()["metrics"] is None
+
+
+def test_the_preset_auto_is_resolved_per_view_and_named_in_the_response(service_settings, toy_engine, toy_model,
+                                                                        observation) -> None:
+    """``options.preset`` left out is ``auto``: Gauss-Newton's options reach the refiner for a view with a
+    depth image, the robust preset's for one without; the response names the preset and why."""
+    seen = []
+
+    def refine(model, image, mask, camera, T_init, **kwargs):
+        seen.append(kwargs["options"])
+        return toy_engine.refine(model, image, mask, camera, T_init, **kwargs)
+
+    engine = Engine(toy_engine.load_bundle, refine, toy_engine.options, toy_engine.input_error)
+    depth = ("d.png", png(observation["depth_mm"]), "image/png")
+    with make_client(service_settings, engine, toy_model) as c:
+        with_depth = c.post("/v1/estimate", files=estimate_parts(observation, depth=depth)).json()
+        without = c.post("/v1/estimate", files=estimate_parts(observation)).json()
+        paper = c.post("/v1/estimate", files=estimate_parts(
+            observation, estimate_request(options={"preset": "paper"}), depth=depth)).json()
+    assert (with_depth["preset"], without["preset"], paper["preset"]) == ("gauss-newton", "robust", "paper")
+    assert "depth" in with_depth["preset_reason"] and "no depth" in without["preset_reason"]
+    assert paper["preset_reason"] == "requested"
+    assert [o.solver for o in seen] == ["gauss-newton", "adam", "adam"]
+    assert seen[0].depth_weight == EstimateOptions.preset("gauss-newton").depth_weight and seen[1].rgb_refinements == 3
+    assert seen[2] == EstimateOptions.preset("paper", iterations=5)
 
 
 def test_estimate_with_zero_iterations_scores_the_initial_pose(client, observation) -> None:

@@ -282,7 +282,7 @@ def test_the_real_engine_builds_options_from_a_preset_and_overrides() -> None:
     from narf_service.engine import Engine
 
     options = Engine.narf_core().options
-    assert options() == EstimateOptions()
+    assert options("paper") == EstimateOptions()
     assert options(preset="robust", iterations=20) == EstimateOptions.robust(iterations=20)
     with pytest.raises(EstimateInputError, match="preset"):
         options(preset="fast")

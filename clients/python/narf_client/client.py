@@ -232,6 +232,8 @@ def parse_estimate(body: dict[str, Any]) -> Estimate:
         uncertainty=Uncertainty.from_json(body.get("uncertainty")),
         mode=body.get("mode"),
         mode_reason=body.get("mode_reason"),
+        preset=body.get("preset"),
+        preset_reason=body.get("preset_reason"),
     )
 
 

@@ -131,6 +131,8 @@ class Estimate:
     uncertainty: Uncertainty | None = None  # the estimate's covariance, when the server computed one
     mode: str | None = None  # the render mode that ran ("narf" or "parts"; "auto" resolved) ...
     mode_reason: str | None = None  # ... and why ("requested", or the rule "auto" followed)
+    preset: str | None = None  # the refiner preset that ran (options["preset"], "auto" resolved) ...
+    preset_reason: str | None = None  # ... and why
 
 
 @dataclass(frozen=True)
