@@ -440,19 +440,15 @@ class EstimateOptions:
         """The options of a named preset (``paper``: the defaults; ``robust``: :meth:`robust`;
         ``gauss-newton``: :meth:`gauss_newton`; ``auto``: the one :func:`choose_preset` picks for a view
         with a depth image or without, ``depth``) with ``overrides`` applied."""
-        if name == "auto":
-            if depth is None:
-                reason = "'auto' depends on the view: say whether it has a depth image (preset('auto', depth=...))"
-                raise EstimateInputError(f"options.preset {reason}", "options.preset", reason)
-            name = choose_preset(name, depth)[0]
+        if name == "auto" and depth is None:
+            reason = "'auto' depends on the view: say whether it has a depth image (preset('auto', depth=...))"
+            raise EstimateInputError(f"options.preset {reason}", "options.preset", reason)
+        name = choose_preset(name, bool(depth))[0]  # (an unknown name is refused there)
         if name == "paper":
             return cls(**overrides)
         if name == "robust":
             return cls.robust(**overrides)
-        if name == "gauss-newton":
-            return cls.gauss_newton(**overrides)
-        reason = f"must be one of {', '.join(PRESET_NAMES)}, got {name!r}"
-        raise EstimateInputError(f"options.preset {reason}", "options.preset", reason)
+        return cls.gauss_newton(**overrides)
 
 
 def choose_preset(name: str, depth: bool) -> tuple[str, str]:

@@ -18,6 +18,7 @@ from torch import Tensor
 
 from narf_core.checks import InputError, check_joints as check_joints_core
 from narf_core.depth import depth_to_mm
+from narf_core.estimate import EstimateOptions, choose_preset
 from narf_core.geometry import Pinhole
 from narf_service.engine import Engine
 from narf_service.errors import ApiError, invalid
@@ -44,7 +45,6 @@ from narf_service.schemas import (
 
 if TYPE_CHECKING:
     from narf_core.bundle import NarfModel
-    from narf_core.estimate import EstimateOptions
 
 
 def check_joints(model: NarfModel, joints: Mapping[str, float] | None, field: str, *, complete: bool = False) -> None:
@@ -199,8 +199,6 @@ def refine_options(engine: Engine, request: EstimateRequest, field: str, depth: 
     """The refiner's options for ``request`` (its ``options`` and ``iterations``) on a view with a depth
     image (``depth``) or without, the preset they start from and why (``auto`` resolved by
     :func:`narf_core.estimate.choose_preset`); 422 naming ``field``."""
-    from narf_core.estimate import choose_preset
-
     fields = request.options.model_dump(exclude_none=True)
     if request.iterations is not None:
         fields["iterations"] = request.iterations
@@ -267,8 +265,8 @@ def estimate(
     options: Any,
     max_pixels: int,
     started: float,
+    preset: tuple[str, str],
     should_stop: Callable[[], str | None] | None = None,
-    preset: tuple[str, str] = ("paper", "requested"),
 ) -> EstimateResponse:
     """Decode the uploads (``image``, ``mask``, optional ``depth``), check them against the camera and refine
     with ``options``, which start from the preset ``preset`` (its name and why it was chosen).
