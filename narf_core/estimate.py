@@ -468,8 +468,8 @@ def choose_preset(name: str, depth: bool) -> tuple[str, str]:
     if name != "auto":
         return name, "requested"
     if depth:
-        return "gauss-newton", "a depth image: gauss-newton"
-    return "robust", "no depth image: robust (Adam's wider basin and three refinements hold the distance better)"
+        return "gauss-newton", "the view has a depth image"
+    return "robust", "no depth image: Adam's wider basin and three refinements hold the distance better"
 
 
 def _gauss_newton_prunings(iterations: int) -> int:
