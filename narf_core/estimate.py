@@ -169,6 +169,9 @@ GN_POSE_OVERLAP = 0.8  # ... this overlap of the first estimate's silhouette wit
 # The robust preset's reference_box_px: the largest mask box (grown by box_margin) of the bundled
 # clamp's test and novel views at 160x120, its training size; boxes up to it keep the plain sampling.
 ROBUST_BOX_PX = 144
+# Both robust presets trust a mask the depth image contradicts only partially: a 2-pixel edge band (a
+# segmenter's edge is off by about that much) and 8 configuration starts (EstimateOptions.robust).
+PARTIAL_MASK = {"mask_trust": "auto", "partial_theta_starts": 8, "mask_band_px": 2}
 
 
 class EstimateInputError(InputError):
@@ -336,8 +339,8 @@ class EstimateOptions:
         where a run ends depends on its random rays."""
         return cls(**{
             "silhouette_weight": 1.0, "depth_weight": 1.0, "theta_starts": 4, "coarse_to_fine": 2, "lr_pose": 0.02,
-            "reference_box_px": ROBUST_BOX_PX, "ray_sampling": "auto", "mask_trust": "auto", "partial_theta_starts": 8,
-            "mask_band_px": 2, "theta_search": 16, "rgb_refinements": 3, **overrides,
+            "reference_box_px": ROBUST_BOX_PX, "ray_sampling": "auto", **PARTIAL_MASK, "theta_search": 16,
+            "rgb_refinements": 3, **overrides,
         })
 
     @classmethod
@@ -369,7 +372,7 @@ class EstimateOptions:
             "depth_weight": GN_DEPTH_WEIGHT, "theta_starts": 4, "coarse_to_fine": 2, "robust_loss": "huber",
             "tolerance": 3e-3, "patience": 2, "uncertainty_rays": GN_UNCERTAINTY_RAYS, "theta_search": 16,
             "align_start": True, "pose_starts": GN_POSE_STARTS, "pose_starts_overlap": GN_POSE_OVERLAP,
-            "mask_trust": "auto", "partial_theta_starts": 8, "mask_band_px": 2, **overrides,
+            **PARTIAL_MASK, **overrides,
         })
 
     def max_rays(self, depth: bool = True) -> int:

@@ -176,8 +176,9 @@ async def estimate(
         "mask": await mask.read(),
         "depth": await depth.read() if depth is not None else None,
     }
-    options, preset, preset_reason = jobs.refine_options(engine, params, "request.options", depth=bool(uploads["depth"]))
-    jobs.check_work(options, settings.max_work_rays, "request.options", depth=bool(uploads["depth"]))
+    has_depth = bool(uploads["depth"])
+    options, preset, preset_reason = jobs.refine_options(engine, params, "request.options", depth=has_depth)
+    jobs.check_work(options, settings.max_work_rays, "request.options", depth=has_depth)
     return await run_job(
         request,
         lambda stop: jobs.estimate(
