@@ -124,7 +124,7 @@ class DetectOptions:
         orientation was scored already, so no pose starts)."""
         return EstimateOptions.preset(self.preset, **{"iterations": self.iterations,
                                                       "theta_starts": self.refine_theta_starts,
-                                                      "seed": self.seed, "rgb_refinements": 0,
+                                                      "seed": self.seed, "refinements": 0, "rgb_refinements": 0,
                                                       "pose_starts": 1, **overrides})
 
 

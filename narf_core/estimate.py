@@ -226,8 +226,10 @@ class EstimateOptions:
     # Where one refinement is least reliable, without depth (the distance along the line of sight is weakly
     # observed) or with a partially trusted mask (occluders, a segmenter's edge), and the random rays'
     # trajectory decides where a run ends: this many refinements from the same starts, each with its own ray
-    # seed and every other one on a single pyramid level; the one whose estimate has the lowest loss on one
-    # fixed set of _CHOICE_RAYS box rays is returned (_best_refinement). 0 or 1: one refinement. Adam only.
+    # seed and every other one on a single pyramid level (Adam) or with half its rays on edges, from the given
+    # pose alone, and with pose_starts_overlap only where the first estimate misses the mask (gauss-newton:
+    # _best_gauss_newton); the one whose estimate has the lowest loss on one fixed set of _CHOICE_RAYS box
+    # rays is returned (_lowest_run). 0 or 1: one refinement.
     refinements: int = 0
     # Where the view comes without a depth image, at least this many refinements (as above). Only then, not
     # where a given depth turns out unusable: a request's work is bounded before its depth is read (max_rays).
@@ -359,7 +361,10 @@ class EstimateOptions:
         Where a depth image contradicts the mask, the mask is trusted only partially, as in the robust
         preset (``mask_trust = "auto"``, its 2-pixel edge band and 8 configuration starts): on path-traced
         views with every sensor, mask and occlusion fault a fully trusted mask cost it several centimetres
-        (docs/benchmarks.md).
+        (docs/benchmarks.md). There, and without a depth image, where the estimate's silhouette overlaps the
+        mask less than ``GN_POSE_OVERLAP``, it refines once more from the given pose alone with half its rays
+        on the mask's edges and the image's texture, and keeps the estimate of lower loss (``refinements``):
+        a thin, partly hidden tool meets few uniform rays.
 
         ``depth_weight`` is ``GN_DEPTH_WEIGHT``, not the robust preset's 1: Gauss-Newton sums its
         residuals (three colour channels, the silhouette and the depth of every ray) where Adam's
@@ -372,7 +377,7 @@ class EstimateOptions:
             "depth_weight": GN_DEPTH_WEIGHT, "theta_starts": 4, "coarse_to_fine": 2, "robust_loss": "huber",
             "tolerance": 3e-3, "patience": 2, "uncertainty_rays": GN_UNCERTAINTY_RAYS, "theta_search": 16,
             "align_start": True, "pose_starts": GN_POSE_STARTS, "pose_starts_overlap": GN_POSE_OVERLAP,
-            **PARTIAL_MASK, **overrides,
+            "refinements": 2, **PARTIAL_MASK, **overrides,
         })
 
     def max_rays(self, depth: bool = True) -> int:
@@ -381,9 +386,10 @@ class EstimateOptions:
         every start (:meth:`_adam_rays`, :meth:`_gauss_newton_run_rays`), the final choice of the last and
         best rows and, with ``pose_starts_overlap``, the overlap check and the choice between its two
         estimates (the given pose's starts, then ``_RETRY_POSES_KEPT`` turned ones per θ start), and the
-        covariance. ``depth``: whether the view comes with a depth image (without one:
-        ``rgb_refinements``, and a mask trusted partially only where ``mask_trust`` is "partial", as
-        nothing else contradicts it; with one, also where it is "auto"). Not counted: ``parts`` mode's forward differences in θ for
+        covariance; with ``refinements`` (where they run), all that many times, and the choice among them.
+        ``depth``: whether the view comes with a depth image (without one: ``rgb_refinements``, and a mask
+        trusted partially only where ``mask_trust`` is "partial", as nothing else contradicts it; with one,
+        also where it is "auto"). Not counted: ``parts`` mode's forward differences in θ for
         ``gauss-newton`` (one more render per joint at each linearisation), which depend on the model."""
         scale = _MAX_BOX_SCALE if self.reference_box_px else 1
         partial = self.mask_trust == "partial" or (depth and self.mask_trust == "auto")  # as _partial_trust
@@ -391,11 +397,16 @@ class EstimateOptions:
         adaptive = self.pose_starts > 1 and self.pose_starts_overlap > 0  # _adaptive_refinement
         scoring = 3 * self.pose_starts * theta_starts * _SCORE_RAYS if self.pose_starts > 1 else 0  # _start_rows
         scoring += 3 * theta_starts * _SCORE_RAYS if self.align_start else 0
-        if self.solver == "gauss-newton":  # one refinement: refinements and rgb_refinements are Adam's
+        # several refinements only where refine runs them: a partly trusted mask or no depth term
+        several = partial or not depth or self.depth_weight == 0
+        runs = max(1, self.refinements, 0 if depth else self.rgb_refinements) if several else 1
+        if self.solver == "gauss-newton":  # each of the runs a whole estimate, pose-start check included
+            outer = runs
+
             def refinement(starts: int) -> int:
                 return self._gauss_newton_run_rays(starts, scale)
-        else:
-            runs = max(1, self.refinements, 0 if depth else self.rgb_refinements)
+        else:  # the runs inside each refinement (_best_refinement)
+            outer = 1
 
             def refinement(starts: int) -> int:
                 return self._adam_rays(self.iterations, starts, scale, runs)
@@ -409,7 +420,8 @@ class EstimateOptions:
             choices = 2 * starts * self.eval_rays
         # cluster_sample draws at most uncertainty_rays squares of uncertainty_patch² pixels each
         covariance = self.uncertainty_rays * self.uncertainty_patch**2 if self.uncertainty else 0
-        return scoring + work + choices + covariance
+        choice = outer * _CHOICE_RAYS if outer > 1 else 0  # _lowest_run among the Gauss-Newton estimates
+        return scoring + outer * (work + choices) + choice + covariance
 
     def _adam_rays(self, iterations: int, starts: int, scale: int, runs: int = 1) -> int:
         """The rays of ``runs`` Adam refinements (``_Run``) of ``iterations`` from ``starts`` rows: every
@@ -1439,21 +1451,28 @@ def refine(
     if not _overlaps(camera, obs.pixels, T0, model.aabb):
         return result("no_overlap", None, None)
     loss_fn = _Loss(model, opts, param.radius, uses_depth, camera)
-    adaptive = opts.pose_starts > 1 and opts.pose_starts_overlap > 0  # the pose starts only where needed
     params0 = _start_rows(loss_fn, obs, camera, param, _theta_starts(theta0, param, opts.theta_starts))
 
-    def refinement(starts: Tensor):
-        if opts.solver == "gauss-newton":
-            return _gauss_newton_refinement(model, opts, obs, camera, param, loss_fn, starts, start_time, should_stop)
-        count = max(opts.refinements, opts.rgb_refinements if rgb_only else 0) if partial or not uses_depth else 1
-        return _best_refinement(lambda o, ob: _Run(model, o, ob, camera, param, loss_fn, starts, start_time),
-                                opts, obs, count, should_stop)
+    count = max(opts.refinements, opts.rgb_refinements if rgb_only else 0) if partial or not uses_depth else 1
 
-    if adaptive:
-        run, final = _adaptive_refinement(refinement, loss_fn, obs, camera, param, params0)
-    else:
+    def estimate(o: EstimateOptions):
+        """A refinement with the options ``o`` (Adam: ``count`` of them, :func:`_best_refinement`), the
+        pose-start check included, and its final choice."""
+        def refinement(starts: Tensor):
+            if o.solver == "gauss-newton":
+                return _gauss_newton_refinement(model, o, obs, camera, param, loss_fn, starts, start_time, should_stop)
+            return _best_refinement(lambda oo, ob: _Run(model, oo, ob, camera, param, loss_fn, starts, start_time),
+                                    o, obs, count, should_stop)
+
+        if o.pose_starts > 1 and o.pose_starts_overlap > 0:  # the pose starts only where needed
+            return _adaptive_refinement(refinement, loss_fn, obs, camera, param, params0)
         run, last = refinement(params0)
-        final = _final_choice(loss_fn, obs, camera, param, last, run.best_params, run.rng)
+        return run, _final_choice(loss_fn, obs, camera, param, last, run.best_params, run.rng)
+
+    if opts.solver == "gauss-newton" and count > 1:
+        run, final = _best_gauss_newton(estimate, opts, count, loss_fn, obs, camera, param)
+    else:
+        run, final = estimate(opts)
     if final is None:
         run.recovered = True
         return result("non_finite", None, None, run)
@@ -1887,20 +1906,75 @@ def _best_refinement(
             break
     if len(runs) == 1:
         return runs[0], runs[0].adam.params
-    chooser = torch.Generator().manual_seed(opts.seed)
-    losses = _fixed_rays_loss(run.loss_fn, obs, run.camera, run.param, torch.cat(rows), chooser, _CHOICE_RAYS)
-    losses = torch.where(torch.isfinite(losses), losses, math.inf)
-    owner = [i for i, row in enumerate(rows) for _ in range(row.shape[0])]
-    if not owner:  # nothing finite anywhere: the last run's own final choice says so
+    best = _lowest_run(runs, rows, run.loss_fn, obs, run.camera, run.param, opts.seed)
+    if best is None:  # nothing finite anywhere: the last run's own final choice says so
         return runs[-1], runs[-1].adam.params
+    return runs[best], rows[best]
+
+
+def _best_gauss_newton(
+    estimate: Callable[[EstimateOptions], tuple],
+    opts: EstimateOptions,
+    count: int,
+    loss_fn: _Loss,
+    obs: _Observation,
+    camera: Pinhole,
+    param: _Parameterisation,
+) -> tuple:
+    """``count`` Gauss-Newton estimates (``estimate(options)`` runs one and returns its run and final
+    choice): the first with ``opts``, the others each with its own ray seed and, every other one, half its
+    rays on edges (``ray_sampling = "edges"``) from the given pose alone (no pose-start check: half the
+    cost of one with it). Where the mask is trusted only partially, few uniform rays meet a thin, partly
+    hidden tool, and edge rays leave others in wrong minima; neither is right everywhere, and the loss on
+    common rays tells which is (docs/benchmarks.md). With ``pose_starts_overlap`` the others run only where
+    the first estimate's silhouette overlaps the mask less than that (:func:`_silhouette_overlap`): an
+    estimate that explains the mask is not improved by them, and an exact mask that the depth contradicts
+    (about half the pliers' path-traced views) would pay twice. Returns the kept run, its record covering every run, and its final choice;
+    the last run and ``None`` where nothing is finite."""
+    runs, finals = [], []
+    for i in range(count):
+        if i == 1 and opts.pose_starts_overlap > 0 and finals[0] is not None:
+            if _silhouette_overlap(loss_fn, obs, camera, param, finals[0][0]) >= opts.pose_starts_overlap:
+                break
+        o = opts if i == 0 else replace(opts, seed=opts.seed + i)
+        if i % 2:
+            o = replace(o, ray_sampling="edges", pose_starts=1)
+        run, final = estimate(o)
+        runs.append(run)
+        finals.append(final)
+        if run.status not in ("max_iterations", "converged"):
+            break
+    if len(runs) == 1:
+        return runs[0], finals[0]
+    rows = [run.params[:0] if final is None else final[0] for run, final in zip(runs, finals)]
+    best = _lowest_run(runs, rows, loss_fn, obs, camera, param, opts.seed)
+    return (runs[-1], None) if best is None else (runs[best], finals[best])
+
+
+def _lowest_run(
+    runs: list, rows: list[Tensor], loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation,
+    seed: int,
+) -> int | None:
+    """The index of the run whose estimate (a row of ``rows[i] [k, d]``, k = 0 where it has none) has the
+    lowest loss on one fixed set of ``_CHOICE_RAYS`` fine box rays; ``None`` where none is finite. No run's
+    own loss compares with another's (each is measured on its own rays). The kept run's record then covers
+    every run: iterations, trace, history, recovery, and the status a ``should_stop`` gave the last."""
+    owner = [i for i, row in enumerate(rows) for _ in range(row.shape[0])]
+    if not owner:
+        return None
+    losses = _fixed_rays_loss(loss_fn, obs, camera, param, torch.cat(rows), torch.Generator().manual_seed(seed), _CHOICE_RAYS)
+    losses = torch.where(torch.isfinite(losses), losses, math.inf)
+    if not math.isfinite(float(losses.min())):
+        return None
     best = owner[int(losses.argmin())]
     chosen = runs[best]
     if runs[-1].status not in ("max_iterations", "converged", "non_finite"):  # should_stop's reason holds for all
         chosen.status = runs[-1].status
     chosen.iteration = sum(r.iteration for r in runs)
     chosen.trace = [point for r in runs for point in r.trace]
+    chosen.history = [snap for r in runs for snap in r.history]
     chosen.recovered = any(r.recovered for r in runs)
-    return chosen, rows[best]
+    return best
 
 
 @torch.no_grad()

@@ -190,7 +190,7 @@ class TrackOptions:
                   "ray_sampling": self.ray_sampling if depth else self.ray_sampling_rgb,
                   "uncertainty": self.uncertainty_rays > 0, "uncertainty_rays": max(self.uncertainty_rays, 16),
                   "uncertainty_usual_residual": self.usual_residual if depth else 0.0,
-                  "occlusion_margin": self.occlusion_margin, "rgb_refinements": 0, "pose_starts": 1}
+                  "occlusion_margin": self.occlusion_margin, "refinements": 0, "rgb_refinements": 0, "pose_starts": 1}
         if self.solver != "adam":
             return EstimateOptions.preset(self.solver, **common)
         return EstimateOptions.preset("robust", lr_pose=self.lr_pose, lr_theta=self.lr_theta, lr_decay=self.lr_decay,
@@ -205,7 +205,7 @@ class TrackOptions:
         return EstimateOptions.preset(self.reinit_solver, iterations=self.reinit_iterations, mode=self.mode,
                                       theta_starts=self.reinit_theta_starts, seed=self.seed, band_m=self.band_m,
                                       uncertainty=self.uncertainty_rays > 0, uncertainty_rays=max(self.uncertainty_rays, 16),
-                                      occlusion_margin=0.0, rgb_refinements=0)
+                                      occlusion_margin=0.0, refinements=0, rgb_refinements=0)
 
 
 @dataclass

@@ -278,7 +278,8 @@ def test_estimate_gauss_newton_preset(capsys, tiny_bundle, view):
     assert code == 0, err
     r = json.loads(stdout)
     # 2 per refinement: the given pose's and, where its estimate misses the mask, the pose starts' (pose_starts_overlap)
-    assert r["iterations"] <= 2 * 2 and r["uncertainty"] is not None
+    # and (no depth image here) a second estimate's from the given pose (refinements)
+    assert r["iterations"] <= 3 * 2 and r["uncertainty"] is not None
     assert_error(capsys, "estimate", [*estimate_argv(tiny_bundle, view), "--preset", "newton"], "--preset")
 
 

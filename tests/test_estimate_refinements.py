@@ -122,6 +122,43 @@ def test_robust_refines_three_times_without_a_depth_image_and_once_with_one(mode
     assert not calls and rgbd.iterations == FAST["iterations"]
 
 
+def test_gauss_newton_refines_twice_where_the_mask_is_partly_trusted(model, scene, monkeypatch):
+    """The gauss-newton preset's ``refinements``: with a partly trusted mask two estimates, the first the
+    single run's (uniform rays), the second on its own seed with half its rays on edges and no pose-start
+    check, and the one of lower loss on the common rays is returned, the iterations of both reported. One
+    estimate with the mask trusted in full and a depth image, or where the first one's silhouette overlaps
+    the mask at least ``pose_starts_overlap``."""
+    T, image, mask, depth, T0 = scene
+    small = dict(iterations=20, rays_per_iteration=512, theta_starts=1, pose_starts=1, pose_starts_overlap=0.0,
+                 align_start=False, uncertainty=False, early_stop=False)
+    options = EstimateOptions.gauss_newton(mask_trust="partial", **small)
+    assert EstimateOptions.gauss_newton().refinements == 2 and options.ray_sampling == "uniform"
+    samplings, real_index = set(), estimate._ray_index
+    monkeypatch.setattr(estimate, "_ray_index",
+                        lambda obs, opts, *a: samplings.add((opts.seed, opts.ray_sampling)) or real_index(obs, opts, *a))
+    calls = spy_on_choice(monkeypatch)
+    result = refine(model, image, mask, CAMERA, T0, depth=depth, options=options, ground_truth=(T, TRUTH))
+    assert samplings == {(0, "uniform"), (1, "edges")}
+    assert len(calls) == 1
+    poses, losses = calls[0]
+    assert poses.shape[0] == 2 and bool(torch.isfinite(losses).all())
+    np.testing.assert_allclose(result.T_cam_obj, poses[int(losses.argmin())].numpy(), atol=1e-6)
+    assert result.iterations == 2 * small["iterations"] and result.metrics["add"] < 0.01
+    single = refine(model, image, mask, CAMERA, T0, depth=depth, options=replace(options, refinements=1))
+    np.testing.assert_allclose(poses[0].numpy(), single.T_cam_obj, atol=1e-9)
+    calls.clear()
+    full = refine(model, image, mask, CAMERA, T0, depth=depth, options=replace(options, mask_trust="full"))
+    assert not calls and full.iterations == small["iterations"]
+    explained = refine(model, image, mask, CAMERA, T0, depth=depth,
+                       options=replace(options, pose_starts_overlap=estimate.GN_POSE_OVERLAP))
+    assert not calls and explained.iterations == small["iterations"]  # the first estimate overlaps the mask
+    checks, real_check = [], estimate._adaptive_refinement  # the pose-start check: the first estimate's alone
+    monkeypatch.setattr(estimate, "_adaptive_refinement", lambda *a: checks.append(1) or real_check(*a))
+    wide = replace(options, pose_starts=estimate.GN_POSE_STARTS, pose_starts_overlap=0.999)  # (no estimate reaches it)
+    refine(model, image, mask, CAMERA, T0, depth=depth, options=wide)
+    assert len(checks) == 1 and len(calls) == 1
+
+
 def test_max_rays_bounds_the_rays_traced_without_a_depth_image(model, scene, monkeypatch):
     """Without a depth image the bound counts ``rgb_refinements`` runs of ``theta_starts`` (a partially
     trusted mask needs a depth, unless asked for) and the choice's rays; with one, as many runs as
@@ -193,12 +230,13 @@ def test_narf_estimate_takes_refinements(capsys, monkeypatch, tiny_bundle, tiny_
 
 def test_the_tracker_and_the_detector_refine_once_per_image_without_depth():
     """A tracked frame, a re-initialisation and a detector's candidate keep one refinement without a depth
-    image (the robust preset's rgb_refinements is a single image's extra cost, not a frame's)."""
+    image or with a partly trusted mask (the robust preset's rgb_refinements and gauss-newton's refinements
+    are a single image's extra cost, not a frame's)."""
     from narf_core.detect import DetectOptions
     from narf_core.track import TrackOptions
 
     track = TrackOptions()
     for options in (track.step_options(depth=False), track.step_options(depth=True), track.reinit_options(),
-                    DetectOptions(preset="robust").refine_options()):
+                    DetectOptions(preset="robust").refine_options(), DetectOptions(preset="gauss-newton").refine_options()):
         assert options.rgb_refinements == 0 and options.refinements == 0
         assert options.max_rays(depth=False) <= options.max_rays(depth=True)
