@@ -714,20 +714,23 @@ def test_max_rays_bounds_every_ray_an_adam_refinement_traces(model, monkeypatch,
     assert loop < traced <= options.max_rays()
 
 
-@pytest.mark.parametrize("starts", ["one", "the preset's"])
+@pytest.mark.parametrize("starts", ["one", "the preset's", "a partly trusted mask"])
 def test_max_rays_bounds_every_ray_a_gauss_newton_refinement_traces(model, monkeypatch, starts):
     """Every render of a ``gauss-newton`` refinement run to its last iteration stays within ``max_rays``:
     the scoring, the linearisations, the trial steps, the prunings, the final choice and the covariance.
     From a start 45 deg out of the image plane the preset refines twice (``pose_starts_overlap``); one
-    start renders at least one trial step per iteration besides its linearisation."""
+    start renders at least one trial step per iteration besides its linearisation. With a partly trusted
+    mask, 8 configuration starts and a second estimate where the first misses the mask (``refinements``)."""
     from narf_core import estimate
 
     T = view()
     image, mask, depth = observe(model, T, TRUTH)
     if starts == "one":
         overrides = dict(theta_starts=1, pose_starts=1, align_start=False, iterations=12, rays_per_iteration=128)
-    else:
+    elif starts == "the preset's":
         overrides = dict(iterations=6, rays_per_iteration=256)
+    else:
+        overrides = dict(iterations=6, rays_per_iteration=256, mask_trust="partial", pose_starts_overlap=0.999)
     options = EstimateOptions.gauss_newton(early_stop=False, **overrides)
     turns, turned_rows = [], estimate._turned_rows
     monkeypatch.setattr(estimate, "_turned_rows", lambda *a: turns.append(len(a[4])) or turned_rows(*a))
@@ -740,8 +743,10 @@ def test_max_rays_bounds_every_ray_a_gauss_newton_refinement_traces(model, monke
         trial_steps = [n for n, _, grad in calls if not grad and n == options.rays_per_iteration]
         assert result.iterations == options.iterations <= len(trial_steps)
         assert traced > options.iterations * options.rays_per_iteration  # what one render per iteration would be
-    else:
+    elif starts == "the preset's":
         assert turns == [options.theta_starts] and result.iterations == 2 * options.iterations  # both refinements
+    else:  # the first estimate's two refinements, then the second estimate's one
+        assert turns == [options.partial_theta_starts] and result.iterations == 3 * options.iterations
 
 
 def test_bench_estimate_takes_pose_starts_and_seed_from_the_command_line(model, tmp_path):
