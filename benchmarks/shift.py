@@ -66,22 +66,29 @@ def shifted_sets(
 ) -> dict[str, Dataset]:
     """The restyled datasets of ``frame_ids``, one per condition, made (or remade) in ``out`` unless
     ``out/<condition>`` already holds these frames (and maybe more: pick yours with
-    :func:`source_frames`) rendered with the same settings and faults (:data:`faults.VERSION`)."""
+    :func:`source_frames`) rendered with the same settings and faults (:data:`faults.VERSION`). A set
+    remade for frames it lacks keeps the frames it held (one split's run after the other's does not
+    drop the first's)."""
     from narf_core.data.synth import faults
     from narf_core.data.synth.restyle import restyle
 
-    def current(name: str) -> bool:
+    def held(name: str) -> set[int] | None:
+        """The source frames ``out/<name>`` holds, where made with these settings and faults; else None."""
         try:
             g = Dataset.open(out / name).generator.get("restyle", {})
         except (ValueError, OSError):
-            return False
-        return (set(frame_ids) <= set(g.get("source_frames") or []) and g.get("size") == list(size)
-                and g.get("spp") == spp and g.get("seed") == seed and g.get("faults_version", 1) == faults.VERSION)
+            return None
+        same = (g.get("size") == list(size) and g.get("spp") == spp and g.get("seed") == seed
+                and g.get("faults_version", 1) == faults.VERSION)
+        return set(g.get("source_frames") or []) if same else None
 
-    missing = tuple(name for name in conditions if not current(name))
+    sets = {name: held(name) for name in conditions}
+    missing = tuple(name for name in conditions if sets[name] is None or not set(frame_ids) <= sets[name])
     if missing:
-        restyle(source.root, out, conditions=missing, size=size, seed=seed, spp=spp, frame_ids=frame_ids,
-                overwrite=True, progress=progress)
+        known = {f.id for f in source.frames()}
+        kept = set().union(*(sets[name] or set() for name in missing)) & known
+        restyle(source.root, out, conditions=missing, size=size, seed=seed, spp=spp,
+                frame_ids=sorted(set(frame_ids) | kept), overwrite=True, progress=progress)
     return {name: Dataset.open(out / name) for name in conditions}
 
 

@@ -121,6 +121,10 @@ def test_a_tiny_shifted_run(tmp_path: Path, monkeypatch) -> None:
                                 progress=False)
     assert (shifted.root / "scene.json").stat().st_mtime_ns != stamp
     assert remade["depth"].generator["restyle"]["faults_version"] == faults.VERSION
+    extra = next(f.id for f in source.frames() if f.id not in ids)  # a frame it lacks: remade, keeping its own
+    grown = shift.shifted_sets(source, shifted.root.parent, [extra], conditions=("depth",), size=(96, 72), spp=2,
+                               seed=0, progress=False)
+    assert grown["depth"].generator["restyle"]["source_frames"] == sorted([*ids, extra])
 
 
 def test_bench_shift_errors(tmp_path: Path, monkeypatch, capsys: pytest.CaptureFixture[str]) -> None:
