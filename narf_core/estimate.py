@@ -386,7 +386,7 @@ class EstimateOptions:
         every start (:meth:`_adam_rays`, :meth:`_gauss_newton_run_rays`), the final choice of the last and
         best rows and, with ``pose_starts_overlap``, the overlap check and the choice between its two
         estimates (the given pose's starts, then ``_RETRY_POSES_KEPT`` turned ones per θ start), and the
-        covariance; with ``refinements`` (where they run), all that many times, and the choice among them.
+        covariance; with ``refinements``, all that many times, and the choice among them.
         ``depth``: whether the view comes with a depth image (without one: ``rgb_refinements``, and a mask
         trusted partially only where ``mask_trust`` is "partial", as nothing else contradicts it; with one,
         also where it is "auto"). Not counted: ``parts`` mode's forward differences in θ for
@@ -397,9 +397,8 @@ class EstimateOptions:
         adaptive = self.pose_starts > 1 and self.pose_starts_overlap > 0  # _adaptive_refinement
         scoring = 3 * self.pose_starts * theta_starts * _SCORE_RAYS if self.pose_starts > 1 else 0  # _start_rows
         scoring += 3 * theta_starts * _SCORE_RAYS if self.align_start else 0
-        # several refinements only where refine runs them: a partly trusted mask or no depth term
-        several = partial or not depth or self.depth_weight == 0
-        runs = max(1, self.refinements, 0 if depth else self.rgb_refinements) if several else 1
+        # refinements with a depth image too: one found unusable (usable_depth) leaves a view refine runs them on
+        runs = max(1, self.refinements, 0 if depth else self.rgb_refinements)
         if self.solver == "gauss-newton":  # each of the runs a whole estimate, pose-start check included
             outer = runs
 
@@ -1929,8 +1928,8 @@ def _best_gauss_newton(
     common rays tells which is (docs/benchmarks.md). With ``pose_starts_overlap`` the others run only where
     the first estimate's silhouette overlaps the mask less than that (:func:`_silhouette_overlap`): an
     estimate that explains the mask is not improved by them, and an exact mask that the depth contradicts
-    (about half the pliers' path-traced views) would pay twice. Returns the kept run, its record covering every run, and its final choice;
-    the last run and ``None`` where nothing is finite."""
+    (about half the pliers' path-traced views) would pay twice. Returns the kept run, its record covering
+    every run, and its final choice; the last run and ``None`` where nothing is finite."""
     runs, finals = [], []
     for i in range(count):
         if i == 1 and opts.pose_starts_overlap > 0 and finals[0] is not None:

@@ -666,7 +666,7 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     # final choice of the last and best rows on eval_rays, and the covariance: at most uncertainty_rays
     # squares of 4 x 4 pixels.
     preset = EstimateOptions.preset("gauss-newton")
-    gauss = replace(preset, mask_trust="full")  # (the preset's partial trust below)
+    gauss = replace(preset, mask_trust="full", refinements=0)  # (the preset's partial trust and refinements below)
     assert gauss.iterations == 25
     rays, iterations, covariance = gauss.rays_per_iteration, gauss.iterations, gauss.uncertainty_rays * 16
 
@@ -687,15 +687,17 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     assert every.max_rays() == scoring + run(8) + 2 * 8 * gauss.eval_rays + covariance
     choices = (2 * 4 + 1 + 2 * (1 + 8)) * gauss.eval_rays  # the first run's rows, the check, both estimates' rows
     assert gauss.max_rays() == scoring + run(4) + run(8) + choices + covariance
-    # Without a depth image, the preset's two whole estimates (refinements) and the choice between them.
+    # The preset's two whole estimates (refinements) and the choice between them: counted with a depth image
+    # too (one found unusable leaves the view without).
+    two = replace(gauss, refinements=2)
     estimate_rays = run(4) + run(8) + choices
-    assert gauss.max_rays(depth=False) == scoring + 2 * estimate_rays + 2 * 16384 + covariance
+    assert two.max_rays(depth=False) == two.max_rays() == scoring + 2 * estimate_rays + 2 * 16384 + covariance
     # The preset trusts the mask partially where a depth image contradicts it, with 8 θ starts and two
     # estimates: counted with depth; without one nothing contradicts the mask.
     assert preset.mask_trust == "auto" and preset.partial_theta_starts == 8 and preset.refinements == 2
     partial = run(8) + run(16) + (2 * 8 + 1 + 2 * (1 + 16)) * gauss.eval_rays
     assert preset.max_rays() == 3 * (9 + 1) * 8 * 1024 + 2 * partial + 2 * 16384 + covariance
-    assert preset.max_rays(depth=False) == gauss.max_rays(depth=False)
+    assert preset.max_rays(depth=False) == two.max_rays(depth=False)
 
 
 @pytest.mark.parametrize("preset", ["paper", "robust"])
