@@ -226,10 +226,11 @@ class EstimateOptions:
     # Where one refinement is least reliable, without depth (the distance along the line of sight is weakly
     # observed) or with a partially trusted mask (occluders, a segmenter's edge), and the random rays'
     # trajectory decides where a run ends: this many refinements from the same starts, each with its own ray
-    # seed and every other one on a single pyramid level (Adam) or with half its rays on edges, from the given
-    # pose alone, and with pose_starts_overlap only where the first estimate misses the mask (gauss-newton:
-    # _best_gauss_newton); the one whose estimate has the lowest loss on one fixed set of _CHOICE_RAYS box
-    # rays is returned (_lowest_run). 0 or 1: one refinement.
+    # seed and every other one on a single pyramid level (Adam); gauss-newton: up to three whole estimates,
+    # with pose_starts_overlap only where the first misses the mask, the second with half its rays on edges
+    # from the given pose alone, the third (partial trust) from starts not moved by align_start
+    # (_gauss_newton_estimates); the one whose estimate has the lowest loss on one fixed set of _CHOICE_RAYS
+    # box rays is returned (_lowest_run). 0 or 1: one refinement.
     refinements: int = 0
     # Where the view comes without a depth image, at least this many refinements (as above). Only then, not
     # where a given depth turns out unusable: a request's work is bounded before its depth is read (max_rays).
@@ -363,8 +364,9 @@ class EstimateOptions:
         views with every sensor, mask and occlusion fault a fully trusted mask cost it several centimetres
         (docs/benchmarks.md). There, and without a depth image, where the estimate's silhouette overlaps the
         mask less than ``GN_POSE_OVERLAP``, it refines once more from the given pose alone with half its rays
-        on the mask's edges and the image's texture, and keeps the estimate of lower loss (``refinements``):
-        a thin, partly hidden tool meets few uniform rays.
+        on the mask's edges and the image's texture (a thin, partly hidden tool meets few uniform rays) and,
+        where the mask is trusted partially, once more from starts not moved onto the mask (an occluder moves
+        its centroid), and keeps the estimate of lowest loss (``refinements``).
 
         ``depth_weight`` is ``GN_DEPTH_WEIGHT``, not the robust preset's 1: Gauss-Newton sums its
         residuals (three colour channels, the silhouette and the depth of every ray) where Adam's
@@ -377,50 +379,53 @@ class EstimateOptions:
             "depth_weight": GN_DEPTH_WEIGHT, "theta_starts": 4, "coarse_to_fine": 2, "robust_loss": "huber",
             "tolerance": 3e-3, "patience": 2, "uncertainty_rays": GN_UNCERTAINTY_RAYS, "theta_search": 16,
             "align_start": True, "pose_starts": GN_POSE_STARTS, "pose_starts_overlap": GN_POSE_OVERLAP,
-            "refinements": 2, **PARTIAL_MASK, **overrides,
+            "refinements": 3, **PARTIAL_MASK, **overrides,
         })
 
     def max_rays(self, depth: bool = True) -> int:
-        """An upper bound on the rays a refinement traces, known before any work: the scoring of the
-        pose starts (and ``align_start``'s), every refinement's iterations at the largest box scale for
-        every start (:meth:`_adam_rays`, :meth:`_gauss_newton_run_rays`), the final choice of the last and
-        best rows and, with ``pose_starts_overlap``, the overlap check and the choice between its two
-        estimates (the given pose's starts, then ``_RETRY_POSES_KEPT`` turned ones per θ start), and the
-        covariance; with ``refinements``, all that many times, and the choice among them.
-        ``depth``: whether the view comes with a depth image (without one: ``rgb_refinements``, and a mask
-        trusted partially only where ``mask_trust`` is "partial", as nothing else contradicts it; with one,
-        also where it is "auto"). Not counted: ``parts`` mode's forward differences in θ for
-        ``gauss-newton`` (one more render per joint at each linearisation), which depend on the model."""
+        """An upper bound on the rays a refinement traces, known before any work: the scoring of
+        ``align_start``'s starts, every estimate (:meth:`_estimate_rays`: its refinements' iterations at the
+        largest box scale for every start, the pose starts' scoring, its final choice and, with
+        ``pose_starts_overlap``, the overlap check and the choice between its two refinements) and the
+        covariance; with ``refinements``, all that many refinements (Adam: inside the estimate) or
+        estimates (``gauss-newton``: :func:`_gauss_newton_estimates`, their overlap check), and the choice
+        among them. ``depth``: whether the view comes with a depth image (without one:
+        ``rgb_refinements``, and a mask trusted partially only where ``mask_trust`` is "partial", as nothing
+        else contradicts it; with one, also where it is "auto"). Not counted: ``parts`` mode's forward
+        differences in θ for ``gauss-newton`` (one more render per joint at each linearisation), which
+        depend on the model."""
         scale = _MAX_BOX_SCALE if self.reference_box_px else 1
         partial = self.mask_trust == "partial" or (depth and self.mask_trust == "auto")  # as _partial_trust
         theta_starts = max(self.theta_starts, self.partial_theta_starts) if partial else self.theta_starts
-        adaptive = self.pose_starts > 1 and self.pose_starts_overlap > 0  # _adaptive_refinement
-        scoring = 3 * self.pose_starts * theta_starts * _SCORE_RAYS if self.pose_starts > 1 else 0  # _start_rows
-        scoring += 3 * theta_starts * _SCORE_RAYS if self.align_start else 0
-        # refinements with a depth image too: one found unusable (usable_depth) leaves a view refine runs them on
-        runs = max(1, self.refinements, 0 if depth else self.rgb_refinements)
-        if self.solver == "gauss-newton":  # each of the runs a whole estimate, pose-start check included
-            outer = runs
-
-            def refinement(starts: int) -> int:
-                return self._gauss_newton_run_rays(starts, scale)
-        else:  # the runs inside each refinement (_best_refinement)
-            outer = 1
-
-            def refinement(starts: int) -> int:
-                return self._adam_rays(self.iterations, starts, scale, runs)
-        if adaptive:
-            first, second = theta_starts, theta_starts * _RETRY_POSES_KEPT
-            work = refinement(first) + refinement(second)
-            choices = (2 * first + 1 + 2 * (1 + second)) * self.eval_rays  # the first's, the check, both estimates'
-        else:
-            starts = theta_starts * (1 + _POSES_KEPT) if self.pose_starts > 1 else theta_starts
-            work = refinement(starts)
-            choices = 2 * starts * self.eval_rays
+        scoring = 3 * theta_starts * _SCORE_RAYS if self.align_start else 0  # _start_rows's alignment
         # cluster_sample draws at most uncertainty_rays squares of uncertainty_patch² pixels each
         covariance = self.uncertainty_rays * self.uncertainty_patch**2 if self.uncertainty else 0
-        choice = outer * _CHOICE_RAYS if outer > 1 else 0  # _lowest_run among the Gauss-Newton estimates
-        return scoring + outer * (work + choices) + choice + covariance
+        # refinements with a depth image too: one found unusable (usable_depth) leaves a view refine runs them on
+        runs = max(1, self.refinements, 0 if depth else self.rgb_refinements)
+        if self.solver != "gauss-newton":  # the runs inside the estimate (_best_refinement)
+            work = self._estimate_rays(theta_starts, lambda starts: self._adam_rays(self.iterations, starts, scale, runs))
+            return scoring + work + covariance
+        estimates = _gauss_newton_estimates(replace(self, mask_trust="partial" if partial else "full"), runs)
+        work = sum(o._estimate_rays(theta_starts, lambda starts, o=o: o._gauss_newton_run_rays(starts, scale))
+                   for o in estimates)
+        several = len(estimates) > 1
+        check = self.eval_rays if several and self.pose_starts_overlap > 0 else 0  # _best_gauss_newton's
+        choice = len(estimates) * _CHOICE_RAYS if several else 0  # _lowest_run among the estimates
+        return scoring + work + check + choice + covariance
+
+    def _estimate_rays(self, theta_starts: int, refinement: Callable[[int], int]) -> int:
+        """The rays of one estimate from ``theta_starts`` θ starts (``refinement(starts)``: one refinement's
+        from ``starts`` rows): with ``pose_starts_overlap`` (:func:`_adaptive_refinement`) the given pose's
+        refinement, the overlap check, the turned starts' scoring and refinement, and the choice between
+        both estimates; else the pose starts' scoring, one refinement from every start and its final
+        choice of the last and best rows."""
+        pose_scoring = 3 * self.pose_starts * theta_starts * _SCORE_RAYS if self.pose_starts > 1 else 0
+        if self.pose_starts > 1 and self.pose_starts_overlap > 0:
+            first, second = theta_starts, theta_starts * _RETRY_POSES_KEPT
+            choices = (2 * first + 1 + 2 * (1 + second)) * self.eval_rays  # the first's, the check, both estimates'
+            return pose_scoring + refinement(first) + refinement(second) + choices
+        starts = theta_starts * (1 + _POSES_KEPT) if self.pose_starts > 1 else theta_starts
+        return pose_scoring + refinement(starts) + 2 * starts * self.eval_rays
 
     def _adam_rays(self, iterations: int, starts: int, scale: int, runs: int = 1) -> int:
         """The rays of ``runs`` Adam refinements (``_Run``) of ``iterations`` from ``starts`` rows: every
@@ -915,13 +920,15 @@ def _pose_turns(count: int, spread_deg: float) -> Tensor:
 
 
 @torch.no_grad()
-def _start_rows(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, thetas: Tensor) -> Tensor:
+def _start_rows(
+    loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, thetas: Tensor, align: bool = True
+) -> Tensor:
     """The refinement's start rows for the θ starts ``thetas [S, k]``: ``[S, 6 + k]`` at the given
     pose, or (``options.pose_starts > 1`` without ``pose_starts_overlap``, which turns them only after a
     refinement: :func:`_adaptive_refinement`) ``[(1 + K) * S, 6 + k]``: those, then :func:`_turned_rows` of
     them. The given pose stays whatever the score: from a small error its own
     start is the best, and a start's score is a rough guide (the refinement compares the starts again
-    after a third of its iterations). With ``options.align_start`` the given pose of each θ
+    after a third of its iterations). With ``options.align_start`` (and ``align``) the given pose of each θ
     start is first that pose or its moved copy, whichever scores lower on the same rays (not where the
     search below kept its own poses). With
     ``options.theta_search`` and two joints or more, the θ starts are first those the search fits best
@@ -933,7 +940,7 @@ def _start_rows(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Para
         rows = torch.cat([torch.zeros(len(thetas), 6, dtype=torch.float64), param.u_of(thetas)], dim=1)
     # The search's poses, where it kept them, are fitted to the observed surface already; moving them onto
     # the mask's centroid and depth again loses that fit (a gripper's fingers).
-    align = opts.align_start and not bool(rows[:, :6].any())
+    align = align and opts.align_start and not bool(rows[:, :6].any())
     wide = opts.pose_starts > 1 and opts.pose_starts_overlap == 0
     if align:
         index, rays = _score_rays(obs, camera, opts.seed)
@@ -1450,13 +1457,25 @@ def refine(
     if not _overlaps(camera, obs.pixels, T0, model.aabb):
         return result("no_overlap", None, None)
     loss_fn = _Loss(model, opts, param.radius, uses_depth, camera)
-    params0 = _start_rows(loss_fn, obs, camera, param, _theta_starts(theta0, param, opts.theta_starts))
+    thetas0 = _theta_starts(theta0, param, opts.theta_starts)
+    starts = {opts.align_start: _start_rows(loss_fn, obs, camera, param, thetas0)}
+
+    def start_rows(align: bool) -> Tensor:
+        """The start rows with or without ``align_start``'s move onto the mask and depth (made once each)."""
+        if align not in starts:
+            starts[align] = _start_rows(loss_fn, obs, camera, param, thetas0, align=align)
+        return starts[align]
 
     count = max(opts.refinements, opts.rgb_refinements if rgb_only else 0) if partial or not uses_depth else 1
 
     def estimate(o: EstimateOptions):
         """A refinement with the options ``o`` (Adam: ``count`` of them, :func:`_best_refinement`), the
-        pose-start check included, and its final choice."""
+        pose-start check included, and its final choice; ``None`` where ``o`` turns ``align_start`` off and
+        no start had moved (the estimate would repeat one with it on)."""
+        rows = start_rows(o.align_start)
+        if not o.align_start and opts.align_start and torch.equal(rows, start_rows(True)):
+            return None
+
         def refinement(starts: Tensor):
             if o.solver == "gauss-newton":
                 return _gauss_newton_refinement(model, o, obs, camera, param, loss_fn, starts, start_time, should_stop)
@@ -1464,8 +1483,8 @@ def refine(
                                     o, obs, count, should_stop)
 
         if o.pose_starts > 1 and o.pose_starts_overlap > 0:  # the pose starts only where needed
-            return _adaptive_refinement(refinement, loss_fn, obs, camera, param, params0)
-        run, last = refinement(params0)
+            return _adaptive_refinement(refinement, loss_fn, obs, camera, param, rows)
+        run, last = refinement(rows)
         return run, _final_choice(loss_fn, obs, camera, param, last, run.best_params, run.rng)
 
     if opts.solver == "gauss-newton" and count > 1:
@@ -1911,8 +1930,19 @@ def _best_refinement(
     return runs[best], rows[best]
 
 
+def _gauss_newton_estimates(opts: EstimateOptions, count: int) -> list[EstimateOptions]:
+    """The options of :func:`_best_gauss_newton`'s first ``count`` estimates (one of each kind), in turn:
+    ``opts``; its own ray seed with half its rays on edges (``ray_sampling = "edges"``), from the given
+    pose alone (no pose-start check: half the cost of one with it); and, where the mask is trusted only
+    partially and ``opts.align_start`` is on, ``opts`` from starts not moved onto the mask and depth."""
+    kinds = [opts, replace(opts, seed=opts.seed + 1, ray_sampling="edges", pose_starts=1)]
+    if opts.align_start and opts.mask_trust == "partial":
+        kinds.append(replace(opts, align_start=False))
+    return kinds[:max(count, 1)]
+
+
 def _best_gauss_newton(
-    estimate: Callable[[EstimateOptions], tuple],
+    estimate: Callable[[EstimateOptions], tuple | None],
     opts: EstimateOptions,
     count: int,
     loss_fn: _Loss,
@@ -1920,25 +1950,28 @@ def _best_gauss_newton(
     camera: Pinhole,
     param: _Parameterisation,
 ) -> tuple:
-    """``count`` Gauss-Newton estimates (``estimate(options)`` runs one and returns its run and final
-    choice): the first with ``opts``, the others each with its own ray seed and, every other one, half its
-    rays on edges (``ray_sampling = "edges"``) from the given pose alone (no pose-start check: half the
-    cost of one with it). Where the mask is trusted only partially, few uniform rays meet a thin, partly
-    hidden tool, and edge rays leave others in wrong minima; neither is right everywhere, and the loss on
-    common rays tells which is (docs/benchmarks.md). With ``pose_starts_overlap`` the others run only where
-    the first estimate's silhouette overlaps the mask less than that (:func:`_silhouette_overlap`): an
-    estimate that explains the mask is not improved by them, and an exact mask that the depth contradicts
-    (about half the pliers' path-traced views) would pay twice. Returns the kept run, its record covering
-    every run, and its final choice; the last run and ``None`` where nothing is finite."""
+    """Up to ``count`` Gauss-Newton estimates (:func:`_gauss_newton_estimates`; ``estimate(options)`` runs
+    one and returns its run and final choice, or ``None`` where it would repeat one) and the one whose
+    estimate has the lowest loss on common rays (:func:`_lowest_run`). Where the mask is trusted only
+    partially, each kind of estimate fails somewhere the others do not (docs/benchmarks.md): few uniform
+    rays meet a thin, partly hidden tool, where edge rays do, and edge rays leave others in wrong minima; an
+    occluder or a segmenter's blob moves the mask's centroid, and with it the start that ``align_start``
+    moved there, which scored lower on the start's coarse rays. The truth's loss is lower than a wrong
+    minimum's, so the choice finds the estimate that reached it. With ``pose_starts_overlap`` the others run
+    only where the first estimate's silhouette overlaps the mask less than that
+    (:func:`_silhouette_overlap`): an estimate that explains the mask is not improved by them, and an exact
+    mask that the depth contradicts (about half the pliers' path-traced views) would pay for them. Returns
+    the kept run, its record covering every run, and its final choice; the last run and ``None`` where
+    nothing is finite."""
     runs, finals = [], []
-    for i in range(count):
+    for i, o in enumerate(_gauss_newton_estimates(opts, count)):
         if i == 1 and opts.pose_starts_overlap > 0 and finals[0] is not None:
             if _silhouette_overlap(loss_fn, obs, camera, param, finals[0][0]) >= opts.pose_starts_overlap:
                 break
-        o = opts if i == 0 else replace(opts, seed=opts.seed + i)
-        if i % 2:
-            o = replace(o, ray_sampling="edges", pose_starts=1)
-        run, final = estimate(o)
+        outcome = estimate(o)
+        if outcome is None:
+            continue
+        run, final = outcome
         runs.append(run)
         finals.append(final)
         if run.status not in ("max_iterations", "converged"):

@@ -687,16 +687,20 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     assert every.max_rays() == scoring + run(8) + 2 * 8 * gauss.eval_rays + covariance
     choices = (2 * 4 + 1 + 2 * (1 + 8)) * gauss.eval_rays  # the first run's rows, the check, both estimates' rows
     assert gauss.max_rays() == scoring + run(4) + run(8) + choices + covariance
-    # The preset's two whole estimates (refinements) and the choice between them: counted with a depth image
-    # too (one found unusable leaves the view without).
+    # Two whole estimates (refinements), the second on edge rays from the given pose alone (4 starts, no pose
+    # starts), the overlap check before it and the choice between them: counted with a depth image too (one
+    # found unusable leaves the view without). A fully trusted mask has no third kind of estimate.
     two = replace(gauss, refinements=2)
-    estimate_rays = run(4) + run(8) + choices
-    assert two.max_rays(depth=False) == two.max_rays() == scoring + 2 * estimate_rays + 2 * 16384 + covariance
-    # The preset trusts the mask partially where a depth image contradicts it, with 8 θ starts and two
-    # estimates: counted with depth; without one nothing contradicts the mask.
-    assert preset.mask_trust == "auto" and preset.partial_theta_starts == 8 and preset.refinements == 2
-    partial = run(8) + run(16) + (2 * 8 + 1 + 2 * (1 + 16)) * gauss.eval_rays
-    assert preset.max_rays() == 3 * (9 + 1) * 8 * 1024 + 2 * partial + 2 * 16384 + covariance
+    edges = run(4) + 2 * 4 * gauss.eval_rays
+    assert two.max_rays(depth=False) == two.max_rays() == gauss.max_rays() - covariance + edges + gauss.eval_rays + 2 * 16384 + covariance
+    assert replace(gauss, refinements=3).max_rays() == two.max_rays()
+    # The preset trusts the mask partially where a depth image contradicts it, with 8 θ starts and three
+    # estimates, the third the first from unaligned starts (its pose starts' scoring again, no alignment):
+    # counted with depth; without one nothing contradicts the mask.
+    assert preset.mask_trust == "auto" and preset.partial_theta_starts == 8 and preset.refinements == 3
+    partial = 3 * 9 * 8 * 1024 + run(8) + run(16) + (2 * 8 + 1 + 2 * (1 + 16)) * gauss.eval_rays
+    edges = run(8) + 2 * 8 * gauss.eval_rays
+    assert preset.max_rays() == 3 * 8 * 1024 + 2 * partial + edges + gauss.eval_rays + 3 * 16384 + covariance
     assert preset.max_rays(depth=False) == two.max_rays(depth=False)
 
 
@@ -722,7 +726,7 @@ def test_max_rays_bounds_every_ray_a_gauss_newton_refinement_traces(model, monke
     the scoring, the linearisations, the trial steps, the prunings, the final choice and the covariance.
     From a start 45 deg out of the image plane the preset refines twice (``pose_starts_overlap``); one
     start renders at least one trial step per iteration besides its linearisation. With a partly trusted
-    mask, 8 configuration starts and a second estimate where the first misses the mask (``refinements``)."""
+    mask, 8 configuration starts and two more estimates where the first misses the mask (``refinements``)."""
     from narf_core import estimate
 
     T = view()
@@ -747,8 +751,8 @@ def test_max_rays_bounds_every_ray_a_gauss_newton_refinement_traces(model, monke
         assert traced > options.iterations * options.rays_per_iteration  # what one render per iteration would be
     elif starts == "the preset's":
         assert turns == [options.theta_starts] and result.iterations == 2 * options.iterations  # both refinements
-    else:  # the first estimate's two refinements, then the second estimate's one
-        assert turns == [options.partial_theta_starts] and result.iterations == 3 * options.iterations
+    else:  # the first estimate's two refinements, the second estimate's one, the third's two (unaligned starts)
+        assert turns == [options.partial_theta_starts] * 2 and result.iterations == 5 * options.iterations
 
 
 def test_bench_estimate_takes_pose_starts_and_seed_from_the_command_line(model, tmp_path):

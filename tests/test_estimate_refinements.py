@@ -132,7 +132,7 @@ def test_gauss_newton_refines_twice_where_the_mask_is_partly_trusted(model, scen
     small = dict(iterations=20, rays_per_iteration=512, theta_starts=1, pose_starts=1, pose_starts_overlap=0.0,
                  align_start=False, uncertainty=False, early_stop=False)
     options = EstimateOptions.gauss_newton(mask_trust="partial", **small)
-    assert EstimateOptions.gauss_newton().refinements == 2 and options.ray_sampling == "uniform"
+    assert options.refinements == 3 and options.ray_sampling == "uniform"  # no third: align_start is off
     samplings, real_index = set(), estimate._ray_index
     monkeypatch.setattr(estimate, "_ray_index",
                         lambda obs, opts, *a: samplings.add((opts.seed, opts.ray_sampling)) or real_index(obs, opts, *a))
@@ -157,6 +157,44 @@ def test_gauss_newton_refines_twice_where_the_mask_is_partly_trusted(model, scen
     wide = replace(options, pose_starts=estimate.GN_POSE_STARTS, pose_starts_overlap=0.999)  # (no estimate reaches it)
     refine(model, image, mask, CAMERA, T0, depth=depth, options=wide)
     assert len(checks) == 1 and len(calls) == 1
+
+
+def test_gauss_newton_refines_a_third_time_from_unaligned_starts_where_the_mask_is_partly_trusted(
+    model, scene, monkeypatch
+):
+    """With a partly trusted mask and ``align_start``, the preset's third estimate is the first one again (its
+    rays, uniform) from the starts ``align_start`` had not moved onto the mask's centroid and depth (an
+    occluder moves the centroid, and the moved start with it): the first estimate starts from the moved rows,
+    the third from the given pose, and the lowest loss of the three on the common rays is returned. Where no
+    start had moved (the given pose scored lower), or with the mask trusted in full, no third."""
+    T, image, mask, depth, _ = scene
+    T0 = T.copy()
+    T0[0, 3] += 0.03  # 3 cm beside the truth: the start moved onto the mask's centroid scores lower
+    small = dict(iterations=8, rays_per_iteration=256, theta_starts=1, pose_starts=1, pose_starts_overlap=0.0,
+                 uncertainty=False, early_stop=False)
+    options = EstimateOptions.gauss_newton(mask_trust="partial", **small)
+    assert options.align_start and options.refinements == 3
+    starts, real = [], estimate._gauss_newton_refinement
+    monkeypatch.setattr(estimate, "_gauss_newton_refinement",
+                        lambda *a: starts.append((a[1].seed, a[1].ray_sampling, a[1].align_start, a[6].clone())) or real(*a))
+    calls = spy_on_choice(monkeypatch)
+    result = refine(model, image, mask, CAMERA, T0, depth=depth, options=options, ground_truth=(T, TRUTH))
+    assert [s[:3] for s in starts] == [(0, "uniform", True), (1, "edges", True), (0, "uniform", False)]
+    moved, given = starts[0][3], starts[2][3]
+    assert bool(moved[:, :3].abs().sum() > 0.1) and torch.equal(given[:, :6], torch.zeros_like(given[:, :6]))
+    assert torch.equal(starts[1][3], moved)  # the edge estimate keeps the moved start
+    poses, losses = calls[0]
+    assert len(calls) == 1 and poses.shape[0] == 3 and bool(torch.isfinite(losses).all())
+    np.testing.assert_allclose(result.T_cam_obj, poses[int(losses.argmin())].numpy(), atol=1e-6)
+    assert result.iterations == 3 * small["iterations"]
+    starts.clear()
+    with monkeypatch.context() as m:  # a moved copy that scores no lower than the given pose: nothing moved
+        m.setattr(estimate, "_aligned", lambda loss_fn, obs, camera, param, rows, *a: rows.clone())
+        refine(model, image, mask, CAMERA, T0, depth=depth, options=options)
+    assert [s[2] for s in starts] == [True, True] and not bool(starts[0][3][:, :6].any())
+    starts.clear()
+    refine(model, image, mask, CAMERA, T0, depth=depth, options=replace(options, mask_trust="full"))
+    assert len(starts) == 1
 
 
 def test_max_rays_bounds_the_rays_traced_without_a_depth_image(model, scene, monkeypatch):
