@@ -403,7 +403,8 @@ class EstimateOptions:
         # refinements with a depth image too: one found unusable (usable_depth) leaves a view refine runs them on
         runs = max(1, self.refinements, 0 if depth else self.rgb_refinements)
         if self.solver != "gauss-newton":  # the runs inside the estimate (_best_refinement)
-            work = self._estimate_rays(theta_starts, lambda starts: self._adam_rays(self.iterations, starts, scale, runs))
+            work = self._estimate_rays(theta_starts,
+                                       lambda starts: self._adam_rays(self.iterations, starts, scale, runs))
             return scoring + work + covariance
         estimates = _gauss_newton_estimates(replace(self, mask_trust="partial" if partial else "full"), runs)
         work = sum(o._estimate_rays(theta_starts, lambda starts, o=o: o._gauss_newton_run_rays(starts, scale))
@@ -1956,9 +1957,9 @@ def _best_gauss_newton(
     partially, each kind of estimate fails somewhere the others do not (docs/benchmarks.md): few uniform
     rays meet a thin, partly hidden tool, where edge rays do, and edge rays leave others in wrong minima; an
     occluder or a segmenter's blob moves the mask's centroid, and with it the start that ``align_start``
-    moved there, which scored lower on the start's coarse rays. The truth's loss is lower than a wrong
-    minimum's, so the choice finds the estimate that reached it. With ``pose_starts_overlap`` the others run
-    only where the first estimate's silhouette overlaps the mask less than that
+    moved there, which scored lower on the start's coarse rays. A wrong minimum's loss is mostly above the
+    truth's, so the choice keeps the estimate that reached the truth. With ``pose_starts_overlap`` the
+    others run only where the first estimate's silhouette overlaps the mask less than that
     (:func:`_silhouette_overlap`): an estimate that explains the mask is not improved by them, and an exact
     mask that the depth contradicts (about half the pliers' path-traced views) would pay for them. Returns
     the kept run, its record covering every run, and its final choice; the last run and ``None`` where

@@ -175,8 +175,12 @@ def test_gauss_newton_refines_a_third_time_from_unaligned_starts_where_the_mask_
     options = EstimateOptions.gauss_newton(mask_trust="partial", **small)
     assert options.align_start and options.refinements == 3
     starts, real = [], estimate._gauss_newton_refinement
-    monkeypatch.setattr(estimate, "_gauss_newton_refinement",
-                        lambda *a: starts.append((a[1].seed, a[1].ray_sampling, a[1].align_start, a[6].clone())) or real(*a))
+
+    def spy(model, o, obs, camera, param, loss_fn, rows, *rest):  # each refinement's options and start rows
+        starts.append((o.seed, o.ray_sampling, o.align_start, rows.clone()))
+        return real(model, o, obs, camera, param, loss_fn, rows, *rest)
+
+    monkeypatch.setattr(estimate, "_gauss_newton_refinement", spy)
     calls = spy_on_choice(monkeypatch)
     result = refine(model, image, mask, CAMERA, T0, depth=depth, options=options, ground_truth=(T, TRUTH))
     assert [s[:3] for s in starts] == [(0, "uniform", True), (1, "edges", True), (0, "uniform", False)]
