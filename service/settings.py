@@ -54,7 +54,7 @@ class Settings(BaseSettings):
         "status 'budget_exceeded' and returns its best estimate so far."
     )
     max_work_rays: int = Field(
-        8_000_000, gt=0, description="Largest estimate, in rays traced: iterations x rays_per_iteration x box scale x "
+        10_000_000, gt=0, description="Largest estimate, in rays traced: iterations x rays_per_iteration x box scale x "
         "starts x refinements (without a depth image: the RGB-only ones), with the choices and the covariance "
         "(EstimateOptions.max_rays; 422 above, before any work)."
     )
