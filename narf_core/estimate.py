@@ -921,24 +921,29 @@ def _pose_turns(count: int, spread_deg: float) -> Tensor:
 
 
 @torch.no_grad()
+def _given_rows(loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, thetas: Tensor) -> Tensor:
+    """``[S, 6 + k]``: each θ start of ``thetas [S, k]`` at the given pose or, with ``options.theta_search``
+    and two joints or more, the θ starts the search fits best (:func:`_theta_search`; ``thetas[0]`` is among
+    its candidates), with the search's poses where it had a depth."""
+    opts = loss_fn.options
+    if opts.theta_search and thetas.shape[1] > 1 and any(len(p) for p in loss_fn.model.sample_points.values()):
+        return _theta_search(loss_fn, obs, camera, param, thetas[0], max(opts.theta_search, len(thetas)), len(thetas))
+    return torch.cat([torch.zeros(len(thetas), 6, dtype=torch.float64), param.u_of(thetas)], dim=1)
+
+
+@torch.no_grad()
 def _start_rows(
-    loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, thetas: Tensor, align: bool = True
+    loss_fn: _Loss, obs: _Observation, camera: Pinhole, param: _Parameterisation, rows: Tensor, align: bool = True
 ) -> Tensor:
-    """The refinement's start rows for the θ starts ``thetas [S, k]``: ``[S, 6 + k]`` at the given
-    pose, or (``options.pose_starts > 1`` without ``pose_starts_overlap``, which turns them only after a
+    """The refinement's start rows from the given rows ``rows [S, 6 + k]`` (:func:`_given_rows`): ``[S, 6 + k]``,
+    or (``options.pose_starts > 1`` without ``pose_starts_overlap``, which turns them only after a
     refinement: :func:`_adaptive_refinement`) ``[(1 + K) * S, 6 + k]``: those, then :func:`_turned_rows` of
     them. The given pose stays whatever the score: from a small error its own
     start is the best, and a start's score is a rough guide (the refinement compares the starts again
     after a third of its iterations). With ``options.align_start`` (and ``align``) the given pose of each θ
     start is first that pose or its moved copy, whichever scores lower on the same rays (not where the
-    search below kept its own poses). With
-    ``options.theta_search`` and two joints or more, the θ starts are first those the search fits best
-    (:func:`_theta_search`; ``thetas[0]`` is among its candidates), with the search's poses where it had a depth."""
+    search kept its own poses)."""
     opts = loss_fn.options
-    if opts.theta_search and thetas.shape[1] > 1 and any(len(p) for p in loss_fn.model.sample_points.values()):
-        rows = _theta_search(loss_fn, obs, camera, param, thetas[0], max(opts.theta_search, len(thetas)), len(thetas))
-    else:
-        rows = torch.cat([torch.zeros(len(thetas), 6, dtype=torch.float64), param.u_of(thetas)], dim=1)
     # The search's poses, where it kept them, are fitted to the observed surface already; moving them onto
     # the mask's centroid and depth again loses that fit (a gripper's fingers).
     align = align and opts.align_start and not bool(rows[:, :6].any())
@@ -1458,13 +1463,14 @@ def refine(
     if not _overlaps(camera, obs.pixels, T0, model.aabb):
         return result("no_overlap", None, None)
     loss_fn = _Loss(model, opts, param.radius, uses_depth, camera)
-    thetas0 = _theta_starts(theta0, param, opts.theta_starts)
-    starts = {opts.align_start: _start_rows(loss_fn, obs, camera, param, thetas0)}
+    given = _given_rows(loss_fn, obs, camera, param, _theta_starts(theta0, param, opts.theta_starts))
+    starts = {opts.align_start: _start_rows(loss_fn, obs, camera, param, given)}
 
     def start_rows(align: bool) -> Tensor:
-        """The start rows with or without ``align_start``'s move onto the mask and depth (made once each)."""
+        """The start rows with or without ``align_start``'s move onto the mask and depth (made once each,
+        from the same given rows)."""
         if align not in starts:
-            starts[align] = _start_rows(loss_fn, obs, camera, param, thetas0, align=align)
+            starts[align] = _start_rows(loss_fn, obs, camera, param, given, align=align)
         return starts[align]
 
     count = max(opts.refinements, opts.rgb_refinements if rgb_only else 0) if partial or not uses_depth else 1

@@ -379,7 +379,8 @@ def test_align_start_begins_each_joint_start_from_the_moved_pose_where_it_scores
     """``align_start`` (on in ``gauss-newton``, off in the Adam presets): a given pose 4 cm off along the line of sight is
     replaced, for every θ start, by its copy moved onto the mask and the depth; without it the
     given pose stays."""
-    from narf_core.estimate import _Loss, _mask_box, _observation, _Parameterisation, _start_rows, _theta_starts
+    from narf_core.estimate import (_given_rows, _Loss, _mask_box, _observation, _Parameterisation, _start_rows,
+                                    _theta_starts)
 
     T = view()
     image, mask, depth = observe(model, T, TRUTH)
@@ -393,7 +394,7 @@ def test_align_start_begins_each_joint_start_from_the_moved_pose_where_it_scores
     thetas = _theta_starts(model.joint_vector(TRUTH).double(), param, options.theta_starts)
     for align, error in ((True, lambda e: e < 0.01), (False, lambda e: abs(e - 0.04) < 1e-9)):
         loss_fn = _Loss(model, replace(options, align_start=align), param.radius, True, CAMERA)
-        rows = _start_rows(loss_fn, obs, CAMERA, param, thetas)
+        rows = _start_rows(loss_fn, obs, CAMERA, param, _given_rows(loss_fn, obs, CAMERA, param, thetas))
         assert rows.shape == (options.theta_starts, 7)
         assert torch.equal(param.thetas(rows), thetas)  # the configurations stay
         distance = np.linalg.norm(param.poses(rows)[:, :3, 3].numpy() - T[:3, 3], axis=1)
@@ -839,7 +840,8 @@ def test_theta_search_finds_a_thin_chain_s_configuration_that_the_spread_starts_
     (or with one joint) the starts are the spread ones."""
     from types import SimpleNamespace
 
-    from narf_core.estimate import _observation, _Parameterisation, _start_rows, _theta_search, _theta_starts
+    from narf_core.estimate import (_given_rows, _observation, _Parameterisation, _start_rows, _theta_search,
+                                    _theta_starts)
 
     chain = _chain(tmp_path)
     kin = chain.kinematics
@@ -866,10 +868,11 @@ def test_theta_search_finds_a_thin_chain_s_configuration_that_the_spread_starts_
     assert float((found[0] - truth).abs().max()) < 0.2, found[0]
     spread = _theta_starts(theta0, param, 4)
     assert float((found[0] - truth).norm()) < float((spread - truth).norm(dim=-1).min())
-    rows = _start_rows(loss_fn, obs, camera, param, spread)  # the option on: the search's starts
+    rows = _start_rows(loss_fn, obs, camera, param, _given_rows(loss_fn, obs, camera, param, spread))  # the option on
     assert torch.allclose(param.thetas(rows), found)
     loss_fn.options = EstimateOptions(theta_starts=4)  # off: the spread starts
-    assert torch.allclose(param.thetas(_start_rows(loss_fn, obs, camera, param, spread)), spread, atol=1e-9)
+    rows = _start_rows(loss_fn, obs, camera, param, _given_rows(loss_fn, obs, camera, param, spread))
+    assert torch.allclose(param.thetas(rows), spread, atol=1e-9)
 
 
 def test_theta_search_option_is_checked_and_on_in_the_robust_preset():
@@ -920,8 +923,8 @@ def test_search_with_depth_holds_the_distance_and_starts_gauss_newton_at_the_fit
     of the pose is kept."""
     from types import SimpleNamespace
 
-    from narf_core.estimate import (_camera_points, _chamfer, _observation, _Parameterisation, _search_fit,
-                                    _start_rows, _surface_sample, _theta_search)
+    from narf_core.estimate import (_camera_points, _chamfer, _given_rows, _observation, _Parameterisation,
+                                    _search_fit, _start_rows, _surface_sample, _theta_search)
 
     chain = _chain(tmp_path)
     kin = chain.kinematics
@@ -963,7 +966,8 @@ def test_search_with_depth_holds_the_distance_and_starts_gauss_newton_at_the_fit
 
     # align_start leaves the search's kept poses as they are (the loss, here not callable, scores nothing)
     loss_fn.options, loss_fn.uses_depth = replace(gauss, align_start=True), True
-    assert torch.equal(_start_rows(loss_fn, obs, camera, param, kin.mid_configuration().expand(4, -1)), found)
+    given = _given_rows(loss_fn, obs, camera, param, kin.mid_configuration().expand(4, -1))
+    assert torch.equal(_start_rows(loss_fn, obs, camera, param, given), found)
 
 
 def test_the_gauss_newton_preset_searches_configurations():
