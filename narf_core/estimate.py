@@ -143,6 +143,9 @@ _MAX_BOX_SCALE = 4  # reference_box_px multiplies the rays per iteration by at m
 _BEHIND_M = 0.01  # observed depth this far behind the rendered surface: the object is not on that ray
 _EVAL_RAYS = 4096  # starts are compared, and the final loss measured, on at most this many rays of the box
 _CHOICE_RAYS = 16384  # box rays on which several refinements' estimates are compared (refinements)
+# A candidate estimate drawing the object on less than this share of the mask's rays that another draws it on
+# is not chosen (_fixed_rays_loss).
+_MIN_COVER_SHARE = 0.5
 _SCORE_RAYS = 1024  # box rays on which every (pose, θ) start is scored before the refinement
 _POSES_KEPT = 1  # pose starts refined per θ start besides the given pose (the best scored; docs/benchmarks.md)
 # ... and per θ start in the second refinement of pose_starts_overlap, which has no given pose's starts beside it
@@ -1195,6 +1198,12 @@ class _Loss:
     def __call__(self, rays_cam: Rays, target: _Target, index: Tensor, T: Tensor, theta: Tensor) -> Tensor:
         """Loss ``[S]`` of every start (``T [S,4,4]``, ``θ [S,k]``) on the rays ``rays_cam [n]``
         through the box pixels ``index [n]``."""
+        return self.terms(rays_cam, target, index, T, theta)[0]
+
+    def terms(self, rays_cam: Rays, target: _Target, index: Tensor, T: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
+        """The loss ``[S]`` (as :meth:`__call__`) and the share ``[S]`` of the mask's rays among ``index``
+        on which each start draws the object (opacity over 0.5; ones where the loss renders no opacity or
+        no ray lies in the mask)."""
         opts = self.options
         n_starts, n = T.shape[0], len(rays_cam)
         depth = target.depth[index] if (self.uses_depth and target.depth is not None) else None
@@ -1237,7 +1246,10 @@ class _Loss:
                 # Rendered depth is opacity-weighted; compare like with like (no division by opacity).
                 err = (rendered_depth - opacity * depth) / self.radius
                 loss = loss + opts.depth_weight * (err**2 * valid).sum(-1) / valid.sum(-1).clamp_min(1)
-        return loss
+        inside = mask > 0.5
+        if opacity is None or not bool(inside.any()):
+            return loss, torch.ones_like(loss)
+        return loss, ((opacity.detach() > 0.5) & inside).sum(-1).to(loss.dtype) / inside.sum()
 
     def _render(
         self, rays_obj: Rays, theta: Tensor, outputs: tuple[str, ...], band: tuple[Tensor, Tensor] | None = None
@@ -2022,9 +2034,16 @@ def _fixed_rays_loss(
     n: int = 0,
 ) -> Tensor:
     """Loss ``[S]`` of every row of ``params [S, d]`` on the same up to ``n`` (0: ``options.eval_rays``)
-    pixels of the box, at the finest level."""
+    pixels of the box, at the finest level; infinite for a row that draws the object on less than
+    ``_MIN_COVER_SHARE`` of the mask's rays that another row draws it on. Every choice between estimates
+    and starts goes through here: a render that leaves the mask unexplained is no estimate of the object,
+    yet its loss can be the lowest (nothing drawn, no depth or band residual to pay; docs/benchmarks.md)."""
     index = _box_pixels(obs, n or loss_fn.options.eval_rays, rng)
-    return loss_fn(camera.rays(obs.pixels[index]), obs.levels[-1], index, param.poses(params), param.thetas(params))
+    loss, cover = loss_fn.terms(camera.rays(obs.pixels[index]), obs.levels[-1], index, param.poses(params),
+                                param.thetas(params))
+    finite = torch.isfinite(loss)
+    most = float(torch.where(finite, cover, 0.0).max())
+    return torch.where(finite & (cover >= _MIN_COVER_SHARE * most), loss, math.inf)
 
 
 @torch.no_grad()

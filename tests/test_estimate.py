@@ -480,6 +480,34 @@ def test_silhouette_overlap_is_near_one_at_the_truth_and_lower_beside_it(model):
     assert _silhouette_overlap(loss_fn, obs, CAMERA, param, beside) < 0.6
 
 
+def test_a_candidate_that_draws_nothing_on_the_mask_is_not_chosen(model):
+    """Drawing nothing costs no depth or edge-band residual: an estimate moved off the object (as one on
+    a small, thin mask ended 60 cm behind the truth) can have the lowest loss where the depth image
+    disagrees with every drawn pose, here by 3 cm. The choice between candidates (``_fixed_rays_loss``)
+    passes it over while another draws the object on the mask, and keeps it where none does."""
+    from narf_core.estimate import _fixed_rays_loss, _Loss, _mask_box, _observation, _Parameterisation
+
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    depth = np.where(depth > 0, depth + 0.03, 0.0).astype(depth.dtype)
+    options = EstimateOptions.gauss_newton()
+    obs = _observation(image, mask, depth, _mask_box(mask, options.box_margin), 2, "cpu")
+    param = _Parameterisation.around(torch.from_numpy(T), model)
+    loss_fn = _Loss(model, options, param.radius, True, CAMERA)
+    truth = torch.cat([torch.zeros(1, 6, dtype=torch.float64), param.u_of(model.joint_vector(TRUTH)[None].double())], 1)
+    away = truth.clone()
+    away[0, 0] = 0.3 / param.radius  # 30 cm along the camera's x axis: out of the box
+    rows = torch.cat([truth, away])
+    index = torch.arange(obs.pixels.shape[0])
+    loss, cover = loss_fn.terms(CAMERA.rays(obs.pixels.float()), obs.levels[-1], index, param.poses(rows),
+                                param.thetas(rows))
+    assert loss[1] < loss[0] and cover[0] > 0.9 and cover[1] == 0  # the hazard: nothing drawn scores lower
+    chosen = _fixed_rays_loss(loss_fn, obs, CAMERA, param, rows, torch.Generator().manual_seed(0))
+    assert torch.isfinite(chosen[0]) and chosen[1] == math.inf
+    alone = _fixed_rays_loss(loss_fn, obs, CAMERA, param, away, torch.Generator().manual_seed(0))
+    assert torch.isfinite(alone[0])
+
+
 @pytest.mark.parametrize("levels", [1, 2, 3, 6])
 @pytest.mark.parametrize("iterations", [1, 2, 7, 80, 150])
 def test_coarse_levels_come_before_the_fine_one(iterations, levels):
