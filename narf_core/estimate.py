@@ -820,13 +820,30 @@ def _partial_trust(opts: EstimateOptions, mask: np.ndarray, depth: np.ndarray | 
 
 def _mask_band(mask: Tensor, px: int) -> Tensor:
     """``[h, w]`` bool: pixels within ``px`` (chessboard distance) of the boundary of ``mask [h, w]``
-    (0/1): those the mask's dilation by ``px`` adds or its erosion by ``px`` removes. A segmenter's
-    edge is off by a pixel or two (and bleeds or shrinks as a whole), so its pixels there are no
-    evidence of where the object's silhouette lies."""
+    (0/1): those the mask's dilation by ``px`` adds or its erosion by ``px`` removes, except the
+    middle of a part no wider than the band (:func:`_mask_spine`). A segmenter's edge is off by a
+    pixel or two (and bleeds or shrinks as a whole), so its pixels there are no evidence of where
+    the object's silhouette lies; the middle of a thin part stays where it is when its edges move
+    out or in together, and without it a small, thin mask (a tool seen from afar or end-on) would
+    be nearly all band, leaving nothing to say where the object is."""
     x = mask[None, None]
     grown = F.max_pool2d(x, 2 * px + 1, stride=1, padding=px)[0, 0]
     shrunk = -F.max_pool2d(-x, 2 * px + 1, stride=1, padding=px)[0, 0]
-    return (grown > 0.5) & (shrunk < 0.5)
+    return (grown > 0.5) & (shrunk < 0.5) & ~_mask_spine(mask, px)
+
+
+def _mask_spine(mask: Tensor, px: int) -> Tensor:
+    """``[h, w]`` bool: the mask's pixels within ``px`` of its boundary whose chessboard distance to the
+    background (1 on the boundary) is largest among their 8 neighbours: a 1-2 pixel line along the
+    middle of every part at most ``2 px + 1`` pixels wide, nothing elsewhere."""
+    inside = mask > 0.5
+    distance = torch.zeros_like(mask)
+    eroded = mask[None, None]
+    for _ in range(px + 1):  # distances above px + 1 are not told apart: those pixels are off the band
+        distance = distance + (eroded[0, 0] > 0.5).to(mask.dtype)
+        eroded = -F.max_pool2d(-eroded, 3, stride=1, padding=1)
+    ridge = distance >= F.max_pool2d(distance[None, None], 3, stride=1, padding=1)[0, 0]
+    return inside & (distance <= px) & ridge
 
 
 def _importance(masked: Tensor) -> Tensor:

@@ -168,6 +168,22 @@ def test_the_mask_band_is_the_pixels_near_its_boundary():
     assert _observation(np.zeros((20, 30, 3), np.uint8), mask.numpy() > 0, None, (0, 0, 30, 20), 1, "cpu").levels[0].band is None
 
 
+@pytest.mark.parametrize("width", [1, 2, 3, 4, 5])
+def test_the_mask_band_leaves_the_middle_of_a_thin_part(width):
+    """A bar no wider than the 2-pixel band (5 pixels) would be band all through, leaving no pixel
+    that says where the object is: its middle line (1 pixel for an odd width, 2 for an even one) stays
+    out of the band, wherever its edges move as a whole; a thick block's band is unchanged."""
+    mask = torch.zeros(24, 40)
+    mask[3:13, 3:15] = 1  # thick: its band is the plain dilation minus erosion
+    mask[16 : 16 + width, 20:36] = 1  # a horizontal bar
+    band = _mask_band(mask, 2)
+    middle = [16 + (width - 1) // 2, 16 + width // 2]
+    for row in range(16, 16 + width):
+        kept = not band[row, 22:34].any()
+        assert kept == (row in middle) and band[row, 22:34].all() != kept, (width, row)
+    assert band[3:13, 3:15].sum() == 10 * 12 - 6 * 8 and not band[5:11, 5:13].any()
+
+
 def test_rays_outside_the_mask_weigh_less_unless_depth_sees_past_the_object():
     """``_outside_weight``: inside the mask and on its band 1, outside ``weight``; but a ray whose
     observed depth lies behind the rendered surface is background for sure (1), one outside the
