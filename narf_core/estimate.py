@@ -2052,9 +2052,11 @@ def _fixed_rays_loss(
 ) -> Tensor:
     """Loss ``[S]`` of every row of ``params [S, d]`` on the same up to ``n`` (0: ``options.eval_rays``)
     pixels of the box, at the finest level; infinite for a row that draws the object on less than
-    ``_MIN_COVER_SHARE`` of the mask's rays that another row draws it on. Every choice between estimates
-    and starts goes through here: a render that leaves the mask unexplained is no estimate of the object,
-    yet its loss can be the lowest (nothing drawn, no depth or band residual to pay; docs/benchmarks.md)."""
+    ``_MIN_COVER_SHARE`` of the mask's rays that another row draws it on. The choices between refinements'
+    estimates, between Adam's starts and of the final iterate go through here (Gauss-Newton prunes its
+    starts on its own robust cost): a render that leaves the mask unexplained is no estimate of the
+    object, yet its loss can be the lowest (nothing drawn, no depth or band residual to pay;
+    docs/benchmarks.md)."""
     index = _box_pixels(obs, n or loss_fn.options.eval_rays, rng)
     loss, cover = loss_fn.terms(camera.rays(obs.pixels[index]), obs.levels[-1], index, param.poses(params),
                                 param.thetas(params))
