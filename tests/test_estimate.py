@@ -133,6 +133,18 @@ def perturbed(T: np.ndarray, degrees: float, metres: float, seed: int) -> np.nda
     return out
 
 
+def loss_problem(model: NarfModel, T: np.ndarray, image, mask, depth, options: EstimateOptions, levels: int = 2):
+    """What the refiner's choices work on, for a view of the toy: the mask box's observation, the
+    parameterisation around ``T``, the loss of ``options`` and the row ``[1, d]`` of ``T`` at ``TRUTH``'s joints."""
+    from narf_core.estimate import _Loss, _mask_box, _observation, _Parameterisation
+
+    obs = _observation(image, mask, depth, _mask_box(mask, options.box_margin), levels, "cpu")
+    param = _Parameterisation.around(torch.from_numpy(T), model)
+    loss_fn = _Loss(model, options, param.radius, True, CAMERA)
+    row = torch.cat([torch.zeros(1, 6, dtype=torch.float64), param.u_of(model.joint_vector(TRUTH)[None].double())], 1)
+    return obs, param, loss_fn, row
+
+
 def assert_finite(result: EstimateResult) -> None:
     assert np.isfinite(result.T_cam_obj).all() and np.isfinite(result.quaternion).all()
     assert all(math.isfinite(v) for v in result.joints.values())
@@ -359,17 +371,13 @@ def test_a_pose_start_centimetres_off_is_moved_onto_the_mask_and_the_depth(model
     """A pose start's alignment (the second candidate of every turn): its silhouette's centroid onto
     the mask's and its median depth onto the observed one, which brings a start 3-5 cm off to
     within 5 mm of the truth without changing its rotation."""
-    from narf_core.estimate import _aligned, _Loss, _mask_box, _observation, _Parameterisation
+    from narf_core.estimate import _aligned
 
     T = view()
     image, mask, depth = observe(model, T, TRUTH)
     start = T.copy()
     start[:3, 3] += shift
-    options = EstimateOptions.robust(depth_weight=1.0)
-    obs = _observation(image, mask, depth, _mask_box(mask, options.box_margin), 2, "cpu")
-    param = _Parameterisation.around(torch.from_numpy(start), model)
-    loss_fn = _Loss(model, options, param.radius, True, CAMERA)
-    row = torch.cat([torch.zeros(1, 6, dtype=torch.float64), param.u_of(model.joint_vector(TRUTH)[None].double())], 1)
+    obs, param, loss_fn, row = loss_problem(model, start, image, mask, depth, EstimateOptions.robust(depth_weight=1.0))
     moved = param.poses(_aligned(loss_fn, obs, CAMERA, param, row, torch.arange(len(obs.pixels)), CAMERA.rays(obs.pixels.float())))[0]
     assert np.linalg.norm(moved[:3, 3].numpy() - T[:3, 3]) < 0.005 < np.linalg.norm(shift) / 5
     assert torch.allclose(moved[:3, :3], torch.from_numpy(start[:3, :3]), atol=1e-9)
@@ -464,15 +472,11 @@ def test_pose_starts_overlap_with_adam_finds_the_pose_within_max_rays(model, mon
 def test_silhouette_overlap_is_near_one_at_the_truth_and_lower_beside_it(model):
     """The check behind ``pose_starts_overlap``: intersection over union of the rendered silhouette and the
     mask, on the same box rays for every row."""
-    from narf_core.estimate import _Loss, _mask_box, _observation, _Parameterisation, _silhouette_overlap
+    from narf_core.estimate import _silhouette_overlap
 
     T = view()
     image, mask, depth = observe(model, T, TRUTH)
-    options = EstimateOptions.gauss_newton()
-    obs = _observation(image, mask, depth, _mask_box(mask, options.box_margin), 2, "cpu")
-    param = _Parameterisation.around(torch.from_numpy(T), model)
-    loss_fn = _Loss(model, options, param.radius, True, CAMERA)
-    truth = torch.cat([torch.zeros(1, 6, dtype=torch.float64), param.u_of(model.joint_vector(TRUTH)[None].double())], 1)
+    obs, param, loss_fn, truth = loss_problem(model, T, image, mask, depth, EstimateOptions.gauss_newton())
     beside = truth.clone()
     beside[0, 0] = 0.02 / param.radius  # 2 cm along the camera's x axis
     at_truth = _silhouette_overlap(loss_fn, obs, CAMERA, param, truth)
@@ -485,16 +489,12 @@ def test_a_candidate_that_draws_nothing_on_the_mask_is_not_chosen(model):
     a small, thin mask ended 60 cm behind the truth) can have the lowest loss where the depth image
     disagrees with every drawn pose, here by 3 cm. The choice between candidates (``_fixed_rays_loss``)
     passes it over while another draws the object on the mask, and keeps it where none does."""
-    from narf_core.estimate import _fixed_rays_loss, _Loss, _mask_box, _observation, _Parameterisation
+    from narf_core.estimate import _fixed_rays_loss
 
     T = view()
     image, mask, depth = observe(model, T, TRUTH)
     depth = np.where(depth > 0, depth + 0.03, 0.0).astype(depth.dtype)
-    options = EstimateOptions.gauss_newton()
-    obs = _observation(image, mask, depth, _mask_box(mask, options.box_margin), 2, "cpu")
-    param = _Parameterisation.around(torch.from_numpy(T), model)
-    loss_fn = _Loss(model, options, param.radius, True, CAMERA)
-    truth = torch.cat([torch.zeros(1, 6, dtype=torch.float64), param.u_of(model.joint_vector(TRUTH)[None].double())], 1)
+    obs, param, loss_fn, truth = loss_problem(model, T, image, mask, depth, EstimateOptions.gauss_newton())
     away = truth.clone()
     away[0, 0] = 0.3 / param.radius  # 30 cm along the camera's x axis: out of the box
     rows = torch.cat([truth, away])
