@@ -1262,7 +1262,8 @@ class _Loss:
             if bool(valid.any()):
                 # Rendered depth is opacity-weighted; compare like with like (no division by opacity).
                 err = (rendered_depth - opacity * depth) / self.radius
-                loss = loss + opts.depth_weight * (err**2 * valid).sum(-1) / valid.sum(-1).clamp_min(1)
+                depth_cost = _robust(opts.depth_weight * err**2, opts.robust_loss, opts.robust_scale)
+                loss = loss + (depth_cost * valid).sum(-1) / valid.sum(-1).clamp_min(1)
         inside = mask > 0.5
         if opacity is None or not bool(inside.any()):
             return loss, torch.ones_like(loss)

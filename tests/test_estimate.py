@@ -508,6 +508,28 @@ def test_a_candidate_that_draws_nothing_on_the_mask_is_not_chosen(model):
     assert torch.isfinite(alone[0])
 
 
+@pytest.mark.parametrize("robust_loss", ["huber", "none"])
+def test_a_few_stray_depth_pixels_do_not_decide_the_choice(model, robust_loss):
+    """The loss that chooses between estimates weighs the depth residuals with the solver's robust loss,
+    as it does the colour and silhouette: a few of the mask's pixels reading 10 cm behind the object (a
+    sensor's flying pixels, a segmenter's blob over the table) cost Huber's linear tail, so the truth
+    keeps the lowest loss among poses 1 cm off; squared, they outweigh everything else, and a pose that
+    draws less of them scores lower than the truth."""
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    stray = mask & (np.random.default_rng(0).random(mask.shape) < 0.02)
+    assert 8 <= stray.sum() <= 0.05 * mask.sum()
+    depth = np.where(stray, depth + 0.10, depth).astype(depth.dtype)
+    obs, param, loss_fn, truth = loss_problem(model, T, image, mask, depth,
+                                              EstimateOptions.gauss_newton(robust_loss=robust_loss), levels=1)
+    rows = truth.repeat(7, 1)
+    for i in range(6):  # ±1 cm along each camera axis
+        rows[1 + i, i // 2] += (0.01 if i % 2 else -0.01) / param.radius
+    loss, _ = loss_fn.terms(CAMERA.rays(obs.pixels.float()), obs.levels[-1], torch.arange(obs.pixels.shape[0]),
+                            param.poses(rows), param.thetas(rows))
+    assert (int(loss.argmin()) == 0) == (robust_loss == "huber"), loss
+
+
 @pytest.mark.parametrize("levels", [1, 2, 3, 6])
 @pytest.mark.parametrize("iterations", [1, 2, 7, 80, 150])
 def test_coarse_levels_come_before_the_fine_one(iterations, levels):
