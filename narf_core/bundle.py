@@ -60,6 +60,28 @@ class BundleError(ValueError):
     """A bundle file that cannot be used: missing, corrupt, foreign or of another version."""
 
 
+def resolve_device(device: str | torch.device) -> torch.device:
+    """The torch device named ``device`` (``cpu``, ``cuda`` or ``cuda:N``), if this machine has it.
+
+    A ValueError says why not (an unknown name, a torch built without CUDA, no such GPU), so that the
+    CLI, the benchmarks and the service refuse a device in one line before loading anything.
+    """
+    try:
+        resolved = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device {device!r}: not a torch device (use 'cpu', 'cuda' or 'cuda:N')") from None
+    if resolved.type == "cpu":
+        return resolved
+    if resolved.type != "cuda":
+        raise ValueError(f"device {device!r}: only 'cpu' and 'cuda' are supported")
+    if not torch.cuda.is_available():
+        raise ValueError(f"device {device!r}: this torch ({torch.__version__}) sees no CUDA device")
+    count = torch.cuda.device_count()
+    if resolved.index is not None and resolved.index >= count:
+        raise ValueError(f"device {device!r}: this machine has {count} CUDA device(s)")
+    return resolved
+
+
 @dataclass
 class NarfModel:
     """A trained object: the configuration field, optionally its part fields, and its kinematics.
@@ -162,15 +184,17 @@ class NarfModel:
         """Images of the object at pose ``T_cam_obj [4,4]`` and ``θ [k]``.
 
         Returns the asked outputs: ``rgb [H,W,3]`` in [0, 1], ``depth [H,W]`` (metres, 0 = no return),
-        ``opacity [H,W]``.
+        ``opacity [H,W]``, on the model's device (the inputs may be on any).
         """
+        device = self.aabb.device
+        theta = theta.to(device, torch.float32)
         field, grid = self._field_for(mode, theta)
         with torch.no_grad():
             return render_image(
                 field,
-                camera,
-                T_cam_obj.to(torch.float32),
-                theta=theta.to(torch.float32),
+                Pinhole(camera.K.to(device, torch.float32), camera.width, camera.height),
+                T_cam_obj.to(device, torch.float32),
+                theta=theta,
                 aabb=self.aabb,
                 grid=grid,
                 outputs=outputs,
@@ -289,7 +313,9 @@ def read_metadata(path: str | Path) -> dict:
 
 
 def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> NarfModel:
-    """Load a ``.narf`` bundle; raises :class:`BundleError` with the reason if it cannot be used."""
+    """Load a ``.narf`` bundle onto ``device`` (:func:`resolve_device`); raises :class:`BundleError`
+    with the reason if it cannot be used."""
+    device = resolve_device(device)
     meta = read_metadata(path)
     try:
         tensors = load_file(str(path), device=str(device))

@@ -875,7 +875,7 @@ class _Parameterisation:
 
     @classmethod
     def around(cls, T_init: Tensor, model: NarfModel) -> _Parameterisation:
-        aabb = model.aabb.to(torch.float64)
+        aabb = model.aabb.to("cpu", torch.float64)  # the parameters live on the CPU, whatever the model's device
         T_centre = torch.eye(4, dtype=torch.float64)
         T_centre[:3, 3] = transform_points(T_init, (aabb[0] + aabb[1]) / 2)
         lower, upper = model.kinematics.lower.to(torch.float64), model.kinematics.upper.to(torch.float64)

@@ -62,7 +62,7 @@ def evaluate_render(
         theta = model.joint_vector(frame.joints)
         T = torch.as_tensor(frame.T_cam_obj, dtype=torch.float32)
         t0 = time.perf_counter()
-        rgb = model.render(T, theta, camera, outputs=("rgb",), mode=mode)["rgb"]
+        rgb = model.render(T, theta, camera, outputs=("rgb",), mode=mode)["rgb"].cpu()  # (a GPU's work done)
         times.append(time.perf_counter() - t0)
         errors.append(float(((rgb.numpy() - target) ** 2).mean()))
     mse = float(np.mean(errors))

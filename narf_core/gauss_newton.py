@@ -196,11 +196,11 @@ class Problem:
         ``dP/do, dP/dd [S, n, 5, 3]`` and ``dP/dθ [S, n, 5, k]``; ``along_ray``: ``dP/do``'s part along
         each ray the render's change over a sample spacing (:func:`along_ray_exact`)."""
         S, n, k = T_obj_cam.shape[0], len(rays_cam), theta.shape[1]
-        dtype = rays_cam.origins.dtype
-        R = T_obj_cam[:, :3, :3].to(dtype)
-        o = T_obj_cam[:, None, :3, 3].to(dtype).expand(S, n, 3).reshape(-1, 3)
+        like = rays_cam.origins  # the rays' dtype and device (the model's); poses and θ come from the CPU
+        R = T_obj_cam[:, :3, :3].to(like)
+        o = T_obj_cam[:, None, :3, 3].to(like).expand(S, n, 3).reshape(-1, 3)
         d = (rays_cam.directions @ R.transpose(-1, -2)).reshape(-1, 3)
-        th = theta.to(dtype)[:, None, :].expand(S, n, k).reshape(S * n, k)
+        th = theta.to(like)[:, None, :].expand(S, n, k).reshape(S * n, k)
         outputs = ("rgb", "opacity", "depth")
         parts = self.options.mode == "parts" and k > 0
         band = None
@@ -213,19 +213,20 @@ class Problem:
                     th = th.detach().requires_grad_(True)
             P = self._render(Rays(o, d, rays_cam.z_per_t.repeat(S)), th, S, n, outputs, band)  # [S*n, 5]
             if not grad:
-                return P.reshape(S, n, _CHANNELS).double(), None
+                return P.reshape(S, n, _CHANNELS).double().cpu(), None
             leaves = (o, d) if (parts or k == 0) else (o, d, th)
             grads = _channel_gradients(P, leaves)
-        grads = [torch.zeros(_CHANNELS, S * n, x.shape[1]) if g is None else g for g, x in zip(grads, leaves)]
-        dP = [g.permute(1, 0, 2).reshape(S, n, _CHANNELS, -1).double() for g in grads]  # [S, n, 5, ·]
+        grads = [x.new_zeros(_CHANNELS, S * n, x.shape[1]) if g is None else g for g, x in zip(grads, leaves)]
+        dP = [g.permute(1, 0, 2).reshape(S, n, _CHANNELS, -1).double().cpu() for g in grads]  # [S, n, 5, ·]
+        P_cpu = P.detach().reshape(S, n, _CHANNELS).double().cpu()  # the solve is in float64 on the CPU
         if along_ray:
-            dP[0] = along_ray_exact(dP[0], P.detach().reshape(S, n, _CHANNELS).double(),
-                                    d.detach().reshape(S, n, 3).double(), rays_cam.z_per_t.double())
+            dP[0] = along_ray_exact(dP[0], P_cpu, d.detach().reshape(S, n, 3).double().cpu(),
+                                    rays_cam.z_per_t.double().cpu())
         if k == 0:
-            dP.append(P.new_zeros(S, n, _CHANNELS, 0).double())
+            dP.append(P_cpu.new_zeros(S, n, _CHANNELS, 0))
         elif parts:
             dP.append(self._theta_differences(rays_cam, o.detach(), d.detach(), theta, P.detach(), S, n, band))
-        return P.detach().reshape(S, n, _CHANNELS).double(), tuple(dP)
+        return P_cpu, tuple(dP)
 
     def _render(
         self, rays: Rays, theta: Tensor, S: int, n: int, outputs: tuple[str, ...], band: tuple[Tensor, Tensor] | None
@@ -259,9 +260,9 @@ class Problem:
             upper = self.model.kinematics.upper.double()[j]
             sign = torch.where(shifted[:, j] + step[j] > upper, -1.0, 1.0).to(theta)
             shifted[:, j] = shifted[:, j] + sign * step[j]
-            th = shifted.to(o.dtype)[:, None, :].expand(S, n, k).reshape(-1, k)
+            th = shifted.to(o)[:, None, :].expand(S, n, k).reshape(-1, k)
             Q = self._render(Rays(o, d, rays_cam.z_per_t.repeat(S)), th, S, n, ("rgb", "opacity", "depth"), band)
-            diff = (Q - P).reshape(S, n, _CHANNELS).double() / (sign.double() * step[j])[:, None, None]
+            diff = (Q - P).reshape(S, n, _CHANNELS).double().cpu() / (sign.double() * step[j])[:, None, None]
             cols.append(diff)
         return torch.stack(cols, -1)
 
@@ -286,7 +287,7 @@ class Problem:
         P, dP = self.predictions(rays_cam, T_obj_cam, theta, jacobian, along_ray)
         if jacobian:
             dPo, dPd, dPt = dP
-            dirs = rays_cam.directions.double()  # [n * group, 3] camera frame
+            dirs = rays_cam.directions.double().cpu()  # [n * group, 3] camera frame
             # o = T_obj_cam[:3, 3]; d = R_obj_cam d_cam
             jo = torch.einsum("snci,sid->sncd", dPo, dT[:, :, 3, :])
             jd = torch.einsum("snci,sijd,nj->sncd", dPd, dT[:, :, :3, :], dirs)
@@ -484,7 +485,7 @@ class GaussNewtonRun:
                 self.fine_index = index
         pixels = self.obs.pixels[index].to(torch.float32).repeat_interleave(group, 0)
         if target.width > 1:
-            pixels = pixels + (torch.rand(len(pixels), 2, generator=self.rng) - 0.5) * target.width
+            pixels = pixels + (torch.rand(len(pixels), 2, generator=self.rng).to(pixels) - 0.5) * target.width
         return index, self.camera.rays(pixels), group
 
     def optimise(self, snapshot=None) -> None:

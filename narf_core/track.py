@@ -533,8 +533,8 @@ def refine_frame(
     around = ray_band(model, camera, rays_box, T0[None], theta0[None], _FRAME_MARGIN_M)
     if around is None:
         return refine(model, image, mask, camera, T_pred, joints_init=joints_pred, depth=depth, options=options)
-    near, far = (b.detach().double().cpu() for b in around)
-    field, grid = model._field_for("narf", theta0.to(torch.float32))
+    near, far = (b.detach().double() for b in around)  # on the model's device, like the rays
+    field, grid = model._field_for("narf", theta0.to(device, torch.float32))
 
     class FrameLoss(_Loss):
         """The refiner's loss, rendered from the band's samples of the rays (:attr:`index` into the box)."""
@@ -562,7 +562,7 @@ def refine_frame(
         loss_fn.index = index
         loss = loss_fn(rays_box[index], target, index, param.poses(p), param.thetas(p))
         if distance_prior > 0 and scale == 1:  # the centre's motion along the line of sight, in object radii
-            loss = loss + distance_prior * (p[:, :3] @ view) ** 2
+            loss = loss + (distance_prior * (p[:, :3] @ view) ** 2).to(loss)
         return loss
 
     k = theta0.shape[0]
@@ -622,14 +622,14 @@ def visible(field, rays_obj: Rays, samples: Samples, theta: Tensor, eps: float =
     from narf_core.occupancy import density_fn
 
     with torch.no_grad():
-        index = torch.arange(len(samples))
+        index = torch.arange(len(samples), device=samples.ray.device)
         first = torch.ones_like(samples.ray, dtype=torch.bool)
         first[1:] = samples.ray[1:] != samples.ray[:-1]
         start = torch.cummax(torch.where(first, index, torch.zeros_like(index)), 0).values  # each ray's first sample
         pick = (index - start) % 2 == 0
         ray, t = samples.ray[pick], samples.t[pick]
         x = rays_obj.origins[ray] + t[:, None].to(rays_obj.origins) * rays_obj.directions[ray]
-        tau = torch.zeros(len(samples), dtype=torch.float64)
+        tau = torch.zeros(len(samples), dtype=torch.float64, device=samples.ray.device)
         tau[pick] = density_fn(field)(x, theta.detach()).double() * samples.delta[pick].double() * 2
         total = torch.cumsum(tau, 0)
         before = total - tau - (total[start] - tau[start])  # the optical depth in front of each sample
@@ -643,8 +643,8 @@ def frame_band(near: Tensor, far: Tensor, step: float) -> Samples:
     ``far <= near``)."""
     k0 = torch.floor(near / step)
     count = torch.where(far > near, torch.ceil(far / step) - k0, torch.zeros_like(k0)).long()
-    ray = torch.repeat_interleave(torch.arange(len(near)), count)
-    j = torch.arange(len(ray)) - (torch.cumsum(count, 0) - count)[ray]
+    ray = torch.repeat_interleave(torch.arange(len(near), device=near.device), count)
+    j = torch.arange(len(ray), device=near.device) - (torch.cumsum(count, 0) - count)[ray]
     t = (k0[ray] + j + 0.5) * step
     return Samples(ray, t, torch.full_like(t, step))
 

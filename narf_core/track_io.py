@@ -61,7 +61,7 @@ def overlay(model: NarfModel, camera: Pinhole, image: np.ndarray, result: TrackR
     if result.status != "lost":
         theta = model.joint_vector(result.joints)
         T = torch.as_tensor(result.T_cam_obj, dtype=torch.float32)
-        alpha = model.render(T, theta, camera, outputs=("opacity",))["opacity"].numpy()[..., None]
+        alpha = model.render(T, theta, camera, outputs=("opacity",))["opacity"].cpu().numpy()[..., None]
         out = out * (1 - 0.5 * alpha) + colour * 0.5 * alpha
     picture = Image.fromarray(np.clip(out, 0, 255).astype(np.uint8))
     ImageDraw.Draw(picture).text((2, 1), f"{result.time:6.2f}s {result.status}", fill=tuple(int(c) for c in colour))

@@ -260,14 +260,15 @@ class ArticulatedField(RadianceField):
         ``xp``, so a sample's every lookup coordinate is one product with ``T_part_obj(θ)`` folded in."""
         n_planes = self.atlas.shape[0]
         scale, shift = lookup.scale.double(), lookup.shift.double()  # [p, 3]: metres -> cell units
-        axes = torch.tensor([[0, 1], [0, 2], [1, 2]] * (n_planes // 3))  # [N, 2]: the plane's (u, v) axes
+        device = lookup.scale.device
+        axes = torch.tensor([[0, 1], [0, 2], [1, 2]] * (n_planes // 3), device=device)  # [N, 2]: the plane's (u, v) axes
         # cell units -> normalised box coordinates -> shrunk -> the tile's grid coordinates, per (plane, u|v)
         z_scale, z_shift = lookup.z_scale.double()[:, axes], lookup.z_shift.double()[:, axes]  # [p, N, 2]
         tile_scale, tile_shift = self._tile_scale.double(), self._tile_shift.double()
         gain = z_scale * _EDGE_SHRINK * tile_scale  # grid = cell * gain + bias
         bias = (z_shift * _EDGE_SHRINK + 1) * tile_scale + tile_shift
         p = lookup.scale.shape[0]
-        C = torch.zeros(p, 4, 3 + 2 * n_planes, dtype=torch.float64)
+        C = torch.zeros(p, 4, 3 + 2 * n_planes, dtype=torch.float64, device=device)
         C[:, [0, 1, 2], [0, 1, 2]] = scale
         C[:, 3, :3] = shift
         for a in range(3):  # the columns of the planes' coordinates that follow axis a
@@ -448,15 +449,16 @@ class _PartLookup:
         self.flat = torch.cat([F.pad(g.occupancy, (1, 1, 1, 1, 1, 1)).reshape(-1) for g in grids])
         # blocks of _BLOCK^3 cells, occupied where any cell of theirs or of a neighbouring block is
         self.coarse = _PartLookup([_blocks(g) for g in grids], coarse=False) if coarse else None
-        cells = torch.tensor([g.resolution for g in grids], dtype=torch.float32)  # [p, 3]
+        device = self.flat.device
+        cells = torch.tensor([g.resolution for g in grids], dtype=torch.float32, device=device)  # [p, 3]
         lo = torch.stack([g.aabb[0] for g in grids])  # [p, 3]
         self.scale = cells / (torch.stack([g.aabb[1] for g in grids]) - lo)
         self.shift = 1 - lo * self.scale  # cell units of the padded grid: x * scale + shift
         self.z_scale, self.z_shift = 2 / cells, -2 / cells - 1  # cell units -> [-1, 1] over the box
         padded = cells.long() + 2
         self.top = (padded - 1).int()
-        self.strides = torch.stack([padded[:, 1] * padded[:, 2], padded[:, 2], torch.ones(len(grids), dtype=torch.long)], -1).int()
-        self.offset = torch.cat([torch.zeros(1, dtype=torch.long), padded.prod(-1).cumsum(0)[:-1]]).int()  # [p]
+        self.strides = torch.stack([padded[:, 1] * padded[:, 2], padded[:, 2], torch.ones(len(grids), dtype=torch.long, device=device)], -1).int()
+        self.offset = torch.cat([padded.new_zeros(1), padded.prod(-1).cumsum(0)[:-1]]).int()  # [p]
         if self.flat.numel() >= 1 << 24:
             raise ValueError(f"at most 2^24 cells in all part grids together, got {self.flat.numel()}")
         self._axes = [(top.tolist(), size.tolist(), int(o)) for top, size, o in zip(self.top, padded, self.offset)]
@@ -510,7 +512,7 @@ def _blocks(grid: OccupancyGrid) -> OccupancyGrid:
     occupancy = F.max_pool3d(occupancy, 3, stride=1, padding=1)[0, 0] > 0
     size = grid.cell_size * _BLOCK
     lo = grid.aabb[0] - size
-    return OccupancyGrid(torch.stack([lo, lo + size * torch.tensor(occupancy.shape)]), occupancy)
+    return OccupancyGrid(torch.stack([lo, lo + size * torch.tensor(occupancy.shape, device=lo.device)]), occupancy)
 
 
 def _occupied_cells_box(occupancy: Tensor) -> Tensor:
@@ -518,7 +520,7 @@ def _occupied_cells_box(occupancy: Tensor) -> Tensor:
     grid padded by one cell, grown by :data:`_BOX_MARGIN` cells; empty (lower > upper) if none is occupied."""
     nz = occupancy.nonzero()
     if nz.shape[0] == 0:
-        return torch.tensor([[math.inf] * 3, [-math.inf] * 3])
+        return torch.tensor([[math.inf] * 3, [-math.inf] * 3], device=occupancy.device)
     return torch.stack([nz.amin(0) + 1 - _BOX_MARGIN, nz.amax(0) + 2 + _BOX_MARGIN]).float()
 
 
@@ -621,9 +623,9 @@ class PosedGridRays:
         most = int(count.max()) if count.numel() else 0
         if most == 0:
             return near, far
-        t = near[:, None] + (torch.arange(most, dtype=near.dtype) + 0.5) * spacing[:, None]  # [m, most]
+        t = near[:, None] + (torch.arange(most, dtype=near.dtype, device=near.device) + 0.5) * spacing[:, None]  # [m, most]
         blocks = coarse.occupied_along(self.c * ratio + offset, cd, t.nan_to_num(0, 0, 0))
-        blocks &= torch.arange(most) < count[:, None]
+        blocks &= torch.arange(most, device=near.device) < count[:, None]
         first = torch.where(blocks, t, math.inf).amin(1) - spacing / 2
         last = torch.where(blocks, t, -math.inf).amax(1) + spacing / 2
         refined = count > 0
