@@ -141,7 +141,7 @@ def run_scenes(
     from tqdm import tqdm
 
     truth = _clean_frames(dataset)
-    aabb = model.aabb.double()
+    aabb = model.aabb.double().cpu()
     centre = ((aabb[0] + aabb[1]) / 2).numpy()
     rows = []
     for frame in tqdm(frames, desc=f"{model.name} {options.mode} x{scale:g}", disable=not progress, leave=False):
@@ -466,22 +466,22 @@ def plot_sweep(sweep: list[dict], path: Path) -> None:
 
 def _prepare(args: argparse.Namespace, tool: str, noise: bool) -> tuple[NarfModel, Dataset] | None:
     """The model and the 160x120 dataset of a tool, made if missing (``None``: no bundled model in quick mode)."""
-    from narf_core.data.synth.generate import NoiseOptions, synthesize
-
     suffix = "-noise" if noise else ""
     root = args.work / "data" / f"{tool}-160x120{suffix}{'-quick' if args.quick else ''}"
-    if not (root / "scene.json").exists():
+    if not (root / "scene.json").exists():  # the generator (pybullet) only where data is missing
+        from narf_core.data.synth.generate import NoiseOptions, synthesize
+
         synthesize(tool, root, size=(160, 120), views=24 if args.quick else 200, seed=0,
                    noise=NoiseOptions.preset("paper") if noise else None, progress=True)
     bundled = args.models / f"{tool}.narf"
     if args.quick or (bundled.exists() and not noise):
-        return (load_bundle(bundled), Dataset.open(root)) if bundled.exists() else None
+        return (load_bundle(bundled, args.device), Dataset.open(root)) if bundled.exists() else None
     path = args.work / "models" / f"{tool}{suffix}.narf"
     if not path.exists():
         from narf_core.train.pipeline import train
 
         train(root, path, command="narf bench estimate", progress=True)
-    return load_bundle(path), Dataset.open(root)
+    return load_bundle(path, args.device), Dataset.open(root)
 
 
 def run_arguments(args: argparse.Namespace) -> dict:

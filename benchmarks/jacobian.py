@@ -25,7 +25,7 @@ def measure(model: NarfModel, dataset: Dataset, frame: Frame, rays: int = 1024, 
 
     from narf_core import estimate as E
     from narf_core import gauss_newton as gn
-    from narf_core.geometry import Rays
+    from narf_core.geometry import Pinhole, Rays
 
     images = dataset.load(frame)
     mask = images.labels > 0
@@ -38,7 +38,8 @@ def measure(model: NarfModel, dataset: Dataset, frame: Frame, rays: int = 1024, 
     theta = model.kinematics.joint_vector(frame.joints).double()
     p = torch.cat([torch.zeros(6, dtype=torch.float64), param.u_of(theta[None])[0]])[None]
     index = torch.randint(obs.pixels.shape[0], (rays,), generator=torch.Generator().manual_seed(0))
-    cam_rays = dataset.camera.rays(obs.pixels[index].float())
+    camera = dataset.camera
+    cam_rays = Pinhole(camera.K.to(obs.pixels.device), camera.width, camera.height).rays(obs.pixels[index].float())
     target = obs.levels[-1]
     d = p.shape[1]
 
@@ -56,10 +57,10 @@ def measure(model: NarfModel, dataset: Dataset, frame: Frame, rays: int = 1024, 
             step[0, j] = 1e-3
             problem.residuals(chain, p + step, cam_rays, target, index, False)
 
-    T_obj_cam = torch.linalg.inv(chain.poses(p))[0].float()
+    T_obj_cam = torch.linalg.inv(chain.poses(p))[0].to(cam_rays.directions)
     origins = T_obj_cam[:3, 3].expand(rays, 3).contiguous()
     directions = cam_rays.directions @ T_obj_cam[:3, :3].T
-    thetas = chain.thetas(p).float().expand(rays, -1).contiguous()
+    thetas = chain.thetas(p).to(cam_rays.directions).expand(rays, -1).contiguous()
 
     def forward_mode() -> None:
         for j in range(d):

@@ -49,6 +49,7 @@ class RenderBenchConfig:
     train_budget_s: float | None = None
     quick: bool = False
     models: dict[str, Path] = field(default_factory=dict)
+    device: str = "cpu"  # where the models are loaded and render
 
     def quick_version(self) -> RenderBenchConfig:
         """The reduced run of ``--quick``: the given (bundled) models only, never training, at the
@@ -76,13 +77,13 @@ def _model(work: Path, tool: str, dataset: Dataset, config: RenderBenchConfig, n
     from narf_core.train.pipeline import TrainConfig, train
 
     if tool in config.models and not noise:
-        return load_bundle(config.models[tool])
+        return load_bundle(config.models[tool], config.device)
     if config.quick:
         raise ValueError(f"the quick run trains nothing, and no model was given for {tool!r}")
     path = work / "models" / f"{tool}{'-noise' if noise else ''}.narf"
     if not path.exists():
         train(dataset.root, path, TrainConfig(budget_s=config.train_budget_s), command="narf bench render", progress=True)
-    return load_bundle(path)
+    return load_bundle(path, config.device)
 
 
 def step_sweep(model: NarfModel, dataset: Dataset, divisions: tuple[float, ...], limit: int) -> list[dict]:

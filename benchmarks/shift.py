@@ -296,7 +296,7 @@ def main(args: argparse.Namespace) -> int:
     if args.quick:
         scenes, scales, splits = min(scenes, 3), scales[:1], splits[:1]
     models, sources = {}, {}
-    prepare_args = argparse.Namespace(work=args.work, models=args.models, quick=False)
+    prepare_args = argparse.Namespace(work=args.work, models=args.models, quick=False, device=args.device)
     for tool in tools:
         pair = _prepare(prepare_args, tool, False)
         models[tool], sources[tool] = pair

@@ -43,10 +43,10 @@ MODALITIES = ("rgbd", "rgb")
 
 def sequence(work: Path, tool: str, size: tuple[int, int], frames: int, events: bool, seed: int = 0) -> Path:
     """The sequence dataset for one setting, synthesised on first use."""
-    from narf_core.data.synth.sequence import synthesize_sequence
-
     out = work / "sequences" / f"{tool}-{size[0]}x{size[1]}-{frames}{'-events' if events else ''}{f'-s{seed}' if seed else ''}"
-    if not (out / "scene.json").is_file():
+    if not (out / "scene.json").is_file():  # the generator (pybullet) only where the sequence is missing
+        from narf_core.data.synth.sequence import synthesize_sequence
+
         synthesize_sequence(tool, out, frames, size=size, seed=seed, events=events, overwrite=True)
     return out
 
@@ -211,7 +211,7 @@ def main(args: argparse.Namespace) -> int:
     for tool in tools:
         path = args.models / f"{tool}.narf"
         if path.is_file():
-            models[tool] = load_bundle(path)
+            models[tool] = load_bundle(path, args.device)
         else:
             missing.append(tool)
     if not models:

@@ -32,6 +32,7 @@ EXIT_ERROR = 2  # bad input, as argparse uses for bad arguments
 EXIT_INTERRUPTED = 130
 EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError)
 THREADS_ENV = "NARF_THREADS"
+DEVICE_ENV = "NARF_DEVICE"  # as the service's setting
 SMALL_WORK_THREADS = 1  # 'auto' for rendering, refining and tracking: see _threads_for
 NOISE_PRESETS = ("none", "paper")  # generate.NOISE_PRESETS, named here so that --help imports no pybullet
 MODES = ("auto", "narf", "parts")  # narf_core.modes.MODES, named here so that --help imports no numpy
@@ -70,6 +71,11 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"CPU threads for torch (default: ${THREADS_ENV}, else 'auto': the cores other processes leave "
              "free when the command starts). Idle threads sleep instead of spinning (OMP_WAIT_POLICY=PASSIVE "
              "unless set), so a busy machine slows the command down instead of stalling it",
+    )
+    parser.add_argument(
+        "--device", default=os.environ.get(DEVICE_ENV, "cpu"), metavar="cpu|cuda[:N]",
+        help=f"torch device that render, estimate, track, eval, serve and the benchmarks load models and render on "
+             f"(default: ${DEVICE_ENV}, else cpu); training runs on the CPU",
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in (_add_synth, _add_restyle, _add_train, _add_eval, _add_render, _add_estimate, _add_track, _add_bench, _add_serve):
@@ -566,7 +572,7 @@ def _run_eval(args: argparse.Namespace) -> int:
     from narf_core.data.dataset import Dataset
     from narf_core.evaluate import evaluate_render
 
-    model = load_bundle(args.model)
+    model = load_bundle(args.model, args.device)
     dataset = Dataset.open(args.dataset, clean=args.clean)
     recorded = None
     if args.record_modes:
@@ -623,7 +629,7 @@ def _run_render(args: argparse.Namespace) -> int:
     width, height = args.size
     camera = _camera_arg(args.K, width, height) if args.K else Pinhole.primesense(width, height)
     T = _pose_arg(args.pose, "--pose")
-    model = load_bundle(args.model)
+    model = load_bundle(args.model, args.device)
     mode, reason = _mode_arg(model, args.mode)
     theta = model.joint_vector(_joints_arg(args.joints), field="--joints")
     outputs = ("rgb", "depth") if args.depth else ("rgb",)
@@ -631,9 +637,9 @@ def _run_render(args: argparse.Namespace) -> int:
     images = model.render(torch.as_tensor(T, dtype=torch.float32), theta, camera, outputs=outputs, mode=mode)
     ms = 1000 * (time.perf_counter() - start)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray((images["rgb"].numpy() * 255 + 0.5).astype(np.uint8)).save(args.out)
+    Image.fromarray((images["rgb"].cpu().numpy() * 255 + 0.5).astype(np.uint8)).save(args.out)
     if args.depth:
-        write_png_depth(args.depth, images["depth"].numpy())
+        write_png_depth(args.depth, images["depth"].cpu().numpy())
     result = {"rgb": str(args.out), "depth": str(args.depth) if args.depth else None, "ms": round(ms, 2),
               "joints": model.joint_dict(theta), "mode": mode, "mode_reason": reason}
     _emit(args, result, lambda r: f"wrote {r['rgb']}" + (f" and {r['depth']}" if r["depth"] else "")
@@ -703,7 +709,7 @@ def _run_estimate(args: argparse.Namespace) -> int:
               "rgb_refinements": args.refinements}
     preset, preset_reason = choose_preset(args.preset, depth is not None)
     options = EstimateOptions.preset(preset, mode=args.mode, **{k: v for k, v in chosen.items() if v is not None})
-    model = load_bundle(args.model)
+    model = load_bundle(args.model, args.device)
     _mode_arg(model, args.mode)  # a mode the model lacks, named as the flag
     result = refine(model, image, mask > 0, camera, T_init, joints_init=_joints_arg(args.init_joints, "--init-joints"),
                     depth=depth, options=options, ground_truth=ground_truth)
@@ -784,7 +790,7 @@ def _run_track(args: argparse.Namespace) -> int:
         raise ValueError(f"--video: {args.video.name}: only .gif is supported (no video codec is installed)")
     dataset = Dataset.open(args.sequence)
     frames = sequence_frames(dataset, limit=args.limit)
-    model = load_bundle(args.model)
+    model = load_bundle(args.model, args.device)
     if args.init_pose == "label":
         T_first, joints_first = frames[0].T_cam_obj, frames[0].joints
     elif args.init_pose == "detect":  # no pose: found in the first frame (narf_core/detect.py)
@@ -1002,7 +1008,7 @@ def _run_bench_render(args: argparse.Namespace) -> int:
 
     tools = _bench_tools(args)
     models = {t: args.models / f"{t}.narf" for t in tools if (args.models / f"{t}.narf").exists()}
-    config = RenderBenchConfig(tools=tools, noise=args.noise, models=models)
+    config = RenderBenchConfig(tools=tools, noise=args.noise, models=models, device=args.device)
     if args.quick:
         if not tools:
             raise ValueError(f"--quick: no models (*.narf) in {args.models}")
@@ -1019,7 +1025,7 @@ def _run_bench_estimate(args: argparse.Namespace) -> int:
     if args.shift:
         if args.noise:
             raise ValueError("--shift runs on restyled clean data; --noise (label noise) does not combine with it")
-        argv = ["bench", "shift", "--work", str(args.work), "--models", str(args.models)]
+        argv = ["--device", args.device, "bench", "shift", "--work", str(args.work), "--models", str(args.models)]
         argv += ["--tools", *args.tools] if args.tools else []
         argv += ["--quick"] * args.quick + ["--json"] * args.json
         return _run_bench_shift(build_parser().parse_args(argv))
@@ -1109,7 +1115,8 @@ def _run_serve(args: argparse.Namespace) -> int:
         raise ValueError("--token would show the secret to every user in `ps`; "
                          "set NARF_TOKEN or write it to a file for --token-file")
     extra = {} if args.state_key_file is None else {"state_key_file": args.state_key_file}
-    serve(models_dir=args.models, host=args.host, port=args.port, token_file=args.token_file, **extra)
+    serve(models_dir=args.models, host=args.host, port=args.port, token_file=args.token_file, device=args.device,
+          **extra)
     return 0
 
 

@@ -76,6 +76,14 @@ class Settings(BaseSettings):
         """``NARF_TOKEN=`` (set but empty, as compose files leave it) means no authentication."""
         return None if isinstance(token, str) and not token.strip() else token
 
+    @field_validator("device")
+    @classmethod
+    def _usable_device(cls, device: str) -> str:
+        """A device this machine has (narf_core.bundle.resolve_device), refused at start rather than per bundle."""
+        from narf_core.bundle import resolve_device
+
+        return str(resolve_device(device))
+
     @field_validator("public_routes", mode="before")
     @classmethod
     def _split_routes(cls, routes: object) -> object:
