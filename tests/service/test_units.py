@@ -267,6 +267,18 @@ def test_serve_refuses_a_missing_models_folder_and_bad_settings(tmp_path) -> Non
         serve(tmp_path / "absent")
     with pytest.raises(ValueError, match="workers"):
         serve(tmp_path, workers=-1)
+    with pytest.raises(ValueError, match="device 'gpu0': not a torch device"):
+        serve(tmp_path, device="gpu0")
+
+
+def test_settings_refuse_a_device_the_machine_lacks(monkeypatch) -> None:
+    import torch
+
+    assert Settings(device="cpu").device == "cpu"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    monkeypatch.setenv("NARF_DEVICE", "cuda:0")
+    with pytest.raises(ValidationError, match="device 'cuda:0': this torch .* sees no CUDA device"):
+        Settings()
 
 
 def test_peak_rss_is_read_from_proc_status(tmp_path) -> None:
