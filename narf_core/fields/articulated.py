@@ -457,7 +457,7 @@ class _PartLookup:
         self.z_scale, self.z_shift = 2 / cells, -2 / cells - 1  # cell units -> [-1, 1] over the box
         padded = cells.long() + 2
         self.top = (padded - 1).int()
-        self.strides = torch.stack([padded[:, 1] * padded[:, 2], padded[:, 2], torch.ones(len(grids), dtype=torch.long, device=device)], -1).int()
+        self.strides = torch.stack([padded[:, 1] * padded[:, 2], padded[:, 2], padded.new_ones(len(grids))], -1).int()
         self.offset = torch.cat([padded.new_zeros(1), padded.prod(-1).cumsum(0)[:-1]]).int()  # [p]
         if self.flat.numel() >= 1 << 24:
             raise ValueError(f"at most 2^24 cells in all part grids together, got {self.flat.numel()}")
