@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from narf_benchmarks.load import describe_machine, machine
 from narf_core.bundle import NarfModel, load_bundle
 from narf_core.data.dataset import Dataset, Frame
 from narf_core.estimate import PRESETS, EstimateOptions, EstimateResult, chi2_quantile, refine
@@ -294,7 +295,8 @@ def run(
     table, curves, sweep, skipped = [], {}, [], []
     jacobian: dict[str, dict] = {}  # tool -> CPU seconds per Gauss-Newton Jacobian, by method
     auto: dict[str, dict] = {}  # tool -> the mode `auto` refines it in, and why
-    for tool, model, dataset in _pairs(models, datasets):
+    pairs = _pairs(models, datasets)
+    for tool, model, dataset in pairs:
         auto[tool] = dict(zip(("mode", "reason"), choose_mode(model)))
         first: dict[str, list[dict]] = {}  # preset -> rows of the first split and mode (reused by the sweep)
         sweep_frames, sweep_mode = None, None
@@ -335,7 +337,7 @@ def run(
 
             jacobian[tool] = measure(model, dataset, sweep_frames[0])
     result = {"config": config, "table": table, "curves": curves, "sweep": sweep, "skipped": skipped,
-              "paper": PAPER_TABLE_II, "jacobian": jacobian, "auto": auto}
+              "paper": PAPER_TABLE_II, "jacobian": jacobian, "auto": auto, "machine": machine(m for _, m, _ in pairs)}
     (out_dir / "estimate.json").write_text(json.dumps(result, indent=1))
     (out_dir / "estimate.md").write_text(markdown(result))
     plot_curves(curves, out_dir / "estimate_error_vs_iterations.png")
@@ -370,6 +372,7 @@ def markdown(result: dict) -> str:
         "and settings; `robust` = plus silhouette and depth terms, 4 joint starts, coarse-to-fine; "
         "`gauss-newton` = the same terms, Levenberg-Marquardt with Huber weights, its own iteration count. "
         "'inside 95 % region': share of scenes whose true error lies inside the estimate's χ² 95 % region."
+        + describe_machine(result.get("machine"))
         + "".join(f" Every preset with `{k}: {v}`." for k, v in c.get("overrides", {}).items()),
         "",
         "| tool | split | mode | preset | N | ADD (cm) | per-joint error | ADD < 1 cm | ADD < 10% d "
@@ -431,7 +434,7 @@ def plot_curves(curves: dict[str, dict], path: Path) -> None:
         left.plot(c["iteration"], [100 * v for v in c["add_mean_m"]], "o-", ms=3, label=name)
         right.plot(c["seconds_mean"], [100 * v for v in c["add_mean_m"]], "o-", ms=3, label=name)
     left.set_xlabel("iteration")
-    right.set_xlabel("seconds (CPU)")
+    right.set_xlabel("seconds (wall)")
     left.set_ylabel("mean ADD (cm)")
     for ax in (left, right):
         ax.axhline(1.0, color="grey", lw=0.8, ls="--")
@@ -454,7 +457,7 @@ def plot_sweep(sweep: list[dict], path: Path) -> None:
         left.plot([s["scale"] for s in rows], [100 * s["add<0.1d"] for s in rows], style, label=label)
         right.plot([s["scale"] for s in rows], [s["seconds_mean"] for s in rows], style, label=label)
     left.set_ylabel("success, ADD < 10% diameter (%)")
-    right.set_ylabel("seconds per scene (CPU)")
+    right.set_ylabel("seconds per scene (wall)")
     for ax in (left, right):
         ax.set_xlabel("perturbation scale (1 = 10 deg, 2 cm)")
         ax.grid(alpha=0.3)

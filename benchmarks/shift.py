@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from narf_benchmarks.estimate import _preset_options, _pyplot, pick_frames, run_scenes, summarise
+from narf_benchmarks.load import describe_machine, machine
 from narf_core.bundle import NarfModel
 from narf_core.data.dataset import Dataset, FrameImages
 from narf_core.estimate import PRESETS, EstimateOptions
@@ -165,7 +166,7 @@ def run(
                             table.append({"tool": tool, "condition": condition, "split": split, "input": kind,
                                           "preset": preset, "scale": scale, **summarise(model, rows),
                                           "scenes_detail": rows})
-    result = {"config": config, "table": table, "warnings": warnings}
+    result = {"config": config, "table": table, "warnings": warnings, "machine": machine(models.values())}
     (out_dir / "shift.json").write_text(json.dumps(result, indent=1))
     (out_dir / "shift.md").write_text(markdown(result))
     plot(result, out_dir / "shift.png")
@@ -205,7 +206,7 @@ def markdown(result: dict) -> str:
         f"Shifted test sets (Mitsuba path tracing at {c['size'][0]}x{c['size'][1]}, {c['spp']} spp, plus faults): "
         f"up to {c['scenes']} scenes per split, starts perturbed by ±10 deg / ≤ 2 cm times the scale, θ at "
         f"mid-range, {c['iterations']} iterations (a Gauss-Newton preset keeps its own count). `rgb`: no depth "
-        "given; `rgbd`: the (faulty) depth too.",
+        "given; `rgbd`: the (faulty) depth too." + describe_machine(result.get("machine")),
         "",
         "| tool | condition | split | input | preset | scale | N | ADD (cm) | ADD < 1 cm | per joint "
         "| along / across view (cm) | s/scene | target |",
@@ -241,7 +242,7 @@ def plot(result: dict, path: Path) -> None:
         right.scatter([r["seconds_mean"] for r in pts], [100 * r["add_mean_m"] for r in pts], s=14, label=" ".join(key))
     left.set_xticks(range(len(conditions)), conditions, rotation=30)
     left.set_ylabel("mean ADD (cm), scale 1x")
-    right.set_xlabel("seconds per scene (CPU)")
+    right.set_xlabel("seconds per scene (wall)")
     right.set_ylabel("mean ADD (cm)")
     for ax in (left, right):
         ax.axhline(1.0, color="grey", lw=0.8, ls="--")

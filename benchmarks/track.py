@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from narf_benchmarks.load import describe_machine, machine
 from narf_core.bundle import NarfModel, load_bundle
 from narf_core.data.dataset import Dataset
 from narf_core.estimate import chi2_quantile, local_error
@@ -143,7 +144,8 @@ def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, m
                     runs.append(one)
                     print(f"narf bench track: {name}: {one['frames_per_second']:.1f} frames/s, ADD mean "
                           f"{one['add_m']['mean'] * 100:.2f} cm, lost {one['lost']}", file=sys.stderr)
-    result = {"frames": frames, "seed": seed, "options": options.__dict__, "runs": runs}
+    result = {"frames": frames, "seed": seed, "options": options.__dict__, "runs": runs,
+              "machine": machine(models.values())}
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "result.json").write_text(json.dumps(result, indent=1))
     return result
@@ -161,7 +163,8 @@ def markdown(result: dict) -> str:
         f"from the first frame's label "
         f"({'as exact' if o.get('first_frame') == 'warm' else 'refined by the multi-start refiner'}); per frame "
         f"{o['iterations']} {o['solver']} iterations of {o['rays_per_iteration']} rays {band}"
-        + ("" if o.get("depth_align", True) else ", the prediction not aligned to the depth"),
+        + ("" if o.get("depth_align", True) else ", the prediction not aligned to the depth")
+        + "." + describe_machine(result.get("machine")),
         "",
         "| tool | size | input | events | frames/s (all / after the 1st) | frames per CPU second (after the 1st) "
         "| ADD mean / p95 / max (cm) | joint error mean / p95 / max | lost | re-init. | NEES 95% coverage |",

@@ -43,6 +43,21 @@ def test_device_names_are_checked(monkeypatch) -> None:
         resolve_device("cuda:3")
 
 
+def test_benchmarks_name_the_device_they_timed(monkeypatch) -> None:
+    from types import SimpleNamespace
+
+    from narf_benchmarks.load import describe_machine, device_of, machine
+
+    on = lambda device: SimpleNamespace(aabb=torch.zeros(2, 3, device=device))  # noqa: E731
+    assert device_of([on("cpu"), on("cpu")]) == "cpu" and device_of([]) == "none"
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda device: "Some GPU")
+    fake = SimpleNamespace(aabb=SimpleNamespace(device=torch.device("cuda", 1)))
+    assert device_of([on("cpu"), fake]) == "cpu, cuda:1 (Some GPU)"
+    record = machine([on("cpu")])
+    assert record["device"] == "cpu" and record["cores"] >= 1
+    assert describe_machine(record).startswith(" Measured on cpu, load ") and describe_machine(None) == ""
+
+
 def test_cli_refuses_a_device_it_cannot_use_in_one_line(monkeypatch, tmp_path: Path, capsys) -> None:
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     code = main(["--device", "cuda", "render", str(CLAMP), "--pose", json.dumps(np.eye(4).tolist()),

@@ -696,6 +696,7 @@ def test_benchmark_writes_table_curves_and_sweep(model, tmp_path):
         assert (tmp_path / "out" / name).stat().st_size > 0
     assert json.loads((tmp_path / "out" / "estimate.json").read_text())["config"]["scenes"] == 2
     assert "| toy | test | narf | robust | 2 |" in (tmp_path / "out" / "estimate.md").read_text()
+    assert result["machine"]["device"] == "cpu" and "Measured on cpu, load " in (tmp_path / "out" / "estimate.md").read_text()
 
 
 def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_start():

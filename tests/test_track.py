@@ -798,6 +798,8 @@ def test_bench_track_tracks_the_sequence_of_the_seed_asked(tmp_path: Path, capfd
     assert sorted(p.name for p in (tmp_path / "sequences").iterdir()) == ["clamp-32x24-2", "clamp-32x24-2-s1"]
     assert not np.allclose(first_poses[0], first_poses[1], atol=1e-3)
     assert "seed 0)" in tables[0] and "seed 1)" in tables[1]
+    assert result["machine"]["device"] == "cpu" and result["machine"]["cores"] >= 1
+    assert "Measured on cpu, load " in tables[1]
 
     for bad, reason in (("-1", "-1 is not an integer >= 0"), ("1.5", "'1.5' is not an integer")):
         with pytest.raises(SystemExit) as exited:
