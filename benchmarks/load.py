@@ -13,8 +13,8 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterable, Iterator
-from typing import Any
 from contextlib import contextmanager
+from typing import Any
 
 _SPIN = "while True: pass"
 _SETTLE_S = 0.3  # let the scheduler see them before threads are chosen
