@@ -457,6 +457,19 @@ def test_posed_grids_bounds_are_the_box_of_the_posed_occupied_cells_at_each_conf
     assert not torch.allclose(expected(thetas[0]), expected(thetas[1]), atol=1e-3)
     per_ray = torch.stack(thetas)
     torch.testing.assert_close(occupancy.bounds(per_ray), expected(per_ray), atol=1e-5, rtol=0)
+    runs = torch.stack([thetas[i] for i in (0, 0, 1, 1, 1, 0)])  # rays in runs, a θ coming back
+    torch.testing.assert_close(occupancy.bounds(runs), expected(per_ray), atol=1e-5, rtol=0)
+    # every ray at one θ (a Jacobian's per-ray leaves): that θ's box
+    assert torch.equal(occupancy.bounds(thetas[1].expand(5, -1).clone()), occupancy.bounds(thetas[1]))
+
+
+def test_distinct_rows_are_torch_unique_rows():
+    """The rows' distinct values, sorted as ``torch.unique(dim=0)`` gives them, whatever their order."""
+    g = torch.Generator().manual_seed(0)
+    values = torch.rand(4, 3, generator=g)
+    for order in ([0, 0, 1, 1, 2, 3, 3], [3, 1, 3, 1, 0], [2] * 9, [0]):
+        rows = values[order]
+        assert torch.equal(articulated._distinct_rows(rows), torch.unique(rows, dim=0))
 
 
 @pytest.mark.slow

@@ -494,6 +494,14 @@ def _runs(theta: Tensor) -> list[int] | None:
     return [0, *(change.nonzero()[:, 0] + 1).tolist(), theta.shape[0]]
 
 
+def _distinct_rows(theta: Tensor) -> Tensor:
+    """The distinct rows of ``theta [n, k]``, sorted. Rays come in runs of one θ (one per start): the
+    runs' first rows, then ``torch.unique`` over those few (over all ``n`` rows it sorts them all)."""
+    first = torch.ones(theta.shape[0], dtype=torch.bool, device=theta.device)
+    first[1:] = (theta[1:] != theta[:-1]).any(-1)
+    return torch.unique(theta[first], dim=0)
+
+
 def _affine(x: Tensor, A: Tensor, translate: bool = True) -> Tensor:
     """``x [n,3]`` mapped by each part's affine map ``A [p, 4, K]`` (or one per row, ``[n, p, 4, K]``; rows
     ``x, y, z, 1``) -> ``[n, p, K]``; ``translate=False`` for directions. A shared map is one matrix product."""
@@ -571,6 +579,9 @@ class PosedGrids:
     def bounds(self, theta: Tensor | None = None) -> Tensor | None:
         """The object-frame box around the posed parts' tight boxes (over every ray's ``θ`` if per ray)."""
         shared = (self.theta if theta is None else theta).detach()
+        if shared.dim() == 2:
+            shared = _distinct_rows(shared)
+            shared = shared[0] if shared.shape[0] == 1 else shared  # one θ on every ray: one box, kept
         key = tuple(shared.tolist()) if shared.dim() == 1 else None
         if key is not None and self._bounds is not None and self._bounds[0] == key:
             return self._bounds[1]
@@ -579,7 +590,7 @@ class PosedGrids:
         boxes = [(i, box) for i, box in boxes if box is not None]
         if not boxes:
             return None
-        configurations = shared if shared.dim() == 1 else torch.unique(shared, dim=0)  # rays share a few θ
+        configurations = shared
         T = invert_pose(self._part_from_object(configurations)).reshape(-1, len(grids), 4, 4)
         index = [i for i, _ in boxes]
         corners = transform_points(T[:, index, None], torch.stack([box_corners(box) for _, box in boxes])).reshape(-1, 3)
