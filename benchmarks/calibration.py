@@ -161,8 +161,9 @@ def track_nees(model: NarfModel, dataset: Dataset, rgb_only: bool, seed: int = 0
     from narf_core.track import SIGMA_SCALE, TrackOptions, track
     from narf_core.track_io import load_frames, sequence_frames
 
-    scale = SIGMA_SCALE["rgb" if rgb_only else "rgbd"]  # the pooled factor: the track does not see a model's own
-    options = TrackOptions(first_frame="warm", seed=seed, sigma_scale=SIGMA_SCALE["rgbd"], sigma_scale_rgb=SIGMA_SCALE["rgb"])
+    pooled = {key: SIGMA_SCALE[TrackOptions().solver_for(key == "rgbd")][key] for key in ("rgbd", "rgb")}
+    scale = pooled["rgb" if rgb_only else "rgbd"]  # the pooled factor: the track does not see a model's own
+    options = TrackOptions(first_frame="warm", seed=seed, sigma_scale=pooled["rgbd"], sigma_scale_rgb=pooled["rgb"])
     frames = sequence_frames(dataset)
     nees = []
     for frame, result in zip(frames, track(model, load_frames(dataset, frames, rgb_only=rgb_only), dataset.camera,
@@ -184,12 +185,16 @@ def fit_track_scale(nees: list[float], dof: int, share: float = COVERAGE) -> flo
 
 def track_calibration(model: NarfModel, datasets: list[Dataset], modalities=("rgbd", "rgb")) -> dict:
     """``metadata["uncertainty"]["track"]``: per modality the factor on a warm-started frame's σ
-    (:func:`narf_core.track.sigma_scale`) fitted on the pooled frames of ``datasets``' sequences."""
-    out = {}
+    (:func:`narf_core.track.sigma_scale`) fitted on the pooled frames of ``datasets``' sequences, and
+    the solver it was fitted with (``solvers``: the default tracker's for that modality)."""
+    from narf_core.track import TrackOptions
+
+    out: dict = {"solvers": {}}
     for modality in modalities:
         nees = [n for dataset in datasets for n in track_nees(model, dataset, modality == "rgb")]
         out[modality] = fit_track_scale(nees, 6 + len(model.joints))
         out[f"{modality}_frames"] = len(nees)
+        out["solvers"][modality] = TrackOptions().solver_for(modality == "rgbd")
     return out
 
 

@@ -144,7 +144,12 @@ def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, m
                     runs.append(one)
                     print(f"narf bench track: {name}: {one['frames_per_second']:.1f} frames/s, ADD mean "
                           f"{one['add_m']['mean'] * 100:.2f} cm, lost {one['lost']}", file=sys.stderr)
-    result = {"frames": frames, "seed": seed, "options": options.__dict__, "runs": runs,
+    per_frame = {}
+    for modality in modalities:
+        step = options.step_options(modality == "rgbd")
+        per_frame[modality] = {"solver": options.solver_for(modality == "rgbd"), "iterations": step.iterations,
+                               "rays_per_iteration": step.rays_per_iteration}
+    result = {"frames": frames, "seed": seed, "options": options.__dict__, "per_frame": per_frame, "runs": runs,
               "machine": machine(models.values())}
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "result.json").write_text(json.dumps(result, indent=1))
@@ -162,7 +167,9 @@ def markdown(result: dict) -> str:
         f"Tracking, {result['frames']}-frame sequences (30 fps, seed {result.get('seed', 0)}), "
         f"from the first frame's label "
         f"({'as exact' if o.get('first_frame') == 'warm' else 'refined by the multi-start refiner'}); per frame "
-        f"{o['iterations']} {o['solver']} iterations of {o['rays_per_iteration']} rays {band}"
+        + "; ".join(f"{'with depth' if m == 'rgbd' else 'RGB only'} {p['iterations']} {p['solver']} iterations of "
+                    f"{p['rays_per_iteration']} rays" for m, p in result.get("per_frame", {}).items())
+        + f", {band}"
         + ("" if o.get("depth_align", True) else ", the prediction not aligned to the depth")
         + "." + describe_machine(result.get("machine")),
         "",
@@ -207,7 +214,7 @@ def _joint_cell(run: dict) -> str:
 
 def main(args: argparse.Namespace) -> int:
     """``narf bench track``: ``args`` has ``work``, ``models``, ``tools``, ``frames``, ``sizes``,
-    ``modalities``, ``events``, ``seed``, ``iterations``, ``band_m``, ``march``, ``depth_align``,
+    ``modalities``, ``events``, ``seed``, ``iterations``, ``solver``, ``band_m``, ``march``, ``depth_align``,
     ``service_clients``, ``json``."""
     tools = args.tools or sorted(p.stem for p in args.models.glob("*.narf"))
     models, missing = {}, []
@@ -222,7 +229,7 @@ def main(args: argparse.Namespace) -> int:
     if missing:
         print(f"narf bench track: skipping {', '.join(missing)}: no model in {args.models}", file=sys.stderr)
     sizes = tuple(tuple(s) for s in args.sizes) if args.sizes else SIZES
-    overrides = {"iterations": args.iterations, "band_m": getattr(args, "band_m", None),
+    overrides = {"iterations": args.iterations, "solver": getattr(args, "solver", None), "band_m": getattr(args, "band_m", None),
                  "march": getattr(args, "march", None), "depth_align": getattr(args, "depth_align", None)}
     options = TrackOptions(first_frame="warm", **{k: v for k, v in overrides.items() if v is not None})
     result = run(models, args.work, frames=args.frames, sizes=sizes, modalities=tuple(args.modalities),

@@ -37,6 +37,7 @@ SMALL_WORK_THREADS = 1  # 'auto' for rendering, refining and tracking: see _thre
 NOISE_PRESETS = ("none", "paper")  # generate.NOISE_PRESETS, named here so that --help imports no pybullet
 MODES = ("auto", "narf", "parts")  # narf_core.modes.MODES, named here so that --help imports no numpy
 PRESET_NAMES = ("auto", "paper", "robust", "gauss-newton")  # narf_core.estimate.PRESET_NAMES, likewise
+TRACK_SOLVER_CHOICES = ("auto", "adam", "gauss-newton")  # narf_core.track.TRACK_SOLVERS, likewise
 MODE_HELP = ("render mode: narf (the configuration field), parts (the composed part fields) or auto (default: "
              "the better one by the measurement training recorded in the bundle)")
 
@@ -770,8 +771,10 @@ def _add_track(commands: argparse._SubParsersAction) -> None:
         "--init-pose label, else mid-range)")
     arg("--rgb-only", action="store_true", help="ignore the sequence's depth")
     arg("--limit", type=_positive_int, metavar="N", help="only the first N frames")
-    arg("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame (default: 10)")
-    arg("--solver", choices=("adam", "gauss-newton"), default="adam", help="refiner per frame (default: %(default)s)")
+    arg("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame (default: the "
+        "solver's, 2 gauss-newton, 6 adam)")
+    arg("--solver", choices=TRACK_SOLVER_CHOICES, default="auto",
+        help="refiner per frame (default: %(default)s, gauss-newton with depth, adam without)")
     arg("--mode", choices=MODES, default="auto", help=MODE_HELP)
     arg("--video", type=Path, metavar="OUT.gif", help="write the frames with the model's silhouette over them")
     _add_json_flag(parser)
@@ -939,7 +942,10 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--events", action="store_true", help="also sequences with a glance away and an occluder")
     sub.add_argument("--seed", type=_non_negative_int, default=0, metavar="S",
                      help="seed of the synthesised sequences (default: %(default)s)")
-    sub.add_argument("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame")
+    sub.add_argument("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame "
+                     "(default: the solver's, 2 gauss-newton, 6 adam)")
+    sub.add_argument("--solver", choices=TRACK_SOLVER_CHOICES, default=None,
+                     help="per-frame solver (default: the tracker's, auto: gauss-newton with depth, adam without)")
     sub.add_argument("--band-m", type=_non_negative_float, metavar="M",
                      help="march only this far around the model's surface (0: the whole box; default: the tracker's)")
     sub.add_argument("--march", choices=("frame", "iteration"), default=None,

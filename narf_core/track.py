@@ -44,6 +44,7 @@ from narf_core.checks import check_number, check_option_types, check_pose, optio
 from narf_core.estimate import (
     MIN_MASK_PIXELS, SOLVERS, EstimateInputError, EstimateOptions, EstimateResult, Uncertainty, refine,
 )
+from narf_core.gauss_newton import Problem
 from narf_core.geometry import Pinhole, Rays, so3_exp, so3_log
 from narf_core.modes import MODES, choose_mode
 from narf_core.observation import dilate
@@ -64,10 +65,17 @@ _FRAME_MARGIN_M = 0.006
 _DEPTH_WINDOW_M = 0.005
 _DEPTH_ROUNDS = 3
 _DEPTH_CELL = 0.7  # its cells' side over the mean spacing of the projected points (a pixel at least)
-# A warm-started frame's σ over the refiner's (TrackOptions.sigma_scale), with depth and without, for a
-# model whose bundle carries no factor of its own: fitted on four tools' seed-1 sequences pooled (with
-# depth) and on the clamp's (without; docs/benchmarks.md).
-SIGMA_SCALE = {"rgbd": 3.0, "rgb": 1.8}
+# A warm-started frame's σ over the refiner's (TrackOptions.sigma_scale), per solver, with depth and
+# without, for a model whose bundle carries no factor of its own for that solver: fitted on four tools'
+# seed-1 sequences pooled (with depth) and on the clamp's (without; docs/benchmarks.md).
+SIGMA_SCALE = {"gauss-newton": {"rgbd": 0.4, "rgb": 1.5}, "adam": {"rgbd": 3.0, "rgb": 1.8}}
+# A frame's solver where TrackOptions.solver is "auto": with depth Levenberg-Marquardt on one set of rays
+# (a few iterations reach the bottom that Adam's fixed steps trail behind); without depth Adam, whose
+# loss holds the distance to the prediction (distance_prior_rgb) where the silhouette leaves it free.
+AUTO_SOLVER = {"rgbd": "gauss-newton", "rgb": "adam"}
+# A frame's iterations and rays per iteration per solver, where TrackOptions leaves them at 0.
+BUDGETS = {"adam": (6, 768), "gauss-newton": (2, 512)}
+TRACK_SOLVERS = ("auto", *SOLVERS)
 
 
 class TrackInputError(EstimateInputError):
@@ -78,15 +86,17 @@ class TrackInputError(EstimateInputError):
 class TrackOptions:
     """Tracker settings (plain JSON-able fields).
 
-    ``iterations``/``rays_per_iteration``: the refiner's budget per frame from the prediction (few
-    iterations on many rays: an iteration's cost is mostly per render call, little per ray);
-    ``reinit_iterations``/``reinit_theta_starts``: that of a re-initialisation (multi-start,
-    coarse-to-fine). ``solver``: the refiner's solver preset where :mod:`narf_core.estimate` has
-    several ("adam" is the robust preset with one start).
+    ``solver``: a warm-started frame's solver, "adam" (the robust preset with one start),
+    "gauss-newton", or "auto" (:data:`AUTO_SOLVER`: by whether the frame has depth).
+    ``iterations``/``rays_per_iteration``: its budget per frame from the prediction, 0 for the
+    solver's own (:data:`BUDGETS`; few iterations on many rays: an iteration's cost is mostly per
+    render call, little per ray); ``reinit_iterations``/``reinit_theta_starts``: that of a
+    re-initialisation (multi-start, coarse-to-fine).
     """
 
-    iterations: int = 6
-    rays_per_iteration: int = 768
+    solver: str = "auto"
+    iterations: int = 0
+    rays_per_iteration: int = 0
     lr_pose: float = 0.003  # Adam moves every parameter by about its rate per step: small, from a close start
     lr_theta: float = 0.01
     lr_decay: float = 0.5
@@ -100,7 +110,6 @@ class TrackOptions:
     # (refine_frame's distance_prior) where the mask's box is at most the preset's reference size: there
     # the silhouette's scale alone lets it wander; in a larger box it pins the distance well enough.
     distance_prior_rgb: float = 3.0
-    solver: str = "adam"
     # With depth, the prediction is first moved along the line of sight so that the model's surface
     # points meet the observed depth (depth_aligned): the iterations' fixed step sizes alone let the
     # track lag behind the object's motion in depth.
@@ -153,8 +162,8 @@ class TrackOptions:
     def __post_init__(self) -> None:
         check_option_types(self, TrackInputError)
         need = option_rule(self, TrackInputError)
-        need(self.iterations >= 1, "iterations", "must be >= 1")
-        need(self.rays_per_iteration >= 1, "rays_per_iteration", "must be >= 1")
+        need(self.iterations >= 0, "iterations", "must be >= 0 (0 = the solver's own)")
+        need(self.rays_per_iteration >= 0, "rays_per_iteration", "must be >= 0 (0 = the solver's own)")
         need(self.reinit_iterations >= 1, "reinit_iterations", "must be >= 1")
         need(1 <= self.reinit_theta_starts <= 64, "reinit_theta_starts", "must be in [1, 64]")
         need(self.first_frame in FIRST_FRAMES, "first_frame", f"must be one of {', '.join(FIRST_FRAMES)}")
@@ -163,7 +172,7 @@ class TrackOptions:
         need(self.redetect_after_s >= 0, "redetect_after_s", "must be >= 0 (0 = never)")
         need(0 <= self.lost_overlap <= self.uncertain_overlap <= 1, "lost_overlap",
              "must satisfy 0 <= lost_overlap <= uncertain_overlap <= 1")
-        need(self.solver in SOLVERS, "solver", f"must be one of {', '.join(SOLVERS)}")
+        need(self.solver in TRACK_SOLVERS, "solver", f"must be one of {', '.join(TRACK_SOLVERS)}")
         need(self.reinit_solver in ("robust", "gauss-newton"), "reinit_solver", "must be 'robust' or 'gauss-newton'")
         need(self.uncertainty_rays >= 0, "uncertainty_rays", "must be >= 0")
         need(self.sigma_scale >= 0, "sigma_scale", "must be >= 0 (0 = the model's own)")
@@ -181,18 +190,25 @@ class TrackOptions:
         need(self.eval_rays >= 16, "eval_rays", "must be >= 16")
         need(self.march in MARCHES, "march", f"must be one of {', '.join(MARCHES)}")
 
+    def solver_for(self, depth: bool) -> str:
+        """A warm-started frame's solver, with ``depth`` or without."""
+        return AUTO_SOLVER["rgbd" if depth else "rgb"] if self.solver == "auto" else self.solver
+
     def step_options(self, depth: bool) -> EstimateOptions:
         """The refiner's options for a warm-started frame (from the prediction alone: a frame that misses
         is the re-initialisation's to find, so no pose starts)."""
-        common = {"iterations": self.iterations, "rays_per_iteration": self.rays_per_iteration, "mode": self.mode,
+        solver = self.solver_for(depth)
+        iterations, rays = BUDGETS[solver]
+        common = {"iterations": self.iterations or iterations, "rays_per_iteration": self.rays_per_iteration or rays,
+                  "mode": self.mode,
                   "theta_starts": 1, "coarse_to_fine": 1, "early_stop": False, "seed": self.seed,
                   "band_m": self.band_m, "eval_rays": self.eval_rays,
                   "ray_sampling": self.ray_sampling if depth else self.ray_sampling_rgb,
                   "uncertainty": self.uncertainty_rays > 0, "uncertainty_rays": max(self.uncertainty_rays, 16),
                   "uncertainty_usual_residual": self.usual_residual if depth else 0.0,
                   "occlusion_margin": self.occlusion_margin, "refinements": 0, "rgb_refinements": 0, "pose_starts": 1}
-        if self.solver != "adam":
-            return EstimateOptions.preset(self.solver, **common)
+        if solver != "adam":
+            return EstimateOptions.preset(solver, **common)
         return EstimateOptions.preset("robust", lr_pose=self.lr_pose, lr_theta=self.lr_theta, lr_decay=self.lr_decay,
                                       silhouette_weight=self.silhouette_weight if depth else self.silhouette_weight_rgb,
                                       **common)
@@ -474,8 +490,10 @@ def refine_frame(
     options: EstimateOptions,
     distance_prior: float = 0.0,
 ) -> EstimateResult:
-    """The refiner's Adam steps for a warm-started frame without marching: :func:`refine`'s loss on
-    fresh rays at every iteration, each ray sampled only in a band that is known for the whole frame.
+    """The refiner's iterations for a warm-started frame without marching, each ray sampled only in a
+    band that is known for the whole frame: ``options.solver`` "adam", :func:`refine`'s loss on fresh
+    rays at every iteration, or "gauss-newton", Levenberg-Marquardt on one set of rays
+    (:class:`FrameProblem`).
 
     At the prediction (``T_pred``, ``joints_pred``) the model's surface points give every box pixel
     the depths where its ray can meet the object (:func:`narf_core.band.ray_band`, widened by
@@ -490,16 +508,16 @@ def refine_frame(
     (``options.uncertainty_rays`` rays) take their samples the same way. ``narf`` mode; where the
     band cannot be trusted (surface points behind the camera) this is :func:`refine`.
     ``distance_prior`` (for a view without depth) adds that weight times the squared motion of the
-    box centre along the line of sight, in object radii, to the loss where the mask's box is no
+    box centre along the line of sight, in object radii, to Adam's loss where the mask's box is no
     larger than ``options.reference_box_px``.
     """
     from narf_core.band import ray_band
     from narf_core.compositing import composite
     from narf_core.estimate import (
-        _MAX_RECOVERIES, _Adam, _box_scale, _check_observation, _Loss, _mask_box, _object_rays, _observation,
-        _overlaps, _Parameterisation, _ray_index, _uncertainty,
+        _box_scale, _check_observation, _Loss, _mask_box, _object_rays, _observation, _overlaps, _Parameterisation,
+        _ray_index, _uncertainty,
     )
-    from narf_core.gauss_newton import Problem, cluster_sample
+    from narf_core.gauss_newton import GaussNewtonRun, Problem, cluster_sample
     from narf_core.geometry import pose_to_position_quaternion
     from narf_core.observation import check_observation, usable_depth
 
@@ -567,28 +585,19 @@ def refine_frame(
 
     k = theta0.shape[0]
     p0 = torch.cat([torch.zeros(1, 6, dtype=torch.float64), param.u_of(theta0[None])], dim=1)
-    adam = _Adam(p0.clone(), torch.tensor([options.lr_pose] * 6 + [options.lr_theta] * k, dtype=torch.float64))
-    last_finite, rate, trace, failures = None, 1.0, [], 0
-    for i in range(options.iterations):
-        p = adam.params.clone().requires_grad_(True)
-        loss = loss_at(p, _ray_index(obs, options, n_rays, rng, True))
-        value = float(loss.detach().sum())
-        grad = torch.autograd.grad(loss.sum(), p)[0] if loss.requires_grad else torch.zeros_like(p)
-        if not (math.isfinite(value) and bool(torch.isfinite(grad).all())):
-            failures += 1  # back to the last finite iterate, fresh moments, half the rate
-            adam.params = p0.clone() if last_finite is None else last_finite.clone()
-            adam.reset()
-            rate *= 0.5
-            if failures >= _MAX_RECOVERIES:
-                break
-            continue
-        last_finite = adam.params.clone()
-        trace.append((value, _time.perf_counter() - start))
-        adam.step(grad, rate * options.lr_decay ** ((i + 1) / max(options.iterations - 1, 1)))
+    if options.solver == "gauss-newton":  # Levenberg-Marquardt on one set of rays, their samples in the band
+        problem = FrameProblem(model, options, param.radius, uses_depth, near=near, far=far, field=field, grid=grid,
+                               prune=prune)
+        run = GaussNewtonRun(problem, obs, camera, param, p0, start, options.seed)
+        run.optimise()
+        candidates, trace, failures = (run.params, run.best_params), run.trace, int(run.recovered)
+    else:
+        candidates, trace, failures = _adam_steps(options, p0, loss_at, lambda: _ray_index(obs, options, n_rays, rng, True),
+                                                  start)
     index = torch.arange(n_pixels) if n_pixels <= options.eval_rays else torch.randperm(n_pixels, generator=rng)[
         : options.eval_rays]
     final = None
-    for candidate in (adam.params, last_finite):
+    for candidate in candidates:
         if candidate is not None and final is None:
             with torch.no_grad():
                 value = float(loss_at(candidate, index).sum())
@@ -608,6 +617,67 @@ def refine_frame(
         uncertainty = _uncertainty(model, options, obs, camera, param, T, theta, uses_depth, problem,
                                    (index, cluster, weight))
     return result("max_iterations", p, loss, options.iterations, trace, uncertainty, failures > 0)
+
+
+def _adam_steps(options: EstimateOptions, p0: Tensor, loss_at, rays, start: float) -> tuple[tuple, list, int]:
+    """``options.iterations`` Adam steps from ``p0 [1, d]`` on ``loss_at(p, index)``, fresh rays (``rays()``, an
+    index into the box) at each; a non-finite step goes back to the last finite iterate at half the rate.
+    Returns the candidates for the estimate (the last iterate, the last finite one), the trace and the
+    number of recoveries."""
+    from narf_core.estimate import _MAX_RECOVERIES, _Adam
+
+    k = p0.shape[1] - 6
+    adam = _Adam(p0.clone(), torch.tensor([options.lr_pose] * 6 + [options.lr_theta] * k, dtype=torch.float64))
+    last_finite, rate, trace, failures = None, 1.0, [], 0
+    for i in range(options.iterations):
+        p = adam.params.clone().requires_grad_(True)
+        loss = loss_at(p, rays())
+        value = float(loss.detach().sum())
+        grad = torch.autograd.grad(loss.sum(), p)[0] if loss.requires_grad else torch.zeros_like(p)
+        if not (math.isfinite(value) and bool(torch.isfinite(grad).all())):
+            failures += 1  # back to the last finite iterate, fresh moments, half the rate
+            adam.params = p0.clone() if last_finite is None else last_finite.clone()
+            adam.reset()
+            rate *= 0.5
+            if failures >= _MAX_RECOVERIES:
+                break
+            continue
+        last_finite = adam.params.clone()
+        trace.append((value, _time.perf_counter() - start))
+        adam.step(grad, rate * options.lr_decay ** ((i + 1) / max(options.iterations - 1, 1)))
+    return (adam.params, last_finite), trace, failures
+
+
+@dataclass
+class FrameProblem(Problem):
+    """Gauss-Newton's residuals on a warm-started frame (:func:`refine_frame`) without marching: the rays
+    through the box pixels ``index`` take their lattice samples between ``near`` and ``far`` (the frame's
+    band, per box pixel), those the posed grid holds at the pose asked (:func:`occupied`) and, for a
+    Jacobian where ``prune``, those light reaches (:func:`visible`): the Adam frame's samples. One start."""
+
+    near: Tensor | None = None
+    far: Tensor | None = None
+    field: object = None
+    grid: object = None
+    prune: bool = False
+    index: Tensor | None = None  # the box pixels of the rays being rendered (set by residuals)
+
+    def residuals(self, chain, p, rays_cam, target, index, jacobian, group=1, along_ray=False):
+        self.index = index
+        return super().residuals(chain, p, rays_cam, target, index, jacobian, group, along_ray)
+
+    def _render(self, rays: Rays, theta: Tensor, S: int, n: int, outputs: tuple[str, ...], band) -> Tensor:
+        from narf_core.compositing import composite
+
+        if S != 1 or self.index is None or len(self.index) != n:
+            raise ValueError("FrameProblem renders one start's rays through the box pixels of its index")
+        th = theta[0].detach()
+        fixed = Rays(rays.origins.detach(), rays.directions.detach(), rays.z_per_t)
+        samples = occupied(self.grid, fixed, frame_band(self.near[self.index], self.far[self.index], self.model.step), th)
+        if torch.is_grad_enabled() and self.prune:
+            samples = visible(self.field, fixed, samples, th)
+        out = composite(self.field, rays, samples, theta=theta, outputs=outputs, background=0.0)
+        return torch.cat([out.rgb, out.opacity[:, None], out.depth[:, None]], -1)
 
 
 def visible(field, rays_obj: Rays, samples: Samples, theta: Tensor, eps: float = 1e-5) -> Samples:
@@ -704,20 +774,22 @@ def _uncertainty(result: EstimateResult, sigma_scale: float = 1.0) -> tuple[dict
 
 def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool) -> float:
     """The factor on a warm-started frame's σ, with ``depth`` or without: the option where set (> 0),
-    else the model's own (its bundle's ``metadata["uncertainty"]["track"]``, keys ``rgbd`` / ``rgb``),
-    else :data:`SIGMA_SCALE`'s."""
-    key = "rgbd" if depth else "rgb"
+    else the model's own for the frame's solver (its bundle's ``metadata["uncertainty"]["track"]``, keys
+    ``rgbd`` / ``rgb``, fitted with the solvers under ``solvers``: "adam" where that is absent), else
+    :data:`SIGMA_SCALE`'s."""
+    key, solver = "rgbd" if depth else "rgb", options.solver_for(depth)
     chosen = options.sigma_scale if depth else options.sigma_scale_rgb
-    own = ((model.metadata.get("uncertainty") or {}).get("track") or {}).get(key)
-    return float(chosen or own or SIGMA_SCALE[key])
+    track = (model.metadata.get("uncertainty") or {}).get("track") or {}
+    own = track.get(key) if (track.get("solvers") or {}).get(key, "adam") == solver else None
+    return float(chosen or own or SIGMA_SCALE[solver][key])
 
 
 def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None,
                  T: np.ndarray, joints: Mapping[str, float], opts: TrackOptions) -> EstimateResult:
-    """A warm-started frame's iterations from ``T`` and ``joints``: :func:`refine_frame` (Adam, narf mode,
-    ``march = "frame"``, no band) or :func:`refine` (any other solver, mode or march)."""
+    """A warm-started frame's iterations from ``T`` and ``joints``: :func:`refine_frame` (narf mode,
+    ``march = "frame"``, no band) or :func:`refine` (any other mode or march)."""
     step_options = opts.step_options(depth is not None)
-    if (opts.solver == "adam" and opts.march == "frame" and opts.band_m == 0
+    if (opts.march == "frame" and opts.band_m == 0
             and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf"):
         return refine_frame(model, camera, image, mask, depth, T, joints, step_options,
                             0.0 if depth is not None else opts.distance_prior_rgb)
@@ -796,7 +868,7 @@ def _step(
             T_pred = depth_aligned(model, camera, T_pred, joints_pred, mask, depth)
         result = _warm_refine(model, camera, frame.image, mask, depth, T_pred, joints_pred, opts)
         iterations += result.iterations
-        retry_scale = opts.sigma_scale or SIGMA_SCALE["rgbd"]
+        retry_scale = opts.sigma_scale or SIGMA_SCALE[opts.solver_for(True)]["rgbd"]
         if depth is not None and opts.retry_uncertain and _too_uncertain(_uncertainty(result, retry_scale)[0], opts):
             # Σ grew past the limits with the colour residual: the estimate explains the image much worse
             # than the model usually does (a track turning away); one more round from where it ended. (Judged

@@ -182,7 +182,7 @@ def test_track_bad_input_over_http(server: str, frames) -> None:
         lost = narf.track_step(empty, K, model="clamp", state=lost.state, options=FAST)
         assert lost.status == "lost" and "not in view" in lost.reason
         with pytest.raises(InvalidInput) as info:
-            narf.track_step(sent[3], K, model="clamp", state=token, options={"iterations": 0})
+            narf.track_step(sent[3], K, model="clamp", state=token, options={"iterations": -1})
         assert info.value.field.startswith("request.options")
 
 

@@ -320,5 +320,5 @@ def test_track_options_come_from_the_core_tracker() -> None:
     with pytest.raises(ValueError, match="solver"):
         TrackOptionsIn(solver="newton")
     with pytest.raises(TrackInputError) as info:
-        TrackOptions(iterations=0)
-    assert info.value.field == "options.iterations" and info.value.reason == "must be >= 1, got 0"
+        TrackOptions(iterations=-1)
+    assert info.value.field == "options.iterations" and info.value.reason == "must be >= 0 (0 = the solver's own), got -1"
