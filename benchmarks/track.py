@@ -214,7 +214,7 @@ def _joint_cell(run: dict) -> str:
 
 def main(args: argparse.Namespace) -> int:
     """``narf bench track``: ``args`` has ``work``, ``models``, ``tools``, ``frames``, ``sizes``,
-    ``modalities``, ``events``, ``seed``, ``iterations``, ``solver``, ``band_m``, ``march``, ``depth_align``,
+    ``modalities``, ``events``, ``seed``, ``iterations``, ``rays``, ``solver``, ``band_m``, ``march``, ``depth_align``,
     ``service_clients``, ``json``."""
     tools = args.tools or sorted(p.stem for p in args.models.glob("*.narf"))
     models, missing = {}, []
@@ -229,7 +229,8 @@ def main(args: argparse.Namespace) -> int:
     if missing:
         print(f"narf bench track: skipping {', '.join(missing)}: no model in {args.models}", file=sys.stderr)
     sizes = tuple(tuple(s) for s in args.sizes) if args.sizes else SIZES
-    overrides = {"iterations": args.iterations, "solver": getattr(args, "solver", None), "band_m": getattr(args, "band_m", None),
+    overrides = {"iterations": args.iterations, "rays_per_iteration": getattr(args, "rays", None),
+                 "solver": getattr(args, "solver", None), "band_m": getattr(args, "band_m", None),
                  "march": getattr(args, "march", None), "depth_align": getattr(args, "depth_align", None)}
     options = TrackOptions(first_frame="warm", **{k: v for k, v in overrides.items() if v is not None})
     result = run(models, args.work, frames=args.frames, sizes=sizes, modalities=tuple(args.modalities),

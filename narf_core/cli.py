@@ -944,6 +944,7 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
                      help="seed of the synthesised sequences (default: %(default)s)")
     sub.add_argument("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame "
                      "(default: the solver's, 2 gauss-newton, 6 adam)")
+    sub.add_argument("--rays", type=_positive_int, metavar="N", help="rays per iteration (default: the solver's)")
     sub.add_argument("--solver", choices=TRACK_SOLVER_CHOICES, default=None,
                      help="per-frame solver (default: the tracker's, auto: gauss-newton with depth, adam without)")
     sub.add_argument("--band-m", type=_non_negative_float, metavar="M",

@@ -68,13 +68,13 @@ _DEPTH_CELL = 0.7  # its cells' side over the mean spacing of the projected poin
 # A warm-started frame's σ over the refiner's (TrackOptions.sigma_scale), per solver, with depth and
 # without, for a model whose bundle carries no factor of its own for that solver: fitted on four tools'
 # seed-1 sequences pooled (with depth) and on the clamp's (without; docs/benchmarks.md).
-SIGMA_SCALE = {"gauss-newton": {"rgbd": 0.4, "rgb": 1.5}, "adam": {"rgbd": 3.0, "rgb": 1.8}}
+SIGMA_SCALE = {"gauss-newton": {"rgbd": 0.4, "rgb": 1.6}, "adam": {"rgbd": 3.0, "rgb": 1.8}}
 # A frame's solver where TrackOptions.solver is "auto": with depth Levenberg-Marquardt on one set of rays
 # (a few iterations reach the bottom that Adam's fixed steps trail behind); without depth Adam, whose
 # loss holds the distance to the prediction (distance_prior_rgb) where the silhouette leaves it free.
 AUTO_SOLVER = {"rgbd": "gauss-newton", "rgb": "adam"}
 # A frame's iterations and rays per iteration per solver, where TrackOptions leaves them at 0.
-BUDGETS = {"adam": (6, 768), "gauss-newton": (2, 512)}
+BUDGETS = {"adam": (6, 768), "gauss-newton": (2, 768)}
 TRACK_SOLVERS = ("auto", *SOLVERS)
 
 
