@@ -69,7 +69,7 @@ def statistics(
                       model.kinematics.joint_vector(joints), centre, options.uncertainty_rays,
                       options.uncertainty_patch, torch.Generator().manual_seed(options.seed + 1))
     return {"sigma": stat.sigma.numpy(), "colour_variance": stat.colour_variance,
-            "pixel_m": float(T[2, :3] @ centre + T[2, 3]) / float(camera.K[0, 0]), "radius": param.radius,
+            "pixel_m": E.model_footprint(camera, T, centre, obs.shape), "radius": param.radius,
             "joint_speeds": E._joint_speeds(model, param.radius).numpy(), "class": E._error_class(options, uses_depth)}
 
 

@@ -1653,9 +1653,9 @@ def _uncertainty(
     ``None`` if it cannot be computed (a non-finite render). ``problem`` and ``rays``: a caller's
     own (the tracker's frame: its rays, marched once; see ``gauss_newton.covariance``).
 
-    The model's error is in footprints of a pixel at the object, but never of a pixel finer than the
-    reference box's (``obs.scale``): a camera finer than the views the model was trained on does
-    not make the model itself more exact."""
+    The model's error is in footprints of a pixel at the object, but never of a pixel finer than in a
+    box of the reference size (:data:`ROBUST_BOX_PX`, whatever the preset's ``reference_box_px``): a
+    camera finer than the views the model was trained on does not make the model itself more exact."""
     from narf_core.gauss_newton import Problem, covariance
 
     aabb = model.aabb.detach().double().cpu()
@@ -1666,8 +1666,7 @@ def _uncertainty(
                       rays)
     if not bool(torch.isfinite(stat.sigma).all()):
         return None
-    depth = float(T[2, :3].double() @ centre + T[2, 3])
-    pixel = depth / float(camera.K[0, 0]) * obs.scale
+    pixel = model_footprint(camera, T, centre, obs.shape)
     span = (2 * param.half).cpu()
     floor = torch.cat([
         torch.full((3,), opts.sigma_floor_position), torch.full((3,), opts.sigma_floor_rotation), opts.sigma_floor_joint * span
@@ -1702,6 +1701,14 @@ def _error_class(opts: EstimateOptions, uses_depth: bool) -> str:
     if opts.silhouette_weight == 0 and not uses_depth:
         return "colour"
     return "shape-gauss-newton" if opts.solver == "gauss-newton" else "shape"
+
+
+def model_footprint(camera: Pinhole, T: Tensor, centre: Tensor, box_shape: tuple[int, int]) -> float:
+    """The pixel footprint (m) in which the model's error is counted: a pixel's span at the object's
+    ``centre [3]`` (object frame) under ``T [4,4]``, times the mask box's longer side (``box_shape``, ``(h,
+    w)``) over :data:`ROBUST_BOX_PX` where larger, so never finer than in a box of the reference size."""
+    depth = float(T[2, :3].double() @ centre.double() + T[2, 3])
+    return depth / float(camera.K[0, 0]) * max(1.0, max(box_shape) / ROBUST_BOX_PX)
 
 
 def model_error(model: NarfModel, kind: str, pixel_m: float, radius: float, colour_variance: float,

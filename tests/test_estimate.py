@@ -1054,3 +1054,19 @@ def test_model_error_of_a_revolute_joint_is_the_position_over_how_fast_it_moves_
     bare = SimpleNamespace(metadata={}, joints=joints, kinematics=chain.kinematics, sample_points={})
     assert np.allclose(model_error(bare, "shape", 0.004, 0.25, MODEL_ERROR["reference_variance"]).numpy()[6:],
                        position / 0.25)
+
+
+def test_model_footprint_is_never_finer_than_in_a_reference_box():
+    """The model's error is counted in pixels at the object, never finer than in a mask box of the
+    reference size: the same view on a camera four times finer (a box four times larger) keeps the footprint."""
+    from narf_core.estimate import ROBUST_BOX_PX, model_footprint
+
+    T = torch.eye(4, dtype=torch.float64)
+    T[2, 3] = 0.6
+    centre = torch.tensor([0.0, 0.0, 0.1], dtype=torch.float64)
+    coarse = Pinhole(torch.tensor([[140.0, 0, 80], [0, 140.0, 60], [0, 0, 1]]), 160, 120)
+    fine = Pinhole(torch.tensor([[560.0, 0, 320], [0, 560.0, 240], [0, 0, 1]]), 640, 480)
+    box = (ROBUST_BOX_PX // 2, ROBUST_BOX_PX)
+    assert model_footprint(coarse, T, centre, box) == pytest.approx(0.7 / 140)
+    assert model_footprint(fine, T, centre, (4 * box[0], 4 * box[1])) == pytest.approx(0.7 / 140)
+    assert model_footprint(fine, T, centre, box) == pytest.approx(0.7 / 560)  # a small box: the camera's own
