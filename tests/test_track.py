@@ -354,8 +354,10 @@ def test_first_frame_warm_and_sigma_scale(clamp, clamp_sequence: Path) -> None:
 
 
 def test_model_error_footprint_is_never_finer_than_the_reference_box(clamp, clamp_sequence: Path, monkeypatch) -> None:
-    """A box larger than ``reference_box_px`` (a finer camera) scales the pixel footprint of the
-    model's error by the box's scale: the model is no more exact than the views it was fitted on."""
+    """A mask box larger than the reference box (:data:`~narf_core.estimate.ROBUST_BOX_PX`: a finer camera)
+    scales the pixel footprint of the model's error by the box's size over it, whatever the preset's own
+    ``reference_box_px`` (which sets rays, not the model's error): the model is no more exact than the
+    views it was fitted on."""
     from dataclasses import replace
 
     from narf_core import estimate
@@ -369,16 +371,17 @@ def test_model_error_footprint_is_never_finer_than_the_reference_box(clamp, clam
     seen = []
     real = estimate.model_error
     monkeypatch.setattr(estimate, "model_error", lambda *a: seen.append(a[2]) or real(*a))
-    base = replace(TrackOptions(iterations=1, rays_per_iteration=64, uncertainty_rays=64).step_options(True),
-                   reference_box_px=0)
-    for reference in (0, 20):
-        options = replace(base, reference_box_px=reference)
+    base = TrackOptions(iterations=1, rays_per_iteration=64, uncertainty_rays=64).step_options(True)
+    box = estimate._mask_box(mask, base.box_margin)
+    side = max(box[2] - box[0], box[3] - box[1])
+    assert side < estimate.ROBUST_BOX_PX  # this 160x120 view: the camera's own footprint
+    for reference_box_px, robust_box_px in ((0, estimate.ROBUST_BOX_PX), (20, estimate.ROBUST_BOX_PX), (0, 20)):
+        monkeypatch.setattr(estimate, "ROBUST_BOX_PX", robust_box_px)
         result = refine_frame(clamp, dataset.camera, images.rgb, mask, images.depth, frame.T_cam_obj, frame.joints,
-                              options)
+                              replace(base, reference_box_px=reference_box_px))
         assert result.uncertainty is not None
-    expected = estimate._box_scale(estimate._mask_box(mask, base.box_margin), replace(base, reference_box_px=20))
-    assert expected > 1
-    assert seen[1] == pytest.approx(seen[0] * expected, rel=0.05)  # (the estimates differ a little)
+    assert seen[1] == pytest.approx(seen[0], rel=0.05)  # (the estimates differ a little)
+    assert seen[2] == pytest.approx(seen[0] * side / 20, rel=0.05)
 
 
 def test_model_error_grows_only_above_the_usual_residual(clamp) -> None:
