@@ -1,7 +1,8 @@
 """Tracking over a sequence: the refiner warm-started frame after frame (issue #10).
 
-Each frame is one :func:`~narf_core.estimate.refine` call of a few iterations that starts from a
-constant-velocity prediction of the previous estimate. The state carried from frame to frame is a
+Each frame is a few iterations of the refiner (:func:`refine_frame`: with depth Gauss-Newton on one
+set of rays, without depth Adam; see :class:`TrackOptions`) that start from a constant-velocity
+prediction of the previous estimate. The state carried from frame to frame is a
 :class:`TrackState`: the last estimate (pose, θ), its time, the velocity of the object's box
 centre and its angular velocity (both in camera axes, so that the prediction turns the object
 about itself), the joint velocities and, where the solver gives one, the covariance Σ.
