@@ -972,3 +972,12 @@ def test_gauss_newton_frame_reaches_the_label_from_an_offset_without_marching(cl
     problem = FrameProblem(clamp, TrackOptions().step_options(True), 0.1, True)
     with pytest.raises(ValueError, match="one start"):
         problem._render(None, torch.zeros(2, 1), 2, 1, ("rgb",), None)
+
+
+def test_cli_track_solver_choices_are_the_trackers() -> None:
+    """``narf track`` / ``narf bench track --solver`` offer the tracker's solvers (named in the CLI so that
+    ``--help`` imports no torch)."""
+    from narf_core import cli
+    from narf_core.track import TRACK_SOLVERS
+
+    assert cli.TRACK_SOLVER_CHOICES == TRACK_SOLVERS
