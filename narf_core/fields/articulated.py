@@ -485,10 +485,15 @@ class _PartLookup:
         return hit
 
 
+def _changes(theta: Tensor) -> Tensor:
+    """``[n - 1]``: where row ``i + 1`` of ``theta [n, k]`` differs from row ``i`` (a new run starts)."""
+    return (theta[1:] != theta[:-1]).any(-1)
+
+
 def _runs(theta: Tensor) -> list[int] | None:
     """Where the runs of equal rows of ``theta [n, k]`` start, with ``n`` last; ``None`` for more than
     ``_MAX_RUNS`` runs."""
-    change = (theta[1:] != theta[:-1]).any(-1)
+    change = _changes(theta)
     if int(change.sum()) >= _MAX_RUNS:
         return None
     return [0, *(change.nonzero()[:, 0] + 1).tolist(), theta.shape[0]]
@@ -498,7 +503,7 @@ def _distinct_rows(theta: Tensor) -> Tensor:
     """The distinct rows of ``theta [n, k]``, sorted. Rays come in runs of one θ (one per start): the
     runs' first rows, then ``torch.unique`` over those few (over all ``n`` rows it sorts them all)."""
     first = torch.ones(theta.shape[0], dtype=torch.bool, device=theta.device)
-    first[1:] = (theta[1:] != theta[:-1]).any(-1)
+    first[1:] = _changes(theta)
     return torch.unique(theta[first], dim=0)
 
 
@@ -590,8 +595,7 @@ class PosedGrids:
         boxes = [(i, box) for i, box in boxes if box is not None]
         if not boxes:
             return None
-        configurations = shared
-        T = invert_pose(self._part_from_object(configurations)).reshape(-1, len(grids), 4, 4)
+        T = invert_pose(self._part_from_object(shared)).reshape(-1, len(grids), 4, 4)
         index = [i for i, _ in boxes]
         corners = transform_points(T[:, index, None], torch.stack([box_corners(box) for _, box in boxes])).reshape(-1, 3)
         box = torch.stack([corners.amin(0), corners.amax(0)])
