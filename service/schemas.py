@@ -394,8 +394,7 @@ _TRACK_OPTIONS: dict[str, tuple[str, dict[str, float]]] = {
     # The fields of TrackOptions a request may set, with the caps on one frame's cost (the validity
     # rules are TrackOptions', applied when the options are built: a 422 naming request.options.<field>).
     "iterations": ("Refiner iterations per frame, 0 for the solver's own (2 gauss-newton, 6 adam)", {"le": 200}),
-    "rays_per_iteration": ("Rays rendered per iteration, 0 for the solver's own (768)",
-                           {"le": 8192}),
+    "rays_per_iteration": ("Rays rendered per iteration (left out: the solver's own, 768)", {"ge": 16, "le": 8192}),
     "solver": ("The per-frame solver: gauss-newton, adam, or auto (gauss-newton with depth, adam without)", {}),
     "mode": (_MODE_MEANING, {}),
 }

@@ -322,3 +322,12 @@ def test_track_options_come_from_the_core_tracker() -> None:
     with pytest.raises(TrackInputError) as info:
         TrackOptions(iterations=-1)
     assert info.value.field == "options.iterations" and info.value.reason == "must be >= 0 (0 = the solver's own), got -1"
+
+
+def test_track_request_rays_keep_their_floor() -> None:
+    """A track request's ``rays_per_iteration`` is at least 16 when given (left out: the solver's own)."""
+    from narf_service.schemas import TrackOptionsIn
+
+    with pytest.raises(ValueError, match="rays_per_iteration"):
+        TrackOptionsIn(rays_per_iteration=8)
+    assert TrackOptionsIn().rays_per_iteration is None and TrackOptionsIn(rays_per_iteration=16).rays_per_iteration == 16
