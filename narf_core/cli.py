@@ -505,6 +505,9 @@ def _add_train(commands: argparse._SubParsersAction) -> None:
         "(the paper: 5000) instead of fresh rays every step (0, the default)")
     arg("--free-space-weight", type=float, metavar="W", help="stage 1's free-space term: the "
         "opacity a part renders in front of the depth measured on any labelled pixel (0, the default: off)")
+    arg("--sparsity-weight", type=float, metavar="W", help="stage 1's sparsity term: the opacity a part "
+        "renders at random points of its box, so that it leaves empty what no training view shows "
+        "(0, the default: off)")
     arg("--no-parts", action="store_true", help="leave the part fields out of the bundle (no 'parts' mode)")
     arg("--seed", type=_non_negative_int, default=0)
     parser.set_defaults(run=_run_train, auto_threads_max=None)  # batches of thousands of rays with backward
@@ -514,7 +517,8 @@ def _run_train(args: argparse.Namespace) -> int:
     from narf_core.train.pipeline import TrainConfig, TrainInputError, train
 
     overrides = {"part_steps": args.part_steps, "distill_steps": args.distill_steps, "batch_rays": args.batch_rays,
-                 "composites": args.composites, "free_space_weight": args.free_space_weight}
+                 "composites": args.composites, "free_space_weight": args.free_space_weight,
+                 "sparsity_weight": args.sparsity_weight}
     try:
         config = TrainConfig(arch=args.arch, field=args.field, budget_s=args.budget, seed=args.seed, keep_parts=not args.no_parts)
         config = replace(config.for_arch(), **{k: v for k, v in overrides.items() if v is not None})

@@ -100,6 +100,8 @@ def test_an_unknown_configuration_field_is_refused_before_training():
         ("composites", -1, "must be >= 0"),
         ("free_space_weight", -1.0, "must be >= 0"),
         ("free_space_weight", float("nan"), "must be finite"),
+        ("sparsity_weight", -0.1, "must be >= 0"),
+        ("sparsity_points", 0, "must be >= 1"),
         ("depth_weight", True, "must be a number"),
         ("distance", (1.0, 0.4), "must be (near, far) metres with 0 < near <= far"),
         ("distance", (0.4,), "must be (near, far)"),
@@ -670,6 +672,54 @@ def test_the_free_space_term_carves_a_false_floor_that_hides_the_surface():
         assert pipeline.free_space_loss(field, free, SLAB_BOX, None, 0.01).item() < 0.05
     assert bool((out.opacity > 0.95).all())
     assert (out.depth / out.opacity).mean().item() == pytest.approx(1.1, abs=0.02)  # the true surface's front
+
+
+# ---------------------------------------------------------------------------------------------
+# The sparsity term: what no ray reaches is left empty
+
+
+def test_sparsity_loss_is_the_mean_opacity_of_one_step_at_random_points_of_the_box():
+    field = Slabs((math.log(20.0), math.log(5.0)))  # slabs on a tenth of the box's z each
+    got = pipeline.sparsity_loss(field, SLAB_BOX, 0.01, 20000, torch.Generator().manual_seed(0)).item()
+    expected = 0.1 * (1 - math.exp(-20.0 * 0.01)) + 0.1 * (1 - math.exp(-5.0 * 0.01))
+    assert got == pytest.approx(expected, rel=0.05)
+    empty = Slabs((-30.0, -30.0))
+    assert pipeline.sparsity_loss(empty, SLAB_BOX, 0.01, 1000, torch.Generator()).item() < 1e-9
+
+
+def test_the_sparsity_term_empties_what_the_rays_never_reach_and_keeps_the_surface():
+    """Rays that stop on the front slab (opaque, the measured surface) never reach the slab behind it,
+    which the ray loss leaves as it is: a part hidden in every view by another. With the sparsity
+    term the hidden slab empties and the rays still end, opaque, on the front one."""
+    field = Slabs((math.log(200.0), math.log(200.0)))
+    rays = rays_along_z(16)
+    targets = RayTargets(rays, torch.full((16, 3), 0.5), torch.ones(16), torch.full((16,), 0.8))  # the front slab
+    config = TrainConfig(sparsity_weight=0.1)
+    optimizer = torch.optim.Adam(field.parameters(), lr=0.1)
+    generator = torch.Generator().manual_seed(0)
+
+    def render():
+        return pipeline.render_rays(field, rays, SLAB_BOX, step=0.01, outputs=("rgb", "opacity", "depth"), jitter=True)
+
+    def step(sparsity: bool) -> None:
+        loss = ray_loss(render(), targets, config)
+        if sparsity:
+            loss = loss + config.sparsity_weight * pipeline.sparsity_loss(field, SLAB_BOX, 0.01, 4096, generator)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+
+    for _ in range(60):
+        step(False)
+    assert field.log_sigma[1].item() == pytest.approx(math.log(200.0))  # without the term: no gradient behind
+    for _ in range(60):
+        step(True)
+    with torch.no_grad():
+        out = render()
+    sigma = field.log_sigma.exp()
+    assert sigma[1].item() < 5.0 < 30.0 < sigma[0].item()  # behind: emptied; in front: still opaque
+    assert bool((out.opacity > 0.95).all())
+    assert (out.depth / out.opacity).mean().item() == pytest.approx(0.8, abs=0.02)
 
 
 def test_free_rays_are_the_batch_rays_with_a_depth_and_drawn_occluders():

@@ -26,6 +26,7 @@ from narf_core.fields import ArticulatedField, make_field
 from narf_core.fields.composed import ComposedField, union_occupancy
 from narf_core.kinematics import KinematicTree
 from narf_core.modes import RECORD_KEY, measure_modes
+from narf_core.occupancy import density_fn
 from narf_core.render import OccupancyGrid, render_rays
 from narf_core.train.distill import composite_rays
 from narf_core.train.loop import run_stage, save_atomic
@@ -47,6 +48,14 @@ class TrainConfig:
     ``free_space_weight``: stage 1's free-space term (:func:`free_space_loss`), the mean opacity a
     part renders in front of the surface measured on a pixel, its own or another link's (0: off).
 
+    ``sparsity_weight``: stage 1's sparsity term (:func:`sparsity_loss`), the mean opacity over one
+    march step at ``sparsity_points`` random points of the part's box (0: off). No training ray reaches
+    where another part hides this one in every view (the inside of the other part at the training
+    configurations): without the term a part field fills it, and at other configurations that density
+    shows where the other part has moved away (the pliers' crotch, rendered closed). Off by default:
+    it also thins the surfaces the rays do reach, and refining on such a model takes more samples
+    per ray (docs/benchmarks.md).
+
     Every field is checked when the configuration is made: :class:`TrainInputError` names the first
     bad one (``options.<name>``).
     """
@@ -65,6 +74,8 @@ class TrainConfig:
     depth_weight: float = 0.1
     opacity_weight: float = 1.0
     free_space_weight: float = 0.0
+    sparsity_weight: float = 0.0
+    sparsity_points: int = 4096
     budget_s: float | None = None
     seed: int = 0
     keep_parts: bool = True
@@ -74,12 +85,12 @@ class TrainConfig:
         need = option_rule(self, TrainInputError)
         need(self.arch in ARCHS, "arch", f"must be one of {', '.join(ARCHS)}")
         need(self.field in FIELDS, "field", f"must be one of {', '.join(FIELDS)}")
-        for name in ("part_steps", "distill_steps", "batch_rays", "views_per_batch", "theta_bins"):
+        for name in ("part_steps", "distill_steps", "batch_rays", "views_per_batch", "theta_bins", "sparsity_points"):
             need(getattr(self, name) >= 1, name, "must be >= 1")
         need(self.grid_resolution >= 2, "grid_resolution", "must be >= 2")
         need(self.composites >= 0, "composites", "must be >= 0 (0 = fresh rays every step)")
         need(self.lr > 0, "lr", "must be > 0")
-        for name in ("depth_weight", "opacity_weight", "free_space_weight"):
+        for name in ("depth_weight", "opacity_weight", "free_space_weight", "sparsity_weight"):
             need(getattr(self, name) >= 0, name, "must be >= 0")
         near_far = self.distance
         need(
@@ -158,6 +169,14 @@ def free_space_loss(field, free: FreeRays, box, grid, step: float) -> torch.Tens
     out = render_rays(field, free.rays, box, grid=grid, step=step, outputs=("opacity",), jitter=True,
                       t_range=(torch.zeros_like(far), far))
     return out.opacity.mean()
+
+
+def sparsity_loss(field, box: torch.Tensor, step: float, n: int, generator: torch.Generator) -> torch.Tensor:
+    """Mean opacity over one march ``step`` (``1 - exp(-σ step)``) of ``field`` at ``n`` points drawn
+    uniformly in ``box [2,3]``: a small pull towards empty space wherever no ray asks for density."""
+    x = box[0] + torch.rand(n, 3, generator=generator).to(box) * (box[1] - box[0])
+    sigma = density_fn(field)(x, None)
+    return (1 - torch.exp(-sigma * step)).mean()
 
 
 def free_rays(batch: RayTargets, occluders: FreeRays, n: int, generator: torch.Generator) -> FreeRays:
@@ -327,14 +346,18 @@ def _theta_samples(kin: KinematicTree, boxes: list[torch.Tensor], cell: float, m
 
 
 def _fit_step(
-    field, optimizer, batch: RayTargets, theta, box, grid, step: float, config: TrainConfig, free: FreeRays | None = None
+    field, optimizer, batch: RayTargets, theta, box, grid, step: float, config: TrainConfig, free: FreeRays | None = None,
+    generator: torch.Generator | None = None,
 ) -> float:
     """One optimiser step of ``field`` on the rays of ``batch`` (jittered samples), with the free-space
-    term on ``free`` (a part field's step); returns the loss."""
+    term on ``free`` and, given the ``generator`` of its points, the sparsity term (a part field's
+    step); returns the loss."""
     out = render_rays(field, batch.rays, box, theta=theta, grid=grid, step=step, outputs=("rgb", "opacity", "depth"), jitter=True)
     loss = ray_loss(out, batch, config) + field.regularization()
     if free is not None and len(free):
         loss = loss + config.free_space_weight * free_space_loss(field, free, box, grid, step)
+    if generator is not None and config.sparsity_weight > 0:
+        loss = loss + config.sparsity_weight * sparsity_loss(field, box, step, config.sparsity_points, generator)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
@@ -384,7 +407,7 @@ def _train_part(
         idx = torch.randint(len(targets), (config.batch_rays,), generator=generator)
         batch = targets[idx]
         free = None if occluders is None else free_rays(batch, occluders, n_occluders, generator)
-        return _fit_step(field, optimizer, batch, None, box, grid, step, config, free)
+        return _fit_step(field, optimizer, batch, None, box, grid, step, config, free, generator)
 
     result = run_stage(
         f"part {name}", field, optimizer, step_fn, steps=config.part_steps, budget_s=budget_s, checkpoint=ckpt,
