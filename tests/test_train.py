@@ -722,6 +722,30 @@ def test_the_sparsity_term_empties_what_the_rays_never_reach_and_keeps_the_surfa
     assert (out.depth / out.opacity).mean().item() == pytest.approx(0.8, abs=0.02)
 
 
+def test_the_sparsity_term_leaves_the_measured_surface_alone():
+    """The cells within SURFACE_CELLS of a surface point the part's own pixels measured are left out of
+    the sparsity term (a softer surface would take the march more samples to stop); no depth, no cells."""
+    rays = rays_along_z(16)  # camera z = t = the ray's z + 0.5
+    targets = RayTargets(rays, torch.full((16, 3), 0.5), torch.ones(16), torch.full((16,), 1.105))  # at z = 0.605
+    surface = pipeline.observed_surface(targets, SLAB_BOX, 100)  # cells of 1 cm along z: the point's is [0.6, 0.61)
+    margin = pipeline.SURFACE_CELLS * 0.01
+    probe = torch.tensor([[0.0, 0.0, 0.605], [0.0, 0.0, 0.605 + margin], [0.0, 0.0, 0.605 - margin],
+                          [0.0, 0.0, 0.35], [0.0, 0.0, 0.605 + margin + 0.01]])
+    assert surface.occupied(probe).tolist() == [True, True, True, False, False]
+
+    def shell(x, d, theta=None):  # density on the measured surface's cells alone
+        return 20.0 * surface.occupied(x).float(), torch.full_like(x, 0.5)
+
+    whole = pipeline.sparsity_loss(shell, SLAB_BOX, 0.01, 20000, torch.Generator().manual_seed(0)).item()
+    away = pipeline.sparsity_loss(shell, SLAB_BOX, 0.01, 20000, torch.Generator().manual_seed(0), surface).item()
+    assert whole > 0.001 and away == 0.0
+    slabs = Slabs((math.log(20.0), -30.0))  # the front slab alone, far from the surface: all of it counts
+    front = pipeline.sparsity_loss(slabs, SLAB_BOX, 0.01, 20000, torch.Generator().manual_seed(0), surface).item()
+    assert front == pytest.approx(0.1 * (1 - math.exp(-20.0 * 0.01)), rel=0.05)
+    no_depth = RayTargets(rays, targets.rgb, targets.opacity, torch.zeros(16))
+    assert pipeline.observed_surface(no_depth, SLAB_BOX, 100) is None
+
+
 def test_free_rays_are_the_batch_rays_with_a_depth_and_drawn_occluders():
     rays = rays_along_z(4)
     batch = RayTargets(rays, torch.zeros(4, 3), torch.tensor([1.0, 0.0, 1.0, 1.0]), torch.tensor([0.9, 0.0, 0.0, 1.2]))

@@ -52,9 +52,10 @@ class TrainConfig:
     march step at ``sparsity_points`` random points of the part's box (0: off). No training ray reaches
     where another part hides this one in every view (the inside of the other part at the training
     configurations): without the term a part field fills it, and at other configurations that density
-    shows where the other part has moved away (the pliers' crotch, rendered closed). Off by default:
-    it also thins the surfaces the rays do reach, and refining on such a model takes more samples
-    per ray (docs/benchmarks.md).
+    shows where the other part has moved away (the pliers' crotch, rendered closed). The cells near the
+    surfaces the part's own pixels measured are left out (:func:`observed_surface`). Off by default: it
+    helps parts that hide one another at the training configurations, and costs others a little
+    (docs/benchmarks.md).
 
     Every field is checked when the configuration is made: :class:`TrainInputError` names the first
     bad one (``options.<name>``).
@@ -171,10 +172,38 @@ def free_space_loss(field, free: FreeRays, box, grid, step: float) -> torch.Tens
     return out.opacity.mean()
 
 
-def sparsity_loss(field, box: torch.Tensor, step: float, n: int, generator: torch.Generator) -> torch.Tensor:
+SURFACE_CELLS = 3  # grid cells around a measured surface point that the sparsity term leaves alone
+
+
+def observed_surface(targets: RayTargets, box: torch.Tensor, resolution: int) -> OccupancyGrid | None:
+    """The cells of ``box [2,3]`` (a grid of ``resolution``) within :data:`SURFACE_CELLS` of a surface point
+    that one of the part's own pixels measured (its depth along its ray); ``None`` without any depth."""
+    own = (targets.opacity > 0.5) & (targets.depth > 0)
+    if not bool(own.any()):
+        return None
+    rays = targets.rays[own]
+    x = rays.origins + (targets.depth[own] / rays.z_per_t)[:, None] * rays.directions
+    grid = OccupancyGrid.full(box, resolution)
+    size = torch.tensor(grid.resolution)
+    cell = torch.minimum(((x - box[0]) / grid.cell_size).floor().long().clamp_min(0), size - 1)
+    cells = torch.zeros(grid.resolution, dtype=torch.float32)
+    cells[cell[:, 0], cell[:, 1], cell[:, 2]] = 1
+    k = 2 * SURFACE_CELLS + 1
+    near = torch.nn.functional.max_pool3d(cells[None, None], k, stride=1, padding=SURFACE_CELLS)[0, 0] > 0
+    return OccupancyGrid(box, near)
+
+
+def sparsity_loss(field, box: torch.Tensor, step: float, n: int, generator: torch.Generator,
+                  surface: OccupancyGrid | None = None) -> torch.Tensor:
     """Mean opacity over one march ``step`` (``1 - exp(-σ step)``) of ``field`` at ``n`` points drawn
-    uniformly in ``box [2,3]``: a small pull towards empty space wherever no ray asks for density."""
+    uniformly in ``box [2,3]``, those in ``surface``'s cells left out (:func:`observed_surface`): a small
+    pull towards empty space wherever no ray asks for density, which leaves the measured surfaces as
+    sharp as the rays make them (a softer surface takes a march more samples to stop)."""
     x = box[0] + torch.rand(n, 3, generator=generator).to(box) * (box[1] - box[0])
+    if surface is not None:
+        x = x[~surface.occupied(x)]
+    if len(x) == 0:
+        return box.new_zeros(())
     sigma = density_fn(field)(x, None)
     return (1 - torch.exp(-sigma * step)).mean()
 
@@ -347,17 +376,17 @@ def _theta_samples(kin: KinematicTree, boxes: list[torch.Tensor], cell: float, m
 
 def _fit_step(
     field, optimizer, batch: RayTargets, theta, box, grid, step: float, config: TrainConfig, free: FreeRays | None = None,
-    generator: torch.Generator | None = None,
+    generator: torch.Generator | None = None, surface: OccupancyGrid | None = None,
 ) -> float:
     """One optimiser step of ``field`` on the rays of ``batch`` (jittered samples), with the free-space
-    term on ``free`` and, given the ``generator`` of its points, the sparsity term (a part field's
-    step); returns the loss."""
+    term on ``free`` and, given the ``generator`` of its points, the sparsity term away from ``surface``
+    (a part field's step); returns the loss."""
     out = render_rays(field, batch.rays, box, theta=theta, grid=grid, step=step, outputs=("rgb", "opacity", "depth"), jitter=True)
     loss = ray_loss(out, batch, config) + field.regularization()
     if free is not None and len(free):
         loss = loss + config.free_space_weight * free_space_loss(field, free, box, grid, step)
     if generator is not None and config.sparsity_weight > 0:
-        loss = loss + config.sparsity_weight * sparsity_loss(field, box, step, config.sparsity_points, generator)
+        loss = loss + config.sparsity_weight * sparsity_loss(field, box, step, config.sparsity_points, generator, surface)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
@@ -397,6 +426,7 @@ def _train_part(
     optimizer = torch.optim.Adam(field.parameters(), lr=config.lr, eps=1e-15)
     step = march_step(box)
     grid = OccupancyGrid.full(box, config.grid_resolution)
+    surface = observed_surface(targets, box, config.grid_resolution) if config.sparsity_weight > 0 else None
 
     def refresh(i: int) -> None:
         nonlocal grid
@@ -407,7 +437,7 @@ def _train_part(
         idx = torch.randint(len(targets), (config.batch_rays,), generator=generator)
         batch = targets[idx]
         free = None if occluders is None else free_rays(batch, occluders, n_occluders, generator)
-        return _fit_step(field, optimizer, batch, None, box, grid, step, config, free, generator)
+        return _fit_step(field, optimizer, batch, None, box, grid, step, config, free, generator, surface)
 
     result = run_stage(
         f"part {name}", field, optimizer, step_fn, steps=config.part_steps, budget_s=budget_s, checkpoint=ckpt,
