@@ -246,6 +246,19 @@ class OccupancyGrid:
         return cls(aabb, torch.ones(_cells_for(aabb, resolution), dtype=torch.bool, device=aabb.device))
 
     @classmethod
+    def from_points(cls, aabb: Tensor, resolution: int | Sequence[int], points: Tensor, dilate: int = 0) -> OccupancyGrid:
+        """The cells (``resolution`` as in :meth:`full`) that hold one of ``points [n,3]`` (those outside
+        ``aabb`` left out), grown by ``dilate`` cells."""
+        shape = _cells_for(aabb, resolution)
+        grid = cls(aabb, torch.zeros(shape, dtype=torch.bool, device=aabb.device))
+        inside = ((points >= aabb[0]) & (points <= aabb[1])).all(-1)
+        top = torch.tensor(shape, device=aabb.device) - 1
+        cell = torch.minimum(grid._cell_units(points[inside]).floor().long(), top)
+        occ = grid.occupancy.clone()
+        occ[cell[:, 0], cell[:, 1], cell[:, 2]] = True
+        return cls(aabb, _dilate(occ, dilate))
+
+    @classmethod
     @torch.no_grad()
     def from_field(
         cls,

@@ -477,6 +477,17 @@ def test_occupancy_lookup_hand_checked():
     assert OccupancyGrid.full(BOX, 4).occupied(torch.zeros(1, 3)).item()
 
 
+def test_a_grid_from_points_holds_their_cells_grown_by_the_dilation():
+    box = torch.tensor([[0.0, 0, 0], [1, 1, 1]])
+    points = torch.tensor([[0.05, 0.05, 0.05], [1.0, 1.0, 1.0], [0.55, 0.35, 0.95], [1.5, 0.5, 0.5]])  # the last outside
+    grid = OccupancyGrid.from_points(box, 10, points)
+    assert grid.resolution == (10, 10, 10) and int(grid.occupancy.sum()) == 3  # the far corner is the last cell's
+    assert grid.occupancy[0, 0, 0] and grid.occupancy[9, 9, 9] and grid.occupancy[5, 3, 9]
+    grown = OccupancyGrid.from_points(box, 10, points[2:3], dilate=1)
+    assert int(grown.occupancy.sum()) == 3 * 3 * 2  # a cube of 3 cells, cut by the box's face at z
+    assert grown.occupied(torch.tensor([[0.45, 0.25, 0.85], [0.35, 0.35, 0.95]])).tolist() == [True, False]
+
+
 def test_grid_along_rays_agrees_with_the_pointwise_lookup_per_configuration_bin():
     g = torch.Generator().manual_seed(5)
     grid = OccupancyGrid(BOX, torch.rand(3, 8, 8, 8, generator=g) > 0.6, torch.tensor([[0.0], [3.0]]))

@@ -183,14 +183,7 @@ def observed_surface(targets: RayTargets, box: torch.Tensor, resolution: int) ->
         return None
     rays = targets.rays[own]
     x = rays.origins + (targets.depth[own] / rays.z_per_t)[:, None] * rays.directions
-    grid = OccupancyGrid.full(box, resolution)
-    size = torch.tensor(grid.resolution)
-    cell = torch.minimum(((x - box[0]) / grid.cell_size).floor().long().clamp_min(0), size - 1)
-    cells = torch.zeros(grid.resolution, dtype=torch.float32)
-    cells[cell[:, 0], cell[:, 1], cell[:, 2]] = 1
-    k = 2 * SURFACE_CELLS + 1
-    near = torch.nn.functional.max_pool3d(cells[None, None], k, stride=1, padding=SURFACE_CELLS)[0, 0] > 0
-    return OccupancyGrid(box, near)
+    return OccupancyGrid.from_points(box, resolution, x, dilate=SURFACE_CELLS)
 
 
 def sparsity_loss(field, box: torch.Tensor, step: float, n: int, generator: torch.Generator,
