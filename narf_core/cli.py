@@ -38,6 +38,7 @@ NOISE_PRESETS = ("none", "paper")  # generate.NOISE_PRESETS, named here so that 
 MODES = ("auto", "narf", "parts")  # narf_core.modes.MODES, named here so that --help imports no numpy
 PRESET_NAMES = ("auto", "paper", "robust", "gauss-newton")  # narf_core.estimate.PRESET_NAMES, likewise
 TRACK_SOLVER_CHOICES = ("auto", "adam", "gauss-newton")  # narf_core.track.TRACK_SOLVERS, likewise
+TRACK_ITERATIONS = "2 gauss-newton, 6 adam"  # narf_core.track.budget_text(), likewise
 MODE_HELP = ("render mode: narf (the configuration field), parts (the composed part fields) or auto (default: "
              "the better one by the measurement training recorded in the bundle)")
 
@@ -776,7 +777,7 @@ def _add_track(commands: argparse._SubParsersAction) -> None:
     arg("--rgb-only", action="store_true", help="ignore the sequence's depth")
     arg("--limit", type=_positive_int, metavar="N", help="only the first N frames")
     arg("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame (default: the "
-        "solver's, 2 gauss-newton, 6 adam)")
+        f"solver's, {TRACK_ITERATIONS})")
     arg("--solver", choices=TRACK_SOLVER_CHOICES, default="auto",
         help="refiner per frame (default: %(default)s, gauss-newton with depth, adam without)")
     arg("--mode", choices=MODES, default="auto", help=MODE_HELP)
@@ -947,7 +948,7 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--seed", type=_non_negative_int, default=0, metavar="S",
                      help="seed of the synthesised sequences (default: %(default)s)")
     sub.add_argument("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame "
-                     "(default: the solver's, 2 gauss-newton, 6 adam)")
+                     f"(default: the solver's, {TRACK_ITERATIONS})")
     sub.add_argument("--rays", type=_positive_int, metavar="N", help="rays per iteration (default: the solver's)")
     sub.add_argument("--solver", choices=TRACK_SOLVER_CHOICES, default=None,
                      help="per-frame solver (default: the tracker's, auto: gauss-newton with depth, adam without)")

@@ -76,6 +76,14 @@ SIGMA_SCALE = {"gauss-newton": {"rgbd": 0.4, "rgb": 1.6}, "adam": {"rgbd": 3.0, 
 AUTO_SOLVER = {"rgbd": "gauss-newton", "rgb": "adam"}
 # A frame's iterations and rays per iteration per solver, where TrackOptions leaves them at 0.
 BUDGETS = {"adam": (6, 768), "gauss-newton": (2, 768)}
+
+
+def budget_text(which: int = 0) -> str:
+    """:data:`BUDGETS`' iterations (``which`` 0) or rays per iteration (1) per solver, for help texts:
+    "2 gauss-newton, 6 adam"."""
+    return ", ".join(f"{budget[which]} {solver}" for solver, budget in sorted(BUDGETS.items(), reverse=True))
+
+
 TRACK_SOLVERS = ("auto", *SOLVERS)
 
 

@@ -981,3 +981,11 @@ def test_cli_track_solver_choices_are_the_trackers() -> None:
     from narf_core.track import TRACK_SOLVERS
 
     assert cli.TRACK_SOLVER_CHOICES == TRACK_SOLVERS
+
+
+def test_cli_track_iterations_help_names_the_trackers_budgets() -> None:
+    from narf_core import cli
+    from narf_core.track import BUDGETS, budget_text
+
+    assert cli.TRACK_ITERATIONS == budget_text(0) == f"{BUDGETS['gauss-newton'][0]} gauss-newton, {BUDGETS['adam'][0]} adam"
+    assert budget_text(1) == f"{BUDGETS['gauss-newton'][1]} gauss-newton, {BUDGETS['adam'][1]} adam"
