@@ -42,7 +42,9 @@ are replaced by the render's change over a sample spacing (:func:`along_ray_exac
 steps go on to 32x the LM step: autograd through a render of fixed samples sees a sharp surface
 only through the density's slope between two samples, which puts noise in ``J`` (so ``JᵀWJ`` is too
 large and the LM step too short) and leaves most of the depth's change along the line of sight out
-of it. Coarse pyramid levels average ``_GROUP`` jittered rays per pixel (the render blurred like the
+of it. A tracker's frame without depth polishes from its first iteration (``polish_only``, trial
+steps to 8x): there the silhouette's scale is the only cue to the distance, and without the exact
+along-ray part the LM step along the line of sight is too short to follow the object. Coarse pyramid levels average ``_GROUP`` jittered rays per pixel (the render blurred like the
 target); the fine level keeps one set of rays, so the last iterations are a deterministic LM that
 can converge.
 
@@ -92,6 +94,9 @@ _STEP_FACTORS = (1.0, 2.0, 4.0)  # multiples of the LM step tried, in order, whi
 # Jacobian's noise (the surface seen only through the density's slope between samples) inflates JᵀWJ,
 # so the LM step there falls several times short of the minimum along it (docs/benchmarks.md).
 _POLISH_STEP_FACTORS = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0)
+# A run that polishes from its start (polish_only: a tracker's frame without depth, a few millimetres
+# from its answer) stops at 8x: the longer steps cost renders and did not lower the track's error.
+_FRAME_POLISH_STEP_FACTORS = (1.0, 2.0, 4.0, 8.0)
 _GROUP = 4  # jittered rays averaged per pixel at a coarse pyramid level
 # At the pruning (a third of the iterations) every start whose cost on the fine rays is within this factor
 # of the lowest goes on, until _LAST_PRUNE_SHARE of the iterations, where the lowest goes on alone: there
@@ -215,7 +220,8 @@ class Problem:
             if not grad:
                 return P.reshape(S, n, _CHANNELS).double().cpu(), None
             leaves = (o, d) if (parts or k == 0) else (o, d, th)
-            grads = _channel_gradients(P, leaves)
+            # Without depth residuals the depth channel's derivatives are never used: one backward pass fewer.
+            grads = _channel_gradients(P, leaves, _CHANNELS if self.uses_depth else _CHANNELS - 1)
         grads = [x.new_zeros(_CHANNELS, S * n, x.shape[1]) if g is None else g for g, x in zip(grads, leaves)]
         dP = [g.permute(1, 0, 2).reshape(S, n, _CHANNELS, -1).double().cpu() for g in grads]  # [S, n, 5, ·]
         P_cpu = P.detach().reshape(S, n, _CHANNELS).double().cpu()  # the solve is in float64 on the CPU
@@ -384,15 +390,16 @@ def along_ray_exact(dPo: Tensor, P: Tensor, d: Tensor, z_per_t: Tensor) -> Tenso
     return dPo + (exact - along)[..., None] * d[:, :, None, :]
 
 
-def _channel_gradients(P: Tensor, leaves: tuple[Tensor, ...]) -> list[Tensor | None]:
-    """``dP[:, c] / d leaf`` for every channel ``c`` of ``P [m, 5]``, ``[5, m, ·]`` per leaf (``None`` for
-    a leaf ``P`` does not reach): one backward pass per channel on the kept graph. Every leaf row
-    belongs to one ray, so the gradient of the channel's sum is the per-ray derivative. Neither
-    ``is_grads_batched`` nor a tensor ``grad_outputs``: their first use imports sympy (about 0.5 s
-    and 33 MiB of resident memory in every process that estimates)."""
+def _channel_gradients(P: Tensor, leaves: tuple[Tensor, ...], channels: int = _CHANNELS) -> list[Tensor | None]:
+    """``dP[:, c] / d leaf`` for the first ``channels`` channels ``c`` of ``P [m, 5]`` (zero for the
+    others), ``[5, m, ·]`` per leaf (``None`` for a leaf ``P`` does not reach): one backward pass per
+    channel on the kept graph. Every leaf row belongs to one ray, so the gradient of the channel's sum
+    is the per-ray derivative. Neither ``is_grads_batched`` nor a tensor ``grad_outputs``: their first
+    use imports sympy (about 0.5 s and 33 MiB of resident memory in every process that estimates)."""
     rows = []
-    for c in range(_CHANNELS):
-        rows.append(torch.autograd.grad(P[:, c].sum(), leaves, retain_graph=c < _CHANNELS - 1, allow_unused=True))
+    for c in range(channels):
+        rows.append(torch.autograd.grad(P[:, c].sum(), leaves, retain_graph=c < channels - 1, allow_unused=True))
+    rows += [(None,) * len(leaves)] * (_CHANNELS - channels)
     out = []
     for i, leaf in enumerate(leaves):
         if all(row[i] is None for row in rows):
@@ -438,6 +445,7 @@ class GaussNewtonRun:
 
     should_stop = None  # refine's hook, ``Callable[[], str | None]``: a status ends the loop
     fine_only = False  # after an Adam warm start: every iteration at the finest level
+    polish_only = False  # one start from near its answer (a tracker's frame without depth): every iteration polishes
 
     def __init__(
         self,
@@ -504,9 +512,9 @@ class GaussNewtonRun:
             self.iteration += 1
             index, rays, group = self._rays(target, self.params.shape[0] > 1)
             t0 = time.perf_counter()
-            # The polish: one start left at the fine level after a pyramid (not a tracker's frame, which
-            # has neither): the along-ray derivatives over a sample spacing and longer trial steps.
-            polish = n_levels > 1 and level == n_levels - 1 and self.params.shape[0] == 1
+            # The polish: one start left at the fine level after a pyramid (or every iteration where
+            # polish_only): the along-ray derivatives over a sample spacing and longer trial steps.
+            polish = (n_levels > 1 or self.polish_only) and level == n_levels - 1 and self.params.shape[0] == 1
             res = self._linearise(rays, target, index, group, polish)
             t1 = time.perf_counter()
             self.timing["jacobian_s"] += t1 - t0
@@ -533,7 +541,9 @@ class GaussNewtonRun:
             # The step, and longer ones along it while the cost on the same rays falls (renders only, no
             # Jacobian): the linear model of a sharp edge reaches only about a sample's length.
             trial_params, trial_cost = self.params, cost.clone()
-            for factor in _POLISH_STEP_FACTORS if polish else _STEP_FACTORS:
+            factors = _STEP_FACTORS if not polish else (
+                _FRAME_POLISH_STEP_FACTORS if self.polish_only else _POLISH_STEP_FACTORS)
+            for factor in factors:
                 candidate = self.params + factor * step
                 trial = self.problem.residuals(self.chain, candidate, rays, target, index, False, group)
                 c = robust_cost(trial.r * trial.used, kind, scale)

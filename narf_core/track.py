@@ -1,7 +1,7 @@
 """Tracking over a sequence: the refiner warm-started frame after frame (issue #10).
 
-Each frame is a few iterations of the refiner (:func:`refine_frame`: with depth Gauss-Newton on one
-set of rays, without depth Adam; see :class:`TrackOptions`) that start from a constant-velocity
+Each frame is a few iterations of the refiner (:func:`refine_frame`: Gauss-Newton on one set of rays;
+see :class:`TrackOptions`) that start from a constant-velocity
 prediction of the previous estimate. The state carried from frame to frame is a
 :class:`TrackState`: the last estimate (pose, θ), its time, the velocity of the object's box
 centre and its angular velocity (both in camera axes, so that the prediction turns the object
@@ -70,10 +70,10 @@ _DEPTH_CELL = 0.7  # its cells' side over the mean spacing of the projected poin
 # without, for a model whose bundle carries no factor of its own for that solver: fitted on four tools'
 # seed-1 sequences pooled (with depth) and on the clamp's (without; docs/benchmarks.md).
 SIGMA_SCALE = {"gauss-newton": {"rgbd": 0.4, "rgb": 1.6}, "adam": {"rgbd": 3.0, "rgb": 1.8}}
-# A frame's solver where TrackOptions.solver is "auto": with depth Levenberg-Marquardt on one set of rays
-# (a few iterations reach the bottom that Adam's fixed steps trail behind); without depth Adam, whose
-# loss holds the distance to the prediction (distance_prior_rgb) where the silhouette leaves it free.
-AUTO_SOLVER = {"rgbd": "gauss-newton", "rgb": "adam"}
+# A frame's solver where TrackOptions.solver is "auto": Levenberg-Marquardt on one set of rays, with depth
+# and without (a few iterations reach the bottom that Adam's fixed steps trail behind; without depth its
+# steps along the line of sight follow the silhouette's scale, where Adam's drift: docs/benchmarks.md).
+AUTO_SOLVER = {"rgbd": "gauss-newton", "rgb": "gauss-newton"}
 # A frame's iterations and rays per iteration per solver, where TrackOptions leaves them at 0.
 BUDGETS = {"adam": (6, 768), "gauss-newton": (2, 768)}
 
@@ -109,14 +109,14 @@ class TrackOptions:
     lr_pose: float = 0.003  # Adam moves every parameter by about its rate per step: small, from a close start
     lr_theta: float = 0.01
     lr_decay: float = 0.5
-    silhouette_weight: float = 1.0  # with depth
+    silhouette_weight: float = 1.0  # Adam's, with depth (Gauss-Newton: its preset's)
     ray_sampling: str = "uniform"
-    # Without depth the silhouette's scale is the main cue to distance: it weighs more, and half the
-    # rays go near the mask's edges and image gradients ("edges"), where a distance error shows.
+    # Without depth the silhouette's scale is the main cue to distance: it weighs more in Adam's loss, and
+    # half the rays go near the mask's edges and image gradients ("edges"), where a distance error shows.
     silhouette_weight_rgb: float = 5.0
     ray_sampling_rgb: str = "edges"
-    # Without depth, the box centre's distance from the camera is held to the prediction's by this weight
-    # (refine_frame's distance_prior) where the mask's box is at most the preset's reference size: there
+    # Without depth, Adam's frames hold the box centre's distance from the camera to the prediction's by
+    # this weight (refine_frame's distance_prior) where the mask's box is at most the preset's reference size: there
     # the silhouette's scale alone lets it wander; in a larger box it pins the distance well enough.
     distance_prior_rgb: float = 3.0
     # With depth, the prediction is first moved along the line of sight so that the model's surface
@@ -125,7 +125,7 @@ class TrackOptions:
     depth_align: bool = True
     mode: str = "auto"  # the render mode (narf_core/modes.py)
     # "frame": where a ray can meet the object is found once per frame, from the model's surface
-    # points at the prediction, and no iteration marches (refine_frame; Adam, narf mode, band_m 0);
+    # points at the prediction, and no iteration marches (refine_frame; narf mode, band_m 0);
     # "iteration": the refiner marches its rays at every iteration (refine), as with band_m or parts mode.
     march: str = "frame"
     band_m: float = 0.0  # march only this far around the model's surface (EstimateOptions.band_m); 0 = off
@@ -498,6 +498,7 @@ def refine_frame(
     joints_pred: Mapping[str, float],
     options: EstimateOptions,
     distance_prior: float = 0.0,
+    polish: bool = False,
 ) -> EstimateResult:
     """The refiner's iterations for a warm-started frame without marching, each ray sampled only in a
     band that is known for the whole frame: ``options.solver`` "adam", :func:`refine`'s loss on fresh
@@ -518,7 +519,8 @@ def refine_frame(
     band cannot be trusted (surface points behind the camera) this is :func:`refine`.
     ``distance_prior`` (for a view without depth) adds that weight times the squared motion of the
     box centre along the line of sight, in object radii, to Adam's loss where the mask's box is no
-    larger than ``options.reference_box_px``.
+    larger than ``options.reference_box_px``. ``polish`` (for a view without depth): every
+    Gauss-Newton iteration polishes (:attr:`narf_core.gauss_newton.GaussNewtonRun.polish_only`).
     """
     from narf_core.band import ray_band
     from narf_core.compositing import composite
@@ -598,6 +600,7 @@ def refine_frame(
         problem = FrameProblem(model, options, param.radius, uses_depth, near=near, far=far, field=field, grid=grid,
                                prune=prune)
         run = GaussNewtonRun(problem, obs, camera, param, p0, start, options.seed)
+        run.polish_only = polish
         run.optimise()
         candidates, trace, failures = (run.params, run.best_params), run.trace, int(run.recovered)
     else:
@@ -801,7 +804,7 @@ def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.
     if (opts.march == "frame" and opts.band_m == 0
             and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf"):
         return refine_frame(model, camera, image, mask, depth, T, joints, step_options,
-                            0.0 if depth is not None else opts.distance_prior_rgb)
+                            0.0 if depth is not None else opts.distance_prior_rgb, polish=depth is None)
     return refine(model, image, mask, camera, T, joints_init=joints, depth=depth, options=step_options)
 
 

@@ -627,7 +627,8 @@ def test_the_along_ray_derivative_is_the_render_moved_along_its_rays(model):
 
 def test_only_a_pyramid_run_polishes(model, monkeypatch):
     """The polish (exact along-ray derivatives, trial steps up to 32x) runs once one start is left at a
-    pyramid's fine level; a run without a pyramid (a tracker's frame) keeps the plain iteration."""
+    pyramid's fine level; a run without a pyramid keeps the plain iteration (a tracker's frame without
+    depth asks for the polish: tests/test_track.py)."""
     calls = []
     exact = gauss_newton.along_ray_exact
     monkeypatch.setattr(gauss_newton, "along_ray_exact", lambda *a: calls.append(1) or exact(*a))
