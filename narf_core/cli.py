@@ -779,7 +779,7 @@ def _add_track(commands: argparse._SubParsersAction) -> None:
     arg("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame (default: the "
         f"solver's, {TRACK_ITERATIONS})")
     arg("--solver", choices=TRACK_SOLVER_CHOICES, default="auto",
-        help="refiner per frame (default: %(default)s, gauss-newton with depth, adam without)")
+        help="refiner per frame (default: %(default)s, gauss-newton with depth and without)")
     arg("--mode", choices=MODES, default="auto", help=MODE_HELP)
     arg("--video", type=Path, metavar="OUT.gif", help="write the frames with the model's silhouette over them")
     _add_json_flag(parser)
@@ -951,7 +951,7 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
                      f"(default: the solver's, {TRACK_ITERATIONS})")
     sub.add_argument("--rays", type=_positive_int, metavar="N", help="rays per iteration (default: the solver's)")
     sub.add_argument("--solver", choices=TRACK_SOLVER_CHOICES, default=None,
-                     help="per-frame solver (default: the tracker's, auto: gauss-newton with depth, adam without)")
+                     help="per-frame solver (default: the tracker's, auto: gauss-newton, with depth and without)")
     sub.add_argument("--band-m", type=_non_negative_float, metavar="M",
                      help="march only this far around the model's surface (0: the whole box; default: the tracker's)")
     sub.add_argument("--march", choices=("frame", "iteration"), default=None,

@@ -155,6 +155,11 @@ class TrackOptions:
     # tracks the frame as a warm-started one from them, at rest (the multi-start only if it fails).
     first_frame: str = "multi-start"
     velocity_smoothing: float = 0.6  # weight of the newest velocity measurement
+    # Without depth, that weight for the box centre's motion along the line of sight (0: the prediction
+    # keeps the last estimate's distance). There the distance is the silhouette's scale, measured anew
+    # each frame with an error of millimetres to centimetres: its differences, carried forward, drove
+    # the pliers' tracks into oscillations of several centimetres (docs/benchmarks.md).
+    velocity_smoothing_along_rgb: float = 0.0
     max_gap_s: float = 0.25  # longer since the last estimate: no prediction, re-initialise
     # With depth, longer since the last estimate (or lost after an `uncertain` or `reinitialised` frame):
     # re-initialise by detection (every orientation scored, the best refined; narf_core/detect.py)
@@ -177,6 +182,7 @@ class TrackOptions:
         need(1 <= self.reinit_theta_starts <= 64, "reinit_theta_starts", "must be in [1, 64]")
         need(self.first_frame in FIRST_FRAMES, "first_frame", f"must be one of {', '.join(FIRST_FRAMES)}")
         need(0 < self.velocity_smoothing <= 1, "velocity_smoothing", "must be in (0, 1]")
+        need(0 <= self.velocity_smoothing_along_rgb <= 1, "velocity_smoothing_along_rgb", "must be in [0, 1]")
         need(self.max_gap_s > 0, "max_gap_s", "must be > 0")
         need(self.redetect_after_s >= 0, "redetect_after_s", "must be >= 0 (0 = never)")
         need(0 <= self.lost_overlap <= self.uncertain_overlap <= 1, "lost_overlap",
@@ -371,6 +377,20 @@ def _velocity(model: NarfModel, before: TrackState, T: np.ndarray, dt: float) ->
     v = ((T[:3, :3] @ c_obj + T[:3, 3]) - (T0[:3, :3] @ c_obj + T0[:3, 3])) / dt
     w = so3_log(torch.from_numpy(T[:3, :3] @ T0[:3, :3].T)).numpy() / dt
     return np.concatenate([v, w])
+
+
+def _blended_velocity(model: NarfModel, before: TrackState, T: np.ndarray, dt: float, weight: float,
+                      along_weight: float) -> np.ndarray:
+    """``before``'s velocity ``[6]`` moved towards the one measured from its estimate to ``T``: by
+    ``weight``, and the box centre's motion along the line of sight to ``T``'s centre by ``along_weight``."""
+    old = np.asarray(before.velocity, dtype=np.float64)
+    new = _velocity(model, before, T, dt)
+    out = weight * new + (1 - weight) * old
+    centre = T[:3, :3] @ _centre(model) + T[:3, 3]
+    view = centre / max(float(np.linalg.norm(centre)), 1e-12)
+    along = along_weight * float(new[:3] @ view) + (1 - along_weight) * float(old[:3] @ view)
+    out[:3] += (along - float(out[:3] @ view)) * view
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -898,7 +918,8 @@ def _step(
             velocity, joint_velocity = np.asarray(state.velocity, dtype=np.float64), dict(state.joint_velocity)
             if gap >= _MIN_VELOCITY_GAP_S:  # (not at a track's first frame, where the estimate has no predecessor)
                 a = opts.velocity_smoothing
-                velocity = a * _velocity(model, state, result.T_cam_obj, gap) + (1 - a) * velocity
+                along = a if depth is not None else opts.velocity_smoothing_along_rgb
+                velocity = _blended_velocity(model, state, result.T_cam_obj, gap, a, along)
                 joint_velocity = {name: a * (value - state.joints[name]) / gap + (1 - a) * joint_velocity.get(name, 0.0)
                                   for name, value in result.joints.items()}
             nxt = TrackState(result.T_cam_obj, dict(result.joints), t, t, velocity, joint_velocity, cov, status, 0)

@@ -396,7 +396,7 @@ _TRACK_OPTIONS: dict[str, tuple[str, dict[str, float]]] = {
     "iterations": (f"Refiner iterations per frame, 0 for the solver's own ({budget_text(0)})", {"le": 200}),
     "rays_per_iteration": (f"Rays rendered per iteration (left out: the solver's own, {budget_text(1)})",
                            {"ge": 16, "le": 8192}),
-    "solver": ("The per-frame solver: gauss-newton, adam, or auto (gauss-newton with depth, adam without)", {}),
+    "solver": ("The per-frame solver: gauss-newton, adam, or auto (gauss-newton, with depth and without)", {}),
     "mode": (_MODE_MEANING, {}),
 }
 

@@ -1008,6 +1008,31 @@ def test_without_depth_the_gauss_newton_frame_polishes_its_distance(clamp, clamp
             assert along[True] < 0.005 and along[False] > 0.008, (frame.id, offset, along)
 
 
+def test_without_depth_the_velocity_along_the_line_of_sight_keeps_its_own_weight(clamp) -> None:
+    """``_blended_velocity``: the box centre's velocity moves towards the measured one by the weight, its
+    part along the line of sight by its own weight (without depth ``velocity_smoothing_along_rgb``, 0: the
+    prediction keeps the last distance); the same weight for both is the plain blend."""
+    from narf_core.track import TrackInputError, TrackOptions, TrackState, _blended_velocity, _centre
+
+    before = TrackState(np.eye(4), {"jaw_opening": 0.0}, 0.0, 0.0, np.array([0.01, 0.0, 0.02, 0.0, 0.1, 0.0]))
+    T = np.eye(4)
+    T[:3, 3] = [0.003, 0.001, 0.5] - _centre(clamp)  # the centre 0.5 m ahead, moved 3 mm right, 1 mm down
+    dt = 0.1
+    centre = T[:3, 3] + _centre(clamp)
+    view = centre / np.linalg.norm(centre)
+    measured = (centre - _centre(clamp)) / dt
+    plain = _blended_velocity(clamp, before, T, dt, 0.6, 0.6)
+    np.testing.assert_allclose(plain[:3], 0.6 * measured + 0.4 * before.velocity[:3])
+    np.testing.assert_allclose(plain[3:], 0.4 * before.velocity[3:], atol=1e-12)  # no turn measured
+    held = _blended_velocity(clamp, before, T, dt, 0.6, 0.0)
+    assert held[:3] @ view == pytest.approx(before.velocity[:3] @ view)
+    across = lambda v: v - (v @ view) * view  # noqa: E731
+    np.testing.assert_allclose(across(held[:3]), across(plain[:3]), atol=1e-12)
+    assert TrackOptions().velocity_smoothing_along_rgb == 0.0
+    with pytest.raises(TrackInputError, match="velocity_smoothing_along_rgb"):
+        TrackOptions(velocity_smoothing_along_rgb=1.5)
+
+
 def test_cli_track_solver_choices_are_the_trackers() -> None:
     """``narf track`` / ``narf bench track --solver`` offer the tracker's solvers (named in the CLI so that
     ``--help`` imports no torch)."""
