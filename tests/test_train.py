@@ -746,6 +746,28 @@ def test_the_sparsity_term_leaves_the_measured_surface_alone():
     assert pipeline.observed_surface(no_depth, SLAB_BOX, 100) is None
 
 
+def test_the_sparsity_term_leaves_the_parts_own_urdf_surface_alone(tiny_dataset):
+    """``part_surface_points``: every part's visual meshes in its own frame (inside its box), at least a
+    point per ``spacing`` squared of area; ``observed_surface`` keeps their cells out of the sparsity term
+    too, so a stretch of a part that no view shows (a jaw inside the clamp's body) is not emptied."""
+    from narf_core.train.parts import part_surface_points
+
+    kin = KinematicTree.from_urdf(Dataset.open(tiny_dataset).urdf_path)
+    meshes = kin.visual_meshes()
+    for p, box in enumerate(part_boxes(kin)):
+        points = part_surface_points(kin, p, 0.005)
+        area = sum(meshes[link].area for link in kin.parts[p] if link in meshes)
+        assert len(points) >= area / 0.005**2
+        assert bool(((points >= box[0]) & (points <= box[1])).all())
+        rays = rays_along_z(4)
+        unmeasured = RayTargets(rays, torch.zeros(4, 3), torch.ones(4), torch.zeros(4))  # no depth anywhere
+        assert pipeline.observed_surface(unmeasured, box, 64) is None
+        surface = pipeline.observed_surface(unmeasured, box, 64, points)
+        assert bool(surface.occupied(points).all())
+        inside = box[0] + torch.rand(4000, 3, generator=torch.Generator().manual_seed(p)) * (box[1] - box[0])
+        assert 0.0 < surface.occupied(inside).float().mean().item() < 1.0  # the rest of the box still counts
+
+
 def test_free_rays_are_the_batch_rays_with_a_depth_and_drawn_occluders():
     rays = rays_along_z(4)
     batch = RayTargets(rays, torch.zeros(4, 3), torch.tensor([1.0, 0.0, 1.0, 1.0]), torch.tensor([0.9, 0.0, 0.0, 1.2]))

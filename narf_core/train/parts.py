@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+import trimesh
 from torch import Tensor
 
 from narf_core.data.dataset import Dataset
@@ -63,6 +64,24 @@ def part_boxes(kin: KinematicTree, margin: float = 0.01) -> list[Tensor]:
         pts = np.concatenate(corners)
         boxes.append(torch.tensor(np.stack([pts.min(0) - margin, pts.max(0) + margin]), dtype=torch.float32))
     return boxes
+
+
+def part_surface_points(kin: KinematicTree, part: int, spacing: float, seed: int = 0) -> Tensor:
+    """The visual surface ``[m,3]`` of part ``part`` in its own frame (as :func:`part_boxes`): its links'
+    mesh vertices and points drawn on their faces, about one per ``spacing`` squared of area, so that
+    no stretch of the surface much wider than ``spacing`` goes without one."""
+    meshes = kin.visual_meshes()
+    poses = kin.link_poses(kin.mid_configuration())
+    T_part_obj = invert_pose(kin.part_poses(kin.mid_configuration())[part])
+    points = [np.zeros((0, 3))]
+    for link in kin.parts[part]:
+        if link not in meshes:
+            continue
+        mesh = meshes[link]
+        T = (T_part_obj @ poses[kin.links.index(link)]).numpy()
+        drawn, _ = trimesh.sample.sample_surface(mesh, int(np.ceil(mesh.area / spacing**2)) + 1, seed=seed)
+        points += [x @ T[:3, :3].T + T[:3, 3] for x in (np.asarray(mesh.vertices), drawn)]
+    return torch.tensor(np.concatenate(points), dtype=torch.float32)
 
 
 def surface_incidence(rays: Rays, depth: Tensor, height: int, width: int) -> Tensor:

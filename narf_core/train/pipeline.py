@@ -31,7 +31,7 @@ from narf_core.render import OccupancyGrid, render_rays
 from narf_core.train.distill import composite_rays
 from narf_core.train.loop import run_stage, save_atomic
 from narf_core.train.parts import (
-    FreeRays, RayTargets, concat_free, concat_targets as _concat_targets, part_boxes, part_rays,
+    FreeRays, RayTargets, concat_free, concat_targets as _concat_targets, part_boxes, part_rays, part_surface_points,
 )
 
 
@@ -53,7 +53,9 @@ class TrainConfig:
     where another part hides this one in every view (the inside of the other part at the training
     configurations): without the term a part field fills it, and at other configurations that density
     shows where the other part has moved away (the pliers' crotch, rendered closed). The cells near the
-    surfaces the part's own pixels measured are left out (:func:`observed_surface`). Off by default: it
+    surfaces the part's own pixels measured are left out (:func:`observed_surface`), and with
+    ``sparsity_keeps_meshes`` those near the part's own URDF meshes (a part that runs on inside another,
+    a clamp's jaw in its body, keeps what no view shows of it). Off by default: it
     helps parts that hide one another at the training configurations, and costs others a little
     (docs/benchmarks.md).
 
@@ -77,6 +79,7 @@ class TrainConfig:
     free_space_weight: float = 0.0
     sparsity_weight: float = 0.0
     sparsity_points: int = 4096
+    sparsity_keeps_meshes: bool = True
     budget_s: float | None = None
     seed: int = 0
     keep_parts: bool = True
@@ -175,14 +178,19 @@ def free_space_loss(field, free: FreeRays, box, grid, step: float) -> torch.Tens
 SURFACE_CELLS = 3  # grid cells around a measured surface point that the sparsity term leaves alone
 
 
-def observed_surface(targets: RayTargets, box: torch.Tensor, resolution: int) -> OccupancyGrid | None:
+def observed_surface(targets: RayTargets, box: torch.Tensor, resolution: int,
+                     known: torch.Tensor | None = None) -> OccupancyGrid | None:
     """The cells of ``box [2,3]`` (a grid of ``resolution``) within :data:`SURFACE_CELLS` of a surface point
-    that one of the part's own pixels measured (its depth along its ray); ``None`` without any depth."""
+    that one of the part's own pixels measured (its depth along its ray) or of a ``known [m,3]`` point of
+    its surface (its URDF meshes: :func:`~narf_core.train.parts.part_surface_points`); ``None`` without any."""
     own = (targets.opacity > 0.5) & (targets.depth > 0)
-    if not bool(own.any()):
-        return None
     rays = targets.rays[own]
-    x = rays.origins + (targets.depth[own] / rays.z_per_t)[:, None] * rays.directions
+    points = [rays.origins + (targets.depth[own] / rays.z_per_t)[:, None] * rays.directions]
+    if known is not None:
+        points.append(known.to(points[0]))
+    x = torch.cat(points)
+    if len(x) == 0:
+        return None
     return OccupancyGrid.from_points(box, resolution, x, dilate=SURFACE_CELLS)
 
 
@@ -258,9 +266,12 @@ def train(
                 rays_per_part, found = part_rays(dataset, kin, boxes, free_space=config.free_space_weight > 0)
                 if found is not None:
                     occluders = found
+            known = None
+            if config.sparsity_weight > 0 and config.sparsity_keeps_meshes:
+                known = part_surface_points(kin, p, float((box[1] - box[0]).min()) / config.grid_resolution, config.seed)
             grid, seconds = _train_part(
                 field, box, rays_per_part[p], config, work / f"part{p}.ckpt", budget_parts, progress, kin.part_names[p],
-                occluders[p],
+                occluders[p], known,
             )
             save_atomic({"field": field.state_dict(), "grid": grid.occupancy.to(torch.uint8), "seconds": seconds}, done)
             timings[f"part{p}_s"] = seconds
@@ -410,7 +421,7 @@ def refreshes_grid(step: int, steps: int) -> bool:
 
 def _train_part(
     field, box, targets: RayTargets, config: TrainConfig, ckpt: Path, budget_s, progress: bool, name: str,
-    occluders: FreeRays | None = None,
+    occluders: FreeRays | None = None, known: torch.Tensor | None = None,
 ):
     """Stage 1 for one part; with ``occluders`` (the free-space term on) each step also draws them in
     the proportion they have to ``targets``, so every labelled pixel crossing the box bounds the free space."""
@@ -419,7 +430,7 @@ def _train_part(
     optimizer = torch.optim.Adam(field.parameters(), lr=config.lr, eps=1e-15)
     step = march_step(box)
     grid = OccupancyGrid.full(box, config.grid_resolution)
-    surface = observed_surface(targets, box, config.grid_resolution) if config.sparsity_weight > 0 else None
+    surface = observed_surface(targets, box, config.grid_resolution, known) if config.sparsity_weight > 0 else None
 
     def refresh(i: int) -> None:
         nonlocal grid
