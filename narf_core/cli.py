@@ -507,8 +507,8 @@ def _add_train(commands: argparse._SubParsersAction) -> None:
     arg("--free-space-weight", type=float, metavar="W", help="stage 1's free-space term: the "
         "opacity a part renders in front of the depth measured on any labelled pixel (0, the default: off)")
     arg("--sparsity-weight", type=float, metavar="W", help="stage 1's sparsity term: the opacity a part "
-        "renders at random points of its box, so that it leaves empty what no training view shows "
-        "(0, the default: off)")
+        "renders at random points of its box away from its own surfaces, so that it leaves empty what no "
+        "training view shows (default 0.1; 0: off)")
     arg("--no-parts", action="store_true", help="leave the part fields out of the bundle (no 'parts' mode)")
     arg("--seed", type=_non_negative_int, default=0)
     parser.set_defaults(run=_run_train, auto_threads_max=None)  # batches of thousands of rays with backward
