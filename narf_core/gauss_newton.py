@@ -42,7 +42,10 @@ are replaced by the render's change over a sample spacing (:func:`along_ray_exac
 steps go on to 32x the LM step: autograd through a render of fixed samples sees a sharp surface
 only through the density's slope between two samples, which puts noise in ``J`` (so ``JᵀWJ`` is too
 large and the LM step too short) and leaves most of the depth's change along the line of sight out
-of it. A tracker's frame without depth polishes from its first iteration (``polish_only``, trial
+of it. A run may be held to a prior (:meth:`GaussNewtonRun.hold_to`, a tracker's frame without
+depth: to the prediction): ``½ Σ w_j (p_j - c_j)²`` joins the cost, ``w_j = s² / σ_j²`` with ``s²`` the
+residuals' mean square at the first iteration (the cost is a negative log-likelihood times ``s²``), so
+a direction the image barely sees moves only as far as the image asks clearly. A tracker's frame without depth polishes from its first iteration (``polish_only``, trial
 steps to 8x): there the silhouette's scale is the only cue to the distance, and without the exact
 along-ray part the LM step along the line of sight is too short to follow the object. Coarse pyramid levels average ``_GROUP`` jittered rays per pixel (the render blurred like the
 target); the fine level keeps one set of rays, so the last iterations are a deterministic LM that
@@ -446,6 +449,9 @@ class GaussNewtonRun:
     should_stop = None  # refine's hook, ``Callable[[], str | None]``: a status ends the loop
     fine_only = False  # after an Adam warm start: every iteration at the finest level
     polish_only = False  # one start from near its answer (a tracker's frame without depth): every iteration polishes
+    prior_sigma: Tensor | None = None  # [d] (hold_to): σ of a Gaussian prior about prior_centre [S, d]
+    prior_centre: Tensor | None = None
+    prior_weight: Tensor | None = None  # [S, d]: its weight against the residuals, fixed at the first iteration
 
     def __init__(
         self,
@@ -535,6 +541,13 @@ class GaussNewtonRun:
             H = Jf.transpose(1, 2) @ (wf[..., None] * Jf)
             g = Jf.transpose(1, 2) @ (wf * rf)[..., None]
             cost = robust_cost(res.r * res.used, kind, scale)
+            if self.prior_sigma is not None:
+                if self.prior_weight is None:  # the residuals' variance at the start: the data term's scale
+                    variance = 2 * cost / res.used.reshape(S, -1).sum(-1).clamp_min(1)
+                    self.prior_weight = variance[:, None] / self.prior_sigma[None, :] ** 2  # [S, d]
+                H = H + torch.diag_embed(self.prior_weight)
+                g = g + (self.prior_weight * (self.params - self.prior_centre))[..., None]
+                cost = cost + self._prior_cost(self.params)
             step = self._solve(H, g)
             t2 = time.perf_counter()
             self.timing["solve_s"] += t2 - t1
@@ -547,6 +560,8 @@ class GaussNewtonRun:
                 candidate = self.params + factor * step
                 trial = self.problem.residuals(self.chain, candidate, rays, target, index, False, group)
                 c = robust_cost(trial.r * trial.used, kind, scale)
+                if self.prior_sigma is not None:
+                    c = c + self._prior_cost(candidate)
                 take = torch.isfinite(c) & (c < trial_cost)
                 trial_params = torch.where(take[:, None], candidate, trial_params)
                 trial_cost = torch.where(take, c, trial_cost)
@@ -576,6 +591,15 @@ class GaussNewtonRun:
             if opts.early_stop and level == n_levels - 1 and S == 1 and self.small_steps >= opts.patience:
                 self.status = "converged"
                 return
+
+    def hold_to(self, centre: Tensor, sigma: Tensor) -> None:
+        """A Gaussian prior on the rows: ``centre [S, d]`` with ``sigma [d]`` per parameter (``inf``: none),
+        weighed against the residuals as a likelihood whose variance is their mean square at the first
+        iteration (see the module docstring)."""
+        self.prior_centre, self.prior_sigma, self.prior_weight = centre.clone(), sigma.double(), None
+
+    def _prior_cost(self, params: Tensor) -> Tensor:
+        return 0.5 * (self.prior_weight * (params - self.prior_centre) ** 2).sum(-1)
 
     def _linearise(self, rays: Rays, target: _Target, index: Tensor, group: int, along_ray: bool = False) -> Residuals:
         """The residuals and Jacobian at ``params`` on this iteration's rays; the last ones again where

@@ -160,6 +160,12 @@ class TrackOptions:
     # each frame with an error of millimetres to centimetres: its differences, carried forward, drove
     # the pliers' tracks into oscillations of several centimetres (docs/benchmarks.md).
     velocity_smoothing_along_rgb: float = 0.0
+    # Without depth, a Gauss-Newton frame is held to the prediction by a Gaussian prior of these σ (the box
+    # centre's position per camera axis, the rotation about it per axis; either 0: off): a turn out of the
+    # image plane and the distance are what the silhouette barely sees, and unheld, a frame's long steps
+    # there on one draw of rays now and then set a track off by several centimetres (docs/benchmarks.md).
+    frame_prior_position_m_rgb: float = 0.005
+    frame_prior_rotation_deg_rgb: float = 1.0
     max_gap_s: float = 0.25  # longer since the last estimate: no prediction, re-initialise
     # With depth, longer since the last estimate (or lost after an `uncertain` or `reinitialised` frame):
     # re-initialise by detection (every orientation scored, the best refined; narf_core/detect.py)
@@ -183,6 +189,8 @@ class TrackOptions:
         need(self.first_frame in FIRST_FRAMES, "first_frame", f"must be one of {', '.join(FIRST_FRAMES)}")
         need(0 < self.velocity_smoothing <= 1, "velocity_smoothing", "must be in (0, 1]")
         need(0 <= self.velocity_smoothing_along_rgb <= 1, "velocity_smoothing_along_rgb", "must be in [0, 1]")
+        need(self.frame_prior_position_m_rgb >= 0, "frame_prior_position_m_rgb", "must be >= 0 (0 = off)")
+        need(self.frame_prior_rotation_deg_rgb >= 0, "frame_prior_rotation_deg_rgb", "must be >= 0 (0 = off)")
         need(self.max_gap_s > 0, "max_gap_s", "must be > 0")
         need(self.redetect_after_s >= 0, "redetect_after_s", "must be >= 0 (0 = never)")
         need(0 <= self.lost_overlap <= self.uncertain_overlap <= 1, "lost_overlap",
@@ -519,6 +527,7 @@ def refine_frame(
     options: EstimateOptions,
     distance_prior: float = 0.0,
     polish: bool = False,
+    prior: tuple[float, float] | None = None,
 ) -> EstimateResult:
     """The refiner's iterations for a warm-started frame without marching, each ray sampled only in a
     band that is known for the whole frame: ``options.solver`` "adam", :func:`refine`'s loss on fresh
@@ -540,7 +549,10 @@ def refine_frame(
     ``distance_prior`` (for a view without depth) adds that weight times the squared motion of the
     box centre along the line of sight, in object radii, to Adam's loss where the mask's box is no
     larger than ``options.reference_box_px``. ``polish`` (for a view without depth): every
-    Gauss-Newton iteration polishes (:attr:`narf_core.gauss_newton.GaussNewtonRun.polish_only`).
+    Gauss-Newton iteration polishes (:attr:`narf_core.gauss_newton.GaussNewtonRun.polish_only`);
+    ``prior`` ``(σ position m, σ rotation rad)``: its iterations are held to the prediction, the box
+    centre's position per camera axis and the rotation about it per axis (:meth:`~narf_core.gauss_newton.
+    GaussNewtonRun.hold_to`; the joints are free).
     """
     from narf_core.band import ray_band
     from narf_core.compositing import composite
@@ -621,6 +633,10 @@ def refine_frame(
                                prune=prune)
         run = GaussNewtonRun(problem, obs, camera, param, p0, start, options.seed)
         run.polish_only = polish
+        if prior is not None:  # σ of the box centre's position (m, per camera axis) and its rotation (rad, per axis)
+            sigma = torch.full((p0.shape[1],), math.inf, dtype=torch.float64)
+            sigma[:3], sigma[3:6] = prior[0] / param.radius, prior[1]
+            run.hold_to(p0, sigma)
         run.optimise()
         candidates, trace, failures = (run.params, run.best_params), run.trace, int(run.recovered)
     else:
@@ -823,8 +839,11 @@ def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.
     step_options = opts.step_options(depth is not None)
     if (opts.march == "frame" and opts.band_m == 0
             and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf"):
+        prior = None
+        if depth is None and opts.frame_prior_position_m_rgb > 0 and opts.frame_prior_rotation_deg_rgb > 0:
+            prior = (opts.frame_prior_position_m_rgb, math.radians(opts.frame_prior_rotation_deg_rgb))
         return refine_frame(model, camera, image, mask, depth, T, joints, step_options,
-                            0.0 if depth is not None else opts.distance_prior_rgb, polish=depth is None)
+                            0.0 if depth is not None else opts.distance_prior_rgb, polish=depth is None, prior=prior)
     return refine(model, image, mask, camera, T, joints_init=joints, depth=depth, options=step_options)
 
 

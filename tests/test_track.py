@@ -978,11 +978,12 @@ def test_gauss_newton_frame_reaches_the_label_from_an_offset_without_marching(cl
         problem._render(None, torch.zeros(2, 1), 2, 1, ("rgb",), None)
 
 
-def test_without_depth_the_gauss_newton_frame_polishes_its_distance(clamp, clamp_sequence: Path) -> None:
+def test_without_depth_the_gauss_newton_frame_polishes_its_distance_held_to_the_prediction(clamp, clamp_sequence: Path) -> None:
     """Without depth a frame's Levenberg-Marquardt iterations polish (exact along-ray derivatives, longer
     trial steps): from the label moved 1 cm along the line of sight, the default budget (two iterations)
-    comes back within 5 mm, where the plain iteration, whose Jacobian has the silhouette's scale too steep,
-    stays 8 mm or more away (the drift of an RGB-only track along the line of sight)."""
+    comes back within 5 mm, with the tracker's prior towards the prediction as without, where the plain
+    iteration, whose Jacobian has the silhouette's scale too steep, stays 8 mm or more away (the drift of
+    an RGB-only track along the line of sight); a prior of 0.1 mm and 1e-4 rad holds it where it started."""
     from dataclasses import replace
 
     from narf_core.data.dataset import Dataset
@@ -992,6 +993,7 @@ def test_without_depth_the_gauss_newton_frame_polishes_its_distance(clamp, clamp
     centre = _centre(clamp)
     options = replace(TrackOptions().step_options(False), uncertainty=False)
     assert options.solver == "gauss-newton" and options.iterations == 2
+    default = (TrackOptions().frame_prior_position_m_rgb, np.radians(TrackOptions().frame_prior_rotation_deg_rgb))
     for frame in (dataset.frames()[0], dataset.frames()[4]):
         images = dataset.load(frame)
         T = frame.T_cam_obj
@@ -1001,11 +1003,15 @@ def test_without_depth_the_gauss_newton_frame_polishes_its_distance(clamp, clamp
             T0 = T.copy()
             T0[:3, 3] += offset * view
             along = {}
-            for polish in (False, True):
+            for polish, prior in ((False, None), (True, None), (True, default), (True, (1e-4, 1e-4))):
                 result = refine_frame(clamp, dataset.camera, images.rgb, images.labels > 0, None, T0, frame.joints,
-                                      options, polish=polish)
-                along[polish] = abs(float((result.T_cam_obj[:3, :3] @ centre + result.T_cam_obj[:3, 3] - C) @ view))
-            assert along[True] < 0.005 and along[False] > 0.008, (frame.id, offset, along)
+                                      options, polish=polish, prior=prior)
+                along[polish, prior] = abs(float((result.T_cam_obj[:3, :3] @ centre + result.T_cam_obj[:3, 3] - C) @ view))
+                turned = np.degrees(np.arccos(np.clip((np.trace(T0[:3, :3].T @ result.T_cam_obj[:3, :3]) - 1) / 2, -1, 1)))
+                if prior == (1e-4, 1e-4):  # held to the prediction: no move along the line of sight, no turn
+                    assert along[polish, prior] > 0.009 and turned < 0.1, (frame.id, offset, along, turned)
+            assert along[True, None] < 0.005 and along[True, default] < 0.005, (frame.id, offset, along)
+            assert along[False, None] > 0.008, (frame.id, offset, along)
 
 
 def test_without_depth_the_velocity_along_the_line_of_sight_keeps_its_own_weight(clamp) -> None:
@@ -1031,6 +1037,9 @@ def test_without_depth_the_velocity_along_the_line_of_sight_keeps_its_own_weight
     assert TrackOptions().velocity_smoothing_along_rgb == 0.0
     with pytest.raises(TrackInputError, match="velocity_smoothing_along_rgb"):
         TrackOptions(velocity_smoothing_along_rgb=1.5)
+    for name in ("frame_prior_position_m_rgb", "frame_prior_rotation_deg_rgb"):
+        with pytest.raises(TrackInputError, match=name):
+            TrackOptions(**{name: -1.0})
 
 
 def test_cli_track_solver_choices_are_the_trackers() -> None:
