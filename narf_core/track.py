@@ -68,8 +68,8 @@ _DEPTH_ROUNDS = 3
 _DEPTH_CELL = 0.7  # its cells' side over the mean spacing of the projected points (a pixel at least)
 # A warm-started frame's σ over the refiner's (TrackOptions.sigma_scale), per solver, with depth and
 # without, for a model whose bundle carries no factor of its own for that solver: fitted on four tools'
-# seed-1 sequences pooled (with depth) and on the clamp's (without; docs/benchmarks.md).
-SIGMA_SCALE = {"gauss-newton": {"rgbd": 0.4, "rgb": 1.6}, "adam": {"rgbd": 3.0, "rgb": 1.8}}
+# seed-1 sequences pooled (Adam without depth: on the clamp's; docs/benchmarks.md).
+SIGMA_SCALE = {"gauss-newton": {"rgbd": 0.4, "rgb": 2.4}, "adam": {"rgbd": 3.0, "rgb": 1.8}}
 # A frame's solver where TrackOptions.solver is "auto": Levenberg-Marquardt on one set of rays, with depth
 # and without (a few iterations reach the bottom that Adam's fixed steps trail behind; without depth its
 # steps along the line of sight follow the silhouette's scale, where Adam's drift: docs/benchmarks.md).
