@@ -44,43 +44,36 @@ class RayTargets:
         return RayTargets(self.rays[index], self.rgb[index], self.opacity[index], self.depth[index], incidence)
 
 
+def part_meshes(kin: KinematicTree, part: int) -> list[trimesh.Trimesh]:
+    """The visual meshes of part ``part``'s links, each placed in the part's own frame (where its field
+    lives; a part's links do not move against each other, so any configuration gives the same)."""
+    meshes = kin.visual_meshes()  # copies: placing them leaves the tree's own alone
+    poses = kin.link_poses(kin.mid_configuration())
+    T_part_obj = invert_pose(kin.part_poses(kin.mid_configuration())[part])
+    return [meshes[link].apply_transform((T_part_obj @ poses[kin.links.index(link)]).numpy())
+            for link in kin.parts[part] if link in meshes]
+
+
 def part_boxes(kin: KinematicTree, margin: float = 0.01) -> list[Tensor]:
     """Each part's box ``[2,3]`` in its own frame: its links' visual bounds plus ``margin`` metres."""
-    meshes = kin.visual_meshes()
-    poses = kin.link_poses(kin.mid_configuration())
-    part_poses = kin.part_poses(kin.mid_configuration())
     boxes = []
-    for p, links in enumerate(kin.parts):
-        T_part_obj = invert_pose(part_poses[p])
-        corners = []
-        for link in links:
-            if link not in meshes:
-                continue
-            T = (T_part_obj @ poses[kin.links.index(link)]).numpy()
-            v = meshes[link].vertices
-            corners.append(v @ T[:3, :3].T + T[:3, 3])
-        if not corners:
+    for p in range(len(kin.parts)):
+        placed = part_meshes(kin, p)
+        if not placed:
             raise ValueError(f"part {kin.part_names[p]!r} has no visual geometry to learn")
-        pts = np.concatenate(corners)
+        pts = np.concatenate([np.asarray(mesh.vertices) for mesh in placed])
         boxes.append(torch.tensor(np.stack([pts.min(0) - margin, pts.max(0) + margin]), dtype=torch.float32))
     return boxes
 
 
 def part_surface_points(kin: KinematicTree, part: int, spacing: float, seed: int = 0) -> Tensor:
-    """The visual surface ``[m,3]`` of part ``part`` in its own frame (as :func:`part_boxes`): its links'
+    """The visual surface ``[m,3]`` of part ``part`` in its own frame (:func:`part_meshes`): its links'
     mesh vertices and points drawn on their faces, about one per ``spacing`` squared of area, so that
     no stretch of the surface much wider than ``spacing`` goes without one."""
-    meshes = kin.visual_meshes()
-    poses = kin.link_poses(kin.mid_configuration())
-    T_part_obj = invert_pose(kin.part_poses(kin.mid_configuration())[part])
     points = [np.zeros((0, 3))]
-    for link in kin.parts[part]:
-        if link not in meshes:
-            continue
-        mesh = meshes[link]
-        T = (T_part_obj @ poses[kin.links.index(link)]).numpy()
+    for mesh in part_meshes(kin, part):
         drawn, _ = trimesh.sample.sample_surface(mesh, int(np.ceil(mesh.area / spacing**2)) + 1, seed=seed)
-        points += [x @ T[:3, :3].T + T[:3, 3] for x in (np.asarray(mesh.vertices), drawn)]
+        points += [np.asarray(mesh.vertices), drawn]
     return torch.tensor(np.concatenate(points), dtype=torch.float32)
 
 
