@@ -39,6 +39,7 @@ MODES = ("auto", "narf", "parts")  # narf_core.modes.MODES, named here so that -
 PRESET_NAMES = ("auto", "paper", "robust", "gauss-newton")  # narf_core.estimate.PRESET_NAMES, likewise
 TRACK_SOLVER_CHOICES = ("auto", "adam", "gauss-newton")  # narf_core.track.TRACK_SOLVERS, likewise
 TRACK_ITERATIONS = "2 gauss-newton, 6 adam"  # narf_core.track.budget_text(), likewise
+TRACK_AUTO_SOLVER = "gauss-newton, with depth and without"  # narf_core.track.auto_solver_text(), likewise
 MODE_HELP = ("render mode: narf (the configuration field), parts (the composed part fields) or auto (default: "
              "the better one by the measurement training recorded in the bundle)")
 
@@ -779,7 +780,7 @@ def _add_track(commands: argparse._SubParsersAction) -> None:
     arg("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame (default: the "
         f"solver's, {TRACK_ITERATIONS})")
     arg("--solver", choices=TRACK_SOLVER_CHOICES, default="auto",
-        help="refiner per frame (default: %(default)s, gauss-newton with depth and without)")
+        help=f"refiner per frame (default: %(default)s, {TRACK_AUTO_SOLVER})")
     arg("--mode", choices=MODES, default="auto", help=MODE_HELP)
     arg("--video", type=Path, metavar="OUT.gif", help="write the frames with the model's silhouette over them")
     _add_json_flag(parser)
@@ -951,7 +952,7 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
                      f"(default: the solver's, {TRACK_ITERATIONS})")
     sub.add_argument("--rays", type=_positive_int, metavar="N", help="rays per iteration (default: the solver's)")
     sub.add_argument("--solver", choices=TRACK_SOLVER_CHOICES, default=None,
-                     help="per-frame solver (default: the tracker's, auto: gauss-newton, with depth and without)")
+                     help=f"per-frame solver (default: the tracker's, auto: {TRACK_AUTO_SOLVER})")
     sub.add_argument("--band-m", type=_non_negative_float, metavar="M",
                      help="march only this far around the model's surface (0: the whole box; default: the tracker's)")
     sub.add_argument("--march", choices=("frame", "iteration"), default=None,

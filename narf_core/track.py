@@ -84,6 +84,13 @@ def budget_text(which: int = 0) -> str:
     return ", ".join(f"{budget[which]} {solver}" for solver, budget in sorted(BUDGETS.items(), reverse=True))
 
 
+def auto_solver_text() -> str:
+    """:data:`AUTO_SOLVER` for help texts: "gauss-newton, with depth and without"."""
+    if AUTO_SOLVER["rgbd"] == AUTO_SOLVER["rgb"]:
+        return f"{AUTO_SOLVER['rgbd']}, with depth and without"
+    return f"{AUTO_SOLVER['rgbd']} with depth, {AUTO_SOLVER['rgb']} without"
+
+
 TRACK_SOLVERS = ("auto", *SOLVERS)
 
 

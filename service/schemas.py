@@ -21,7 +21,7 @@ from narf_core.checks import ROTATION_TOLERANCE, check_pose
 from narf_core.estimate import MASK_TRUSTS, MODES, PRESET_NAMES, PRESETS, RAY_SAMPLINGS, ROBUST_LOSSES, SOLVERS, EstimateOptions
 from narf_core.geometry import pose_from_position_quaternion, pose_to_position_quaternion
 from narf_core.modes import RENDER_MODES
-from narf_core.track import TrackOptions, budget_text
+from narf_core.track import TrackOptions, auto_solver_text, budget_text
 from narf_service.registry import MODEL_NAME_MAX, MODEL_NAME_PATTERN
 
 MAX_COORDINATE = 1e3  # metres: a pose farther than a kilometre is a unit mistake
@@ -396,7 +396,7 @@ _TRACK_OPTIONS: dict[str, tuple[str, dict[str, float]]] = {
     "iterations": (f"Refiner iterations per frame, 0 for the solver's own ({budget_text(0)})", {"le": 200}),
     "rays_per_iteration": (f"Rays rendered per iteration (left out: the solver's own, {budget_text(1)})",
                            {"ge": 16, "le": 8192}),
-    "solver": ("The per-frame solver: gauss-newton, adam, or auto (gauss-newton, with depth and without)", {}),
+    "solver": (f"The per-frame solver: gauss-newton, adam, or auto ({auto_solver_text()})", {}),
     "mode": (_MODE_MEANING, {}),
 }
 

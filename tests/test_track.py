@@ -1053,7 +1053,10 @@ def test_cli_track_solver_choices_are_the_trackers() -> None:
 
 def test_cli_track_iterations_help_names_the_trackers_budgets() -> None:
     from narf_core import cli
-    from narf_core.track import BUDGETS, budget_text
+    from narf_core.track import AUTO_SOLVER, BUDGETS, auto_solver_text, budget_text
+
+    assert cli.TRACK_AUTO_SOLVER == auto_solver_text()
+    assert all(solver in auto_solver_text() for solver in AUTO_SOLVER.values())
 
     assert cli.TRACK_ITERATIONS == budget_text(0) == f"{BUDGETS['gauss-newton'][0]} gauss-newton, {BUDGETS['adam'][0]} adam"
     assert budget_text(1) == f"{BUDGETS['gauss-newton'][1]} gauss-newton, {BUDGETS['adam'][1]} adam"
