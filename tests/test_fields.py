@@ -306,6 +306,67 @@ def articulated_field(kin, **kw) -> ArticulatedField:
     return field
 
 
+def _reverse_mode_jacobian(field, x: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """``∂(σ, colour)/∂(x, θ) [n, 4, 3 + k]`` by one backward pass per output."""
+    x, theta = x.clone().requires_grad_(True), theta.clone().requires_grad_(True)
+    sigma, rgb = field(x, torch.zeros_like(x), theta)
+    values = torch.cat([sigma[:, None], rgb], 1)
+    return torch.stack([torch.cat(torch.autograd.grad(values[:, c].sum(), (x, theta), retain_graph=True), 1)
+                        for c in range(4)], 1)
+
+
+def _assert_jacobian_is_reverse_mode(field, x: torch.Tensor, theta: torch.Tensor, tolerance: float) -> None:
+    values, derivatives = field.jacobian(x, theta)
+    with torch.no_grad():
+        sigma, rgb = field(x, torch.zeros_like(x), theta)
+    torch.testing.assert_close(values, torch.cat([sigma[:, None], rgb], 1))
+    expected = _reverse_mode_jacobian(field, x, theta)
+    assert derivatives.shape == expected.shape
+    for c in range(4):
+        error = (derivatives[:, c] - expected[:, c]).norm() / expected[:, c].norm()
+        assert expected[:, c].norm() > 0 and error < tolerance, (c, float(error))
+
+
+def test_articulated_field_jacobian_is_its_reverse_mode_derivative():
+    """The articulated field's derivatives in x and θ (forward differences along the lookup coordinates'
+    exact tangents, each sample's parts fixed) agree with reverse mode through the field, for one θ and
+    for one θ per sample (in runs, as a Gauss-Newton Jacobian's rays have them), on a revolute + mimic
+    prismatic chain whose parts all move with the joint."""
+    torch.manual_seed(0)  # the decoders' initialisation
+    field = articulated_field(KinematicTree.from_urdf_string(MIMIC_URDF))
+    box = torch.tensor(AABB)
+    x = box[0] + (box[1] - box[0]) * torch.rand(3000, 3, generator=torch.Generator().manual_seed(3))
+    theta = torch.tensor([0.4])
+    # forward differences of a thousandth of a texel in float32 (the atlas's dtype): a few per cent
+    _assert_jacobian_is_reverse_mode(field, x, theta.expand(len(x), 1), 0.05)
+    runs = torch.cat([torch.full((1500, 1), 0.4), torch.full((1500, 1), -0.3)])
+    _assert_jacobian_is_reverse_mode(field, x, runs, 0.05)
+    values, derivatives = field.jacobian(x[:0], theta)
+    assert values.shape == (0, 4) and derivatives.shape == (0, 4, 4)
+
+
+def test_kplanes_field_jacobian_is_its_reverse_mode_derivative():
+    """The K-planes configuration field's derivatives in x and θ agree with reverse mode, θ at a limit
+    too (a backward difference there); a view-dependent field has none."""
+    torch.manual_seed(0)
+    field = KPlanesField(AABB, [0.0], [1.0], resolution=(8, 16), theta_resolution=(4, 8), features=4, hidden=16)
+    with torch.no_grad():
+        for plane in field.planes:
+            plane.uniform_(0.1, 0.9)
+    field = field.double()  # float64: the differences' rounding out of the way (what is left: the few samples
+    # whose difference crosses a texel's edge or a ReLU's kink)
+    g, box = torch.Generator().manual_seed(4), torch.tensor(AABB, dtype=torch.float64)
+    x = box[0] + (box[1] - box[0]) * torch.rand(3000, 3, generator=g, dtype=torch.float64)
+    theta = torch.rand(3000, 1, generator=g, dtype=torch.float64)
+    theta[:100] = 1.0
+    _assert_jacobian_is_reverse_mode(field, x, theta, 0.02)
+    assert field.supports_jacobian
+    view = KPlanesField(AABB, [0.0], [1.0], resolution=(8, 16), theta_resolution=(4, 8), dir_degree=2)
+    assert not view.supports_jacobian
+    with pytest.raises(ValueError, match="view direction"):
+        view.jacobian(x, theta)
+
+
 @pytest.mark.parametrize("urdf", ["articulated.urdf", "synth_articulated.urdf", "mimic"])
 def test_articulated_field_kinematics_match_the_urdf(assets, urdf):
     """FK inside the field (revolute, prismatic, continuous, fixed chains, mimic joints) gives the

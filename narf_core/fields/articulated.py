@@ -42,6 +42,7 @@ _BOX_MARGIN = 0.01  # cells: a part's occupied box is grown by this, so float ro
 _BLOCK = 4  # cells per block (per axis) of the coarse part grids a ray's span is narrowed with
 _SPAN_SAMPLES = 128  # at most this many coarse samples per ray; a longer span keeps its boxes' bounds
 _MAX_RUNS = 64  # configurations mapped run by run (one FK each); rows of more are mapped one by one
+_FD_TEXELS = 0.001  # the forward differences of ArticulatedField.jacobian, in texels along the lookup coordinates
 
 
 def chain_spec(kin) -> dict:
@@ -338,6 +339,29 @@ class ArticulatedField(RadianceField):
         delta = (theta - theta.detach()).to(x.dtype)  # zero, with ∂/∂θ = 1 in every row
         return out + (term * delta[:, None, None, :]).sum(-1)
 
+    def lookup_tangents(self, x: Tensor, theta: Tensor, sample: Tensor, part: Tensor, columns: slice = slice(None)) -> Tensor:
+        """``∂/∂(x, θ)`` of :meth:`lookup_coordinates` (its ``columns``) of the samples ``sample [m]`` in the parts
+        ``part [m]`` (rows of ``x [n, 3]``, ``θ [k]`` or ``[n, k]``): ``[m, K, 3 + k]``, exact (the coordinates
+        are affine in ``x`` at a ``θ``; the ``θ`` columns from the chain's derivatives)."""
+        n = x.shape[0]
+        theta = self._check_theta(theta, n).detach()
+        C = self._grid_state()[3][..., columns].to(x.dtype)
+        if theta.dim() == 1 or n == 0 or theta.stride(0) == 0:
+            values, run = theta.reshape(-1, self.n_theta)[:1], torch.zeros_like(sample)
+        else:
+            starts = _runs(theta)
+            if starts is None:  # many configurations: one run per row
+                values, run = theta, sample
+            else:
+                values = theta[starts[:-1]]
+                run = torch.searchsorted(torch.tensor(starts[1:-1], device=x.device), sample, right=True)
+        linear = invert_pose(self.part_poses(values)).to(x.dtype).transpose(-1, -2) @ C  # [U, p, 4, K]
+        dmaps = self._pose_derivatives(values).to(x.dtype).transpose(-1, -2) @ C  # [U, k, p, 4, K]
+        along_x = linear[run, part, :3].transpose(1, 2)  # [m, K, 3]: the coordinates' change per metre
+        point = torch.cat([x[sample], x.new_ones(len(sample), 1)], 1)  # [m, 4]
+        along_theta = torch.einsum("md,mjdK->mKj", point, dmaps[run, :, part])  # [m, K, k]
+        return torch.cat([along_x, along_theta], -1)
+
     def _pose_derivatives(self, values: Tensor) -> Tensor:
         """``∂T_part_obj / ∂θ_j [U, k, p, 4, 4]`` at each configuration of ``values [U, k]``, from the chain's
         (:meth:`_chain`) by ``∂T⁻¹ = -T⁻¹ ∂T T⁻¹``; in closed form, as torch's forward mode would import its
@@ -383,6 +407,57 @@ class ArticulatedField(RadianceField):
         out = F.grid_sample(atlas, grid, mode="bilinear", padding_mode="border", align_corners=True)[:, :, 0]  # [N, F, m]
         out = out.reshape(-1, 3, self.features, out.shape[-1])  # [S, 3, F, m]
         return (out[:, 0] * out[:, 1] * out[:, 2]).reshape(-1, out.shape[-1]).t()
+
+    supports_jacobian = True  # view-independent: :meth:`jacobian` serves
+
+    @torch.no_grad()
+    def jacobian(self, x: Tensor, theta: Tensor) -> tuple[Tensor, Tensor]:
+        """The field and its derivatives at ``x [n, 3]`` (object frame), ``θ [k]`` or ``[n, k]``: ``values
+        [n, 4]`` (``σ``, colour) and ``∂values/∂(x, θ) [n, 4, 3 + k]``; no graph.
+
+        Reverse mode gives a sample's derivatives one output at a time (a backward pass through the planes
+        and decoders per output, four in all). Here every column is one forward difference in the lookup
+        coordinates along their exact tangent (:meth:`lookup_tangents`), ``_FD_TEXELS`` of a texel long,
+        with each sample's parts fixed as at ``x`` (the occupancy's cut is not differentiated, as reverse
+        mode does not differentiate it either): the planes and decoders evaluated once at ``1 + 3 + k``
+        coordinate sets. The lookup is bilinear, so a difference inside a texel is its derivative and one
+        across a texel's edge the mean slope over its length; ``σ = exp(raw)`` and the sigmoid's colour are
+        differentiated in closed form."""
+        n, k = x.shape[0], self.n_theta
+        values, derivatives = x.new_zeros(n, 4), x.new_zeros(n, 4, 3 + k)
+        if n == 0:
+            return values, derivatives
+        theta = self._check_theta(theta, n)
+        coords = self.lookup_coordinates(x, theta)  # [n, p, 3 + 2N]
+        occupied = self.part_lookup().occupied_cells(coords[..., :3])  # [n, p]
+        part, sample = occupied.t().nonzero(as_tuple=True)  # (sample, part) pairs grouped by part
+        if sample.numel() == 0:
+            return values, derivatives
+        uv = coords[..., 3:][sample, part]  # [m, 2N]
+        tangents = self.lookup_tangents(x, theta, sample, part, slice(3, None))  # [m, 2N, 3 + k]
+        rows, width = self.atlas.shape[1:3]
+        pitch = uv.new_tensor([2 / max(width - 1, 1), 2 / max(rows - 1, 1)]).repeat(uv.shape[1] // 2)  # one texel, u and v
+        step = _FD_TEXELS / (tangents.abs() / pitch[:, None]).amax(1).clamp_min(1e-12)  # [m, 3 + k] per column's unit
+        shifted = uv[None] + step.t()[..., None] * tangents.permute(2, 0, 1)  # [3 + k, m, 2N]
+        stacked = torch.cat([uv[None], shifted])  # [T, m, 2N]
+        T, m = stacked.shape[:2]
+        features = self._plane_features(stacked.reshape(T * m, -1).to(self.atlas.dtype)).reshape(T, m, -1)
+        counts = occupied.sum(0).tolist()
+        raw = torch.cat([self.decoders[i](f.reshape(-1, f.shape[-1])).reshape(T, -1, 4)
+                         for i, f in enumerate(features.split(counts, dim=1)) if f.shape[1]], dim=1).to(x.dtype)
+        draw = ((raw[1:] - raw[:1]) / step.t()[..., None]).permute(1, 2, 0)  # [m, 4, 3 + k]
+        s = raw[0, :, 0].clamp(max=SIGMA_MAX_LOG).exp()  # as trunc_exp: its derivative is its value
+        c = torch.sigmoid(raw[0, :, 1:])
+        ds = s[:, None] * draw[:, 0]  # [m, 3 + k]
+        dc = (c * (1 - c))[..., None] * draw[:, 1:]  # [m, 3, 3 + k]
+        sigma = x.new_zeros(n).index_add(0, sample, s)
+        weighted = x.new_zeros(n, 3).index_add(0, sample, s[:, None] * c)
+        dsigma = x.new_zeros(n, 3 + k).index_add(0, sample, ds)
+        dweighted = x.new_zeros(n, 3, 3 + k).index_add(0, sample, ds[:, None] * c[..., None] + s[:, None, None] * dc)
+        inverse = torch.where(sigma > 0, 1 / sigma.clamp_min(1e-30), 0.0)  # the density-weighted mean colour
+        colour = weighted * inverse[:, None]
+        dcolour = (dweighted - colour[..., None] * dsigma[:, None]) * inverse[:, None, None]
+        return torch.cat([sigma[:, None], colour], 1), torch.cat([dsigma[:, None], dcolour], 1)
 
     def forward(self, x: Tensor, d: Tensor, theta: Tensor | None = None) -> tuple[Tensor, Tensor]:
         sigma, weighted = self._evaluate(x, theta, True)

@@ -17,8 +17,10 @@ from itertools import combinations
 import torch
 from torch import Tensor, nn
 
-from narf_core.fields.base import RadianceField, trunc_exp
+from narf_core.fields.base import SIGMA_MAX_LOG, RadianceField, trunc_exp
 from narf_core.fields.encodings import sample_plane, spherical_harmonics
+
+_FD_TEXELS = 0.001  # the forward differences of KPlanesField.jacobian, in texels of the finest plane
 
 
 def total_variation(plane: Tensor) -> Tensor:
@@ -124,6 +126,46 @@ class KPlanesField(RadianceField):
         """``sigma [n]`` and, as features, the view-independent colour logits ``[n, 3]``."""
         out = self.head(self.decoder(self.plane_features(x, theta)))
         return trunc_exp(out[:, 0]), out[:, 1:]
+
+    @property
+    def supports_jacobian(self) -> bool:
+        """Whether :meth:`jacobian` serves: the colour does not depend on the view direction."""
+        return self.direction_head is None
+
+    @torch.no_grad()
+    def jacobian(self, x: Tensor, theta: Tensor | None) -> tuple[Tensor, Tensor]:
+        """The field and its derivatives at ``x [n, 3]``, ``θ [k]`` or ``[n, k]``: ``values [n, 4]`` (``σ``,
+        colour) and ``∂values/∂(x, θ) [n, 4, 3 + k]``; no graph, view-independent fields only.
+
+        Every column is one forward difference (backward at the box's or the limits' upper side) of
+        ``_FD_TEXELS`` of the finest plane's texel along its axis, the planes and decoder evaluated once at
+        ``1 + 3 + k`` input sets (see :meth:`~narf_core.fields.articulated.ArticulatedField.jacobian`)."""
+        if not self.supports_jacobian:
+            raise ValueError("a field whose colour depends on the view direction has no jacobian here")
+        n, k = x.shape[0], self.n_theta
+        inputs = x.to(self.aabb.dtype)
+        lower, upper = self.aabb[0], self.aabb[1]
+        finest = [max(2, math.ceil(max(self.resolution) * float(e / (upper - lower).max()) - 1e-6)) for e in upper - lower]
+        step = (upper - lower) / (torch.tensor(finest, dtype=lower.dtype, device=lower.device) - 1)
+        if k:
+            self.normalize_theta(theta, n)  # validates its shape
+            inputs = torch.cat([inputs, theta.to(lower.dtype).expand(n, k)], 1)
+            lower, upper = torch.cat([lower, self.theta_lower]), torch.cat([upper, self.theta_upper])
+            step = torch.cat([step, (self.theta_upper - self.theta_lower) / (max(self.theta_resolution) - 1)])
+        step = _FD_TEXELS * step  # [3 + k]
+        h = torch.where(inputs + step > upper, -step, step)  # [n, 3 + k]
+        shifted = inputs[None].repeat(4 + k, 1, 1)  # [T, n, 3 + k]: the point, then each column moved
+        columns = torch.arange(3 + k, device=x.device)
+        shifted[1 + columns, :, columns] += h.t()
+        flat = shifted.reshape(-1, 3 + k)
+        raw = self.head(self.decoder(self.plane_features(flat[:, :3], flat[:, 3:] if k else None))).reshape(4 + k, n, 4)
+        draw = ((raw[1:] - raw[:1]) / h.t()[..., None]).permute(1, 2, 0).to(x.dtype)  # [n, 4, 3 + k]
+        raw = raw[0].to(x.dtype)
+        sigma = raw[:, 0].clamp(max=SIGMA_MAX_LOG).exp()  # as trunc_exp: its derivative is its value
+        colour = torch.sigmoid(raw[:, 1:])
+        dsigma = sigma[:, None] * draw[:, 0]
+        dcolour = (colour * (1 - colour))[..., None] * draw[:, 1:]
+        return torch.cat([sigma[:, None], colour], 1), torch.cat([dsigma[:, None], dcolour], 1)
 
     def color(self, features: Tensor, d: Tensor) -> Tensor:
         if self.direction_head is not None:
