@@ -41,7 +41,8 @@ from narf_core.diameter import object_diameter
 from narf_core.geometry import Pinhole, Rays
 from narf_core.kinematics import KinematicTree
 from narf_core.modes import MODES, RECORD_KEY, choose_mode
-from narf_core.render import OccupancyGrid, RenderOutput, render_image, render_rays
+from narf_core.render import OccupancyGrid, RenderOutput, march_samples, render_image, render_rays
+from narf_core.sampling import Samples
 
 FORMAT = "narf-bundle"
 FORMAT_VERSION = 3  # 3: an articulated field copied from the part fields is stored as those parts only
@@ -171,6 +172,14 @@ class NarfModel:
             field, rays_obj, self.aabb, theta=theta, grid=grid, step=self.step, outputs=outputs, background=background,
             t_range=t_range,
         )
+
+    def march(
+        self, rays_obj: Rays, theta: Tensor, *, mode: str = "narf", t_range: tuple[Tensor, Tensor] | None = None
+    ) -> tuple[object, Samples]:
+        """The field of ``mode`` at ``θ`` (``[k]`` or ``[n, k]``) and the samples a differentiable
+        :meth:`render_rays` of these arguments composites (:func:`~narf_core.render.march_samples`)."""
+        field, grid = self._field_for(mode, theta)
+        return field, march_samples(field, rays_obj, self.aabb, theta=theta, grid=grid, step=self.step, t_range=t_range)
 
     def render(
         self,

@@ -28,7 +28,13 @@ vector-Jacobian products whatever ``k`` is, where finite differences need ``6 + 
 (and are no more exact), and forward mode through the field is not available (PyTorch has no
 forward-mode rule for ``grid_sample``, the field's K-planes lookup); ``narf bench estimate``
 prints the measured CPU time of each (benchmarks/jacobian.py). In ``parts`` mode, where the composition takes
-one configuration per call, the ``θ`` columns are forward differences.
+one configuration per call, the ``θ`` columns are forward differences. In ``narf`` mode, where the field
+is view-independent (``supports_jacobian``), the backward passes go: the samples are found first (the
+tracker's frame has them; otherwise a march on densities without a graph, :meth:`Problem._fixed_samples`,
+the samples the differentiable render would take), then the field gives every
+sample's value and derivatives in ``(x, θ)`` itself, by forward differences in its lookup coordinates,
+all in one batched evaluation without a graph (``ArticulatedField.jacobian``, ``KPlanesField.jacobian``),
+and the compositing is differentiated in closed form (:func:`narf_core.compositing.composite_jacobian`).
 
 Step. Levenberg-Marquardt on the iteratively reweighted normal equations ``(JᵀWJ + λ diag(JᵀWJ)) δ
 = -JᵀWr``, with Huber or Cauchy weights ``W`` (``robust_loss``, scale ``robust_scale`` in residual
@@ -76,7 +82,7 @@ import torch
 from torch import Tensor
 
 from narf_core.band import ray_band
-from narf_core.compositing import composite
+from narf_core.compositing import composite, composite_jacobian
 from narf_core.geometry import Rays, invert_pose, se3_exp
 
 if TYPE_CHECKING:
@@ -92,6 +98,7 @@ _LAMBDA_MIN, _LAMBDA_MAX = 1e-6, 1e8
 _FD_THETA = 1e-3  # forward-difference step for θ in parts mode, as a fraction of the joint's range
 _FD_POSE = 1e-5  # central-difference step of the pose columns (object radii, radians)
 _MAX_FAILURES = 8
+_FIELD_JACOBIAN = True  # the field's own derivatives where the samples are fixed (module docstring); False: reverse mode
 _STEP_FACTORS = (1.0, 2.0, 4.0)  # multiples of the LM step tried, in order, while the cost keeps falling
 # Once one start is left at the fine level of a pyramid (the polish), the multiples go on to 32x: the
 # Jacobian's noise (the surface seen only through the density's slope between samples) inflates JᵀWJ,
@@ -214,12 +221,21 @@ class Problem:
         band = None
         if self.options.band_m > 0 and self.camera is not None:
             band = ray_band(self.model, self.camera, rays_cam, invert_pose(T_obj_cam), theta, self.options.band_m)
+        rays_obj = Rays(o, d, rays_cam.z_per_t.repeat(S))
+        fixed = self._fixed_samples(rays_obj, th, True, band) if grad and not parts and k > 0 else None
+        if fixed is not None and _FIELD_JACOBIAN and getattr(fixed[0], "supports_jacobian", False):
+            P, J = composite_jacobian(fixed[0].jacobian, rays_obj, fixed[1], theta=th)
+            P_cpu, J = P.reshape(S, n, _CHANNELS).cpu(), J.reshape(S, n, _CHANNELS, -1).cpu()
+            dP = [J[..., :3], J[..., 3:6], J[..., 6:]]
+            if along_ray:
+                dP[0] = along_ray_exact(dP[0], P_cpu, d.reshape(S, n, 3).double().cpu(), rays_cam.z_per_t.double().cpu())
+            return P_cpu, tuple(dP)
         with torch.enable_grad() if grad else torch.no_grad():
             if grad:
                 o, d = o.detach().requires_grad_(True), d.detach().requires_grad_(True)
                 if not parts and k > 0:
                     th = th.detach().requires_grad_(True)
-            P = self._render(Rays(o, d, rays_cam.z_per_t.repeat(S)), th, S, n, outputs, band)  # [S*n, 5]
+            P = self._render(Rays(o, d, rays_cam.z_per_t.repeat(S)), th, S, n, outputs, band, fixed)  # [S*n, 5]
             if not grad:
                 return P.reshape(S, n, _CHANNELS).double().cpu(), None
             leaves = (o, d) if (parts or k == 0) else (o, d, th)
@@ -237,11 +253,26 @@ class Problem:
             dP.append(self._theta_differences(rays_cam, o.detach(), d.detach(), theta, P.detach(), S, n, band))
         return P_cpu, tuple(dP)
 
-    def _render(
-        self, rays: Rays, theta: Tensor, S: int, n: int, outputs: tuple[str, ...], band: tuple[Tensor, Tensor] | None
-    ) -> Tensor:
+    def _fixed_samples(
+        self, rays: Rays, theta: Tensor, jacobian: bool, band: tuple[Tensor, Tensor] | None = None
+    ) -> tuple[object, Samples] | None:
+        """The field and the samples a render of ``rays`` (object frame, ``θ [m, k]`` per ray, ``band`` as for
+        :meth:`~narf_core.bundle.NarfModel.render_rays`) evaluates: the problem's own, or for a Jacobian
+        (``jacobian``) in ``narf`` mode the march's; else ``None`` (the renderer marches and composites)."""
         if self.samples is not None:
-            out = composite(self.model.field, rays, self.samples, theta=theta, outputs=outputs, background=0.0)
+            return self.model.field, self.samples
+        if not jacobian or self.options.mode == "parts" or theta.shape[1] == 0:
+            return None
+        return self.model.march(rays, theta, mode=self.options.mode, t_range=band)
+
+    def _render(
+        self, rays: Rays, theta: Tensor, S: int, n: int, outputs: tuple[str, ...], band: tuple[Tensor, Tensor] | None,
+        fixed: tuple[object, Samples] | None = None,
+    ) -> Tensor:
+        """``P [S*n, 5]`` of ``rays``; ``fixed``: their field and samples where already found."""
+        fixed = fixed or self._fixed_samples(rays, theta, torch.is_grad_enabled(), band)
+        if fixed is not None:
+            out = composite(fixed[0], rays, fixed[1], theta=theta, outputs=outputs, background=0.0)
             return torch.cat([out.rgb, out.opacity[:, None], out.depth[:, None]], -1)
         kw = dict(mode=self.options.mode, outputs=outputs, background=0.0)
         render = self.model.render_rays

@@ -84,6 +84,25 @@ def render_rays(
     return composite(field, rays, samples, theta=marcher.theta, outputs=outputs, background=background)
 
 
+def march_samples(
+    field: Field,
+    rays: Rays,
+    aabb: Tensor,
+    *,
+    theta: Tensor | None = None,
+    grid: Occupancy | None = None,
+    step: float,
+    transmittance_eps: float = 1e-3,
+    max_samples: int = 1024,
+    t_range: tuple[Tensor, Tensor] | None = None,
+) -> Samples:
+    """The samples a differentiable :func:`render_rays` of these arguments composites (marched on densities,
+    without a graph): for a caller that differentiates the compositing itself."""
+    marcher = Marcher(len(rays), grid=grid, theta=theta, step=step, max_samples=max_samples,
+                      transmittance_eps=transmittance_eps, t_range=t_range)
+    return marcher.samples(density_fn(field), rays, aabb)
+
+
 def _needs_grad(field, rays: Rays, theta: Tensor | None) -> bool:
     """Whether a render must be differentiable: grad mode on and any input or parameter requiring it
     (a field without ``parameters()`` is assumed to have some)."""

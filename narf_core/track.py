@@ -721,18 +721,16 @@ class FrameProblem(Problem):
         self.index = index
         return super().residuals(chain, p, rays_cam, target, index, jacobian, group, along_ray)
 
-    def _render(self, rays: Rays, theta: Tensor, S: int, n: int, outputs: tuple[str, ...], band) -> Tensor:
-        from narf_core.compositing import composite
-
-        if S != 1 or self.index is None or len(self.index) != n:
+    def _fixed_samples(self, rays: Rays, theta: Tensor, jacobian: bool, band=None) -> tuple[object, Samples]:
+        n = len(rays)
+        if self.index is None or len(self.index) != n:
             raise ValueError("FrameProblem renders one start's rays through the box pixels of its index")
         th = theta[0].detach()
         fixed = Rays(rays.origins.detach(), rays.directions.detach(), rays.z_per_t)
         samples = occupied(self.grid, fixed, frame_band(self.near[self.index], self.far[self.index], self.model.step), th)
-        if torch.is_grad_enabled() and self.prune:
+        if jacobian and self.prune:
             samples = visible(self.field, fixed, samples, th)
-        out = composite(self.field, rays, samples, theta=theta, outputs=outputs, background=0.0)
-        return torch.cat([out.rgb, out.opacity[:, None], out.depth[:, None]], -1)
+        return self.field, samples
 
 
 def visible(field, rays_obj: Rays, samples: Samples, theta: Tensor, eps: float = 1e-5) -> Samples:

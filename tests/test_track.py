@@ -954,7 +954,7 @@ def test_gauss_newton_frame_reaches_the_label_from_an_offset_without_marching(cl
 
     from narf_core import sampling
     from narf_core.data.dataset import Dataset
-    from narf_core.geometry import se3_exp
+    from narf_core.geometry import Rays, se3_exp
     from narf_core.track import FrameProblem, TrackOptions, TrackState, step
     from narf_core.track_io import score, sequence_frames
 
@@ -974,8 +974,8 @@ def test_gauss_newton_frame_reaches_the_label_from_an_offset_without_marching(cl
         assert np.isfinite(result.covariance).all()
     assert not marched
     problem = FrameProblem(clamp, TrackOptions().step_options(True), 0.1, True)
-    with pytest.raises(ValueError, match="one start"):
-        problem._render(None, torch.zeros(2, 1), 2, 1, ("rgb",), None)
+    with pytest.raises(ValueError, match="one start"):  # no box pixels set: no rays of its own
+        problem._fixed_samples(Rays(torch.zeros(2, 3), torch.ones(2, 3), torch.ones(2)), torch.zeros(2, 1), True)
 
 
 def test_without_depth_the_gauss_newton_frame_polishes_its_distance_held_to_the_prediction(clamp, clamp_sequence: Path) -> None:
