@@ -825,7 +825,12 @@ def test_bench_estimate_takes_pose_starts_and_seed_from_the_command_line(model, 
                  presets=("paper", "gauss-newton"), progress=False, **chosen)
     assert result["config"]["seed"] == 2 and result["config"]["overrides"] == {"pose_starts": 3}
     assert {name: o["pose_starts"] for name, o in result["config"]["options"].items()} == {"paper": 3, "gauss-newton": 3}
-    assert "Every preset with `pose_starts: 3`." in (tmp_path / "out" / "estimate.md").read_text()
+    report = (tmp_path / "out" / "estimate.md").read_text()
+    assert "Every preset with `pose_starts: 3`." in report
+    jacobian = result["jacobian"]["toy"]  # the Gauss-Newton Jacobian's ways, timed
+    assert jacobian["reverse_s"] > 0 and jacobian["fixed_samples"] > 0 and jacobian["fixed_reverse_s"] > 0
+    assert jacobian["field_s"] is None and jacobian["fixed_field_s"] is None  # the toy's field has no jacobian of its own
+    assert "On the tracker's fixed samples" in report
 
 
 def test_theta_starts_with_several_joints_of_mixed_units_form_a_latin_hypercube():
