@@ -138,28 +138,39 @@ class KPlanesField(RadianceField):
         colour) and ``∂values/∂(x, θ) [n, 4, 3 + k]``; no graph, view-independent fields only.
 
         Every column is one forward difference (backward at the box's or the limits' upper side) of
-        ``_FD_TEXELS`` of the finest plane's texel along its axis, the planes and decoder evaluated once at
-        ``1 + 3 + k`` input sets (see :meth:`~narf_core.fields.articulated.ArticulatedField.jacobian`)."""
+        ``_FD_TEXELS`` of the finest plane's texel along its axis; a plane is looked up again only where
+        the moved axis is one of its pair's (one ``grid_sample`` per plane for the point and its two moves),
+        and the decoder runs once on the ``1 + 3 + k`` feature sets (see
+        :meth:`~narf_core.fields.articulated.ArticulatedField.jacobian`)."""
         if not self.supports_jacobian:
             raise ValueError("a field whose colour depends on the view direction has no jacobian here")
         n, k = x.shape[0], self.n_theta
-        inputs = x.to(self.aabb.dtype)
-        lower, upper = self.aabb[0], self.aabb[1]
-        finest = [max(2, math.ceil(max(self.resolution) * float(e / (upper - lower).max()) - 1e-6)) for e in upper - lower]
-        step = (upper - lower) / (torch.tensor(finest, dtype=lower.dtype, device=lower.device) - 1)
+        z = self.normalize_positions(x)  # [n, 3 + k] over [-1, 1], the planes' coordinates
+        extent = self.aabb[1] - self.aabb[0]
+        texels = [max(2, math.ceil(max(self.resolution) * float(e / extent.max()) - 1e-6)) for e in extent]
+        per_unit = 2 / extent  # dz/dx
         if k:
-            self.normalize_theta(theta, n)  # validates its shape
-            inputs = torch.cat([inputs, theta.to(lower.dtype).expand(n, k)], 1)
-            lower, upper = torch.cat([lower, self.theta_lower]), torch.cat([upper, self.theta_upper])
-            step = torch.cat([step, (self.theta_upper - self.theta_lower) / (max(self.theta_resolution) - 1)])
-        step = _FD_TEXELS * step  # [3 + k]
-        h = torch.where(inputs + step > upper, -step, step)  # [n, 3 + k]
-        shifted = inputs[None].repeat(4 + k, 1, 1)  # [T, n, 3 + k]: the point, then each column moved
-        columns = torch.arange(3 + k, device=x.device)
-        shifted[1 + columns, :, columns] += h.t()
-        flat = shifted.reshape(-1, 3 + k)
-        raw = self.head(self.decoder(self.plane_features(flat[:, :3], flat[:, 3:] if k else None))).reshape(4 + k, n, 4)
-        draw = ((raw[1:] - raw[:1]) / h.t()[..., None]).permute(1, 2, 0).to(x.dtype)  # [n, 4, 3 + k]
+            z = torch.cat([z, self.normalize_theta(theta, n)], 1)
+            texels += [max(self.theta_resolution)] * k
+            per_unit = torch.cat([per_unit, 2 / (self.theta_upper - self.theta_lower)])
+        step = _FD_TEXELS * 2 / (torch.tensor(texels, dtype=z.dtype, device=z.device) - 1)  # [3 + k], z units
+        h = torch.where(z + step > 1, -step, step)  # [n, 3 + k]
+        T, n_pairs = 4 + k, len(self.pairs)
+        scales = []
+        for s_ in range(len(self.resolution)):
+            f = z.new_ones(T, self.features, n)  # the point's features, then each column's moved point's
+            for p, (a, b) in enumerate(self.pairs):
+                c = z[:, [a, b]]
+                moved_a, moved_b = c.clone(), c.clone()
+                moved_a[:, 0] += h[:, a]
+                moved_b[:, 1] += h[:, b]
+                v = sample_plane(self.planes[s_ * n_pairs + p], torch.cat([c, moved_a, moved_b])).t().reshape(-1, 3, n)
+                for t in range(T):
+                    f[t] *= v[:, 1] if t == 1 + a else v[:, 2] if t == 1 + b else v[:, 0]
+            scales.append(f)
+        features = torch.cat(scales, 1).transpose(1, 2).reshape(T * n, -1)  # [T n, F S]
+        raw = self.head(self.decoder(features)).reshape(T, n, 4)
+        draw = ((raw[1:] - raw[:1]) / h.t()[..., None] * per_unit[:, None, None]).permute(1, 2, 0).to(x.dtype)
         raw = raw[0].to(x.dtype)
         sigma = raw[:, 0].clamp(max=SIGMA_MAX_LOG).exp()  # as trunc_exp: its derivative is its value
         colour = torch.sigmoid(raw[:, 1:])
