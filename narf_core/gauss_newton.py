@@ -48,8 +48,8 @@ are replaced by the render's change over a sample spacing (:func:`along_ray_exac
 steps go on to 32x the LM step: autograd through a render of fixed samples sees a sharp surface
 only through the density's slope between two samples, which puts noise in ``J`` (so ``JᵀWJ`` is too
 large and the LM step too short) and leaves most of the depth's change along the line of sight out
-of it. A run may be held to a prior (:meth:`GaussNewtonRun.hold_to`, a tracker's frame without
-depth: to the prediction): ``½ Σ w_j (p_j - c_j)²`` joins the cost, ``w_j = s² / σ_j²`` with ``s²`` the
+of it. A run may be held to a prior (:meth:`GaussNewtonRun.hold_to`, a tracker's frame: to the
+prediction): ``½ Σ w_j (p_j - c_j)²`` joins the cost, ``w_j = s² / σ_j²`` with ``s²`` the
 residuals' mean square at the first iteration (the cost is a negative log-likelihood times ``s²``), so
 a direction the image barely sees moves only as far as the image asks clearly. A tracker's frame without depth polishes from its first iteration (``polish_only``, trial
 steps to 8x): there the silhouette's scale is the only cue to the distance, and without the exact

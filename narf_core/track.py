@@ -173,6 +173,10 @@ class TrackOptions:
     # there on one draw of rays now and then set a track off by several centimetres (docs/benchmarks.md).
     frame_prior_position_m_rgb: float = 0.005
     frame_prior_rotation_deg_rgb: float = 1.0
+    # With depth, the same prior, looser: the rotation about a thin tool's long axis is what the depth of a
+    # few pixels' width barely sees, and unheld it now and then ran off by tens of degrees (docs/benchmarks.md).
+    frame_prior_position_m: float = 0.01
+    frame_prior_rotation_deg: float = 5.0
     max_gap_s: float = 0.25  # longer since the last estimate: no prediction, re-initialise
     # With depth, longer since the last estimate (or lost after an `uncertain` or `reinitialised` frame):
     # re-initialise by detection (every orientation scored, the best refined; narf_core/detect.py)
@@ -198,6 +202,8 @@ class TrackOptions:
         need(0 <= self.velocity_smoothing_along_rgb <= 1, "velocity_smoothing_along_rgb", "must be in [0, 1]")
         need(self.frame_prior_position_m_rgb >= 0, "frame_prior_position_m_rgb", "must be >= 0 (0 = off)")
         need(self.frame_prior_rotation_deg_rgb >= 0, "frame_prior_rotation_deg_rgb", "must be >= 0 (0 = off)")
+        need(self.frame_prior_position_m >= 0, "frame_prior_position_m", "must be >= 0 (0 = off)")
+        need(self.frame_prior_rotation_deg >= 0, "frame_prior_rotation_deg", "must be >= 0 (0 = off)")
         need(self.max_gap_s > 0, "max_gap_s", "must be > 0")
         need(self.redetect_after_s >= 0, "redetect_after_s", "must be >= 0 (0 = never)")
         need(0 <= self.lost_overlap <= self.uncertain_overlap <= 1, "lost_overlap",
@@ -844,9 +850,9 @@ def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.
     step_options = opts.step_options(depth is not None)
     if (opts.march == "frame" and opts.band_m == 0
             and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf"):
-        prior = None
-        if depth is None and opts.frame_prior_position_m_rgb > 0 and opts.frame_prior_rotation_deg_rgb > 0:
-            prior = (opts.frame_prior_position_m_rgb, math.radians(opts.frame_prior_rotation_deg_rgb))
+        position, rotation = ((opts.frame_prior_position_m, opts.frame_prior_rotation_deg) if depth is not None
+                              else (opts.frame_prior_position_m_rgb, opts.frame_prior_rotation_deg_rgb))
+        prior = (position, math.radians(rotation)) if position > 0 and rotation > 0 else None
         return refine_frame(model, camera, image, mask, depth, T, joints, step_options,
                             0.0 if depth is not None else opts.distance_prior_rgb, polish=depth is None, prior=prior)
     return refine(model, image, mask, camera, T, joints_init=joints, depth=depth, options=step_options)

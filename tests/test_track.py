@@ -1014,6 +1014,40 @@ def test_without_depth_the_gauss_newton_frame_polishes_its_distance_held_to_the_
             assert along[False, None] > 0.008, (frame.id, offset, along)
 
 
+def test_with_depth_a_frame_is_held_to_the_prediction_by_its_own_looser_prior(clamp, clamp_sequence) -> None:
+    """With depth a tracked frame is held to the prediction by ``frame_prior_position_m`` /
+    ``frame_prior_rotation_deg`` (1 cm, 5° by default): from the label moved 5 mm across the line of sight,
+    the frame's two iterations come half way back or more with the default prior, as without one; a prior
+    of a micrometre and 1e-4° (weighed against thousands of depth and colour residuals) keeps it at the
+    prediction."""
+    from narf_core.data.dataset import Dataset
+    from narf_core.track import TrackInputError, TrackOptions, _centre, _warm_refine
+
+    dataset = Dataset.open(clamp_sequence)
+    frame = dataset.frames()[2]
+    images = dataset.load(frame)
+    centre = _centre(clamp)
+    T = frame.T_cam_obj
+    C = T[:3, :3] @ centre + T[:3, 3]
+    T0 = T.copy()
+    across = np.cross(C / np.linalg.norm(C), [0.0, 1.0, 0.0])
+    T0[:3, 3] += 0.005 * across / np.linalg.norm(across)
+    off, moved = {}, {}
+    for name, prior in (("default", {}), ("none", {"frame_prior_position_m": 0.0}),
+                        ("tight", {"frame_prior_position_m": 1e-6, "frame_prior_rotation_deg": 1e-4})):
+        result = _warm_refine(clamp, dataset.camera, images.rgb, images.labels > 0, images.depth, T0, frame.joints,
+                              TrackOptions(uncertainty_rays=0, **prior))
+        estimate = result.T_cam_obj[:3, :3] @ centre + result.T_cam_obj[:3, 3]
+        off[name] = float(np.linalg.norm(estimate - C))
+        moved[name] = float(np.linalg.norm(estimate - (T0[:3, :3] @ centre + T0[:3, 3])))
+    assert TrackOptions().frame_prior_position_m == 0.01 and TrackOptions().frame_prior_rotation_deg == 5.0
+    assert off["default"] < 0.003 and abs(off["default"] - off["none"]) < 0.0005, off
+    assert moved["tight"] < 0.2 * moved["none"], (off, moved)
+    for name in ("frame_prior_position_m", "frame_prior_rotation_deg"):
+        with pytest.raises(TrackInputError, match=name):
+            TrackOptions(**{name: -1.0})
+
+
 def test_without_depth_the_velocity_along_the_line_of_sight_keeps_its_own_weight(clamp) -> None:
     """``_blended_velocity``: the box centre's velocity moves towards the measured one by the weight, its
     part along the line of sight by its own weight (without depth ``velocity_smoothing_along_rgb``, 0: the
