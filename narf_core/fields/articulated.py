@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from narf_core.fields.base import SIGMA_MAX_LOG, RadianceField, trunc_exp
-from narf_core.fields.encodings import _EDGE_SHRINK  # the same border shrink as K-planes' lookups
+from narf_core.fields.encodings import _EDGE_SHRINK, in_texel_step  # the same border shrink as K-planes' lookups
 from narf_core.fields.kplanes import KPlanesField
 from narf_core.geometry import box_corners, invert_pose, make_pose, skew, transform_points
 from narf_core.occupancy import OccupancyGrid, needs_theta_grad, one_configuration
@@ -42,7 +42,6 @@ _BOX_MARGIN = 0.01  # cells: a part's occupied box is grown by this, so float ro
 _BLOCK = 4  # cells per block (per axis) of the coarse part grids a ray's span is narrowed with
 _SPAN_SAMPLES = 128  # at most this many coarse samples per ray; a longer span keeps its boxes' bounds
 _MAX_RUNS = 64  # configurations mapped run by run (one FK each); rows of more are mapped one by one
-_FD_TEXELS = 0.001  # the forward differences of ArticulatedField.jacobian, in texels along the lookup coordinates
 
 
 def chain_spec(kin) -> dict:
@@ -416,13 +415,13 @@ class ArticulatedField(RadianceField):
         [n, 4]`` (``σ``, colour) and ``∂values/∂(x, θ) [n, 4, 3 + k]``; no graph.
 
         Reverse mode gives a sample's derivatives one output at a time (a backward pass through the planes
-        and decoders per output, four in all). Here every column is one forward difference in the lookup
-        coordinates along their exact tangent (:meth:`lookup_tangents`), ``_FD_TEXELS`` of a texel long,
-        with each sample's parts fixed as at ``x`` (the occupancy's cut is not differentiated, as reverse
-        mode does not differentiate it either): the planes and decoders evaluated once at ``1 + 3 + k``
-        coordinate sets. The lookup is bilinear, so a difference inside a texel is its derivative and one
-        across a texel's edge the mean slope over its length; ``σ = exp(raw)`` and the sigmoid's colour are
-        differentiated in closed form."""
+        and decoders per output, four in all). Here every column is one difference in the lookup coordinates
+        along their exact tangent (:meth:`lookup_tangents`) that keeps every lookup between the same two
+        texel centres (:func:`~narf_core.fields.encodings.in_texel_step`: the bilinear lookup is linear
+        there, so the difference is its derivative), with each sample's parts fixed as at ``x`` (the
+        occupancy's cut is not differentiated, as reverse mode does not differentiate it either): the planes
+        and decoders evaluated once at ``1 + 3 + k`` coordinate sets; ``σ = exp(raw)`` and the sigmoid's
+        colour are differentiated in closed form."""
         n, k = x.shape[0], self.n_theta
         values, derivatives = x.new_zeros(n, 4), x.new_zeros(n, 4, 3 + k)
         if n == 0:
@@ -436,8 +435,9 @@ class ArticulatedField(RadianceField):
         uv = coords[..., 3:][sample, part]  # [m, 2N]
         tangents = self.lookup_tangents(x, theta, sample, part, slice(3, None))  # [m, 2N, 3 + k]
         rows, width = self.atlas.shape[1:3]
-        pitch = uv.new_tensor([2 / max(width - 1, 1), 2 / max(rows - 1, 1)]).repeat(uv.shape[1] // 2)  # one texel, u and v
-        step = _FD_TEXELS / (tangents.abs() / pitch[:, None]).amax(1).clamp_min(1e-12)  # [m, 3 + k] per column's unit
+        per_texel = uv.new_tensor([(width - 1) / 2, (rows - 1) / 2]).repeat(uv.shape[1] // 2)  # texels per unit, u and v
+        texel, rate = (uv + 1) * per_texel, tangents * per_texel[:, None]
+        step = torch.stack([in_texel_step(texel, rate[..., j]) for j in range(3 + k)], 1)  # [m, 3 + k]
         shifted = uv[None] + step.t()[..., None] * tangents.permute(2, 0, 1)  # [3 + k, m, 2N]
         stacked = torch.cat([uv[None], shifted])  # [T, m, 2N]
         T, m = stacked.shape[:2]

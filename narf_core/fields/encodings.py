@@ -90,3 +90,26 @@ def sample_plane(plane: Tensor, coords: Tensor) -> Tensor:
     grid = (coords.to(plane.dtype) * _EDGE_SHRINK)[None, None]
     out = F.grid_sample(plane.permute(2, 0, 1)[None], grid, mode="bilinear", padding_mode="border", align_corners=True)
     return out[0, :, 0].t()
+
+
+def in_texel_step(texel: Tensor, rate: Tensor, cap: float = 0.003, least: float = 0.001) -> Tensor:
+    """Signed steps ``[m]`` for forward differences of bilinear lookups, each kept inside its cells where it can.
+
+    ``texel [m, P]``: lookup coordinates in texel units (texel centres at the integers, as
+    ``align_corners=True`` places them); ``rate [m, P]``: their change per unit step. A lookup is linear
+    between two texel centres, so a difference that keeps every coordinate between the same two is the
+    derivative itself, up to float rounding, which a longer step makes smaller: each row steps half the
+    room left before its first cell edge, forward or backward, whichever has more, at most ``cap`` and at
+    least ``least`` texels in its fastest coordinate (where the edges of two grids lie close together the
+    room is small, and rounding would swamp a shorter step). A row whose coordinates do not move steps 1."""
+    moving = rate != 0
+    frac = texel - texel.floor()
+    speed = rate.abs().where(moving, torch.ones_like(rate))
+    inf = torch.full_like(texel, math.inf)
+    ahead = torch.where(moving, torch.where(rate > 0, 1 - frac, frac) / speed, inf).amin(1)
+    behind = torch.where(moving, torch.where(rate > 0, frac, 1 - frac) / speed, inf).amin(1)
+    fastest = rate.abs().amax(1).clamp_min(1e-30)
+    forward = ahead >= behind
+    size = (0.5 * torch.where(forward, ahead, behind)).clamp(least / fastest, cap / fastest)
+    size = torch.where(moving.any(1), size, torch.ones_like(size))
+    return torch.where(forward, size, -size)

@@ -18,9 +18,7 @@ import torch
 from torch import Tensor, nn
 
 from narf_core.fields.base import SIGMA_MAX_LOG, RadianceField, trunc_exp
-from narf_core.fields.encodings import sample_plane, spherical_harmonics
-
-_FD_TEXELS = 0.001  # the forward differences of KPlanesField.jacobian, in texels of the finest plane
+from narf_core.fields.encodings import _EDGE_SHRINK, in_texel_step, sample_plane, spherical_harmonics
 
 
 def total_variation(plane: Tensor) -> Tensor:
@@ -137,8 +135,9 @@ class KPlanesField(RadianceField):
         """The field and its derivatives at ``x [n, 3]``, ``θ [k]`` or ``[n, k]``: ``values [n, 4]`` (``σ``,
         colour) and ``∂values/∂(x, θ) [n, 4, 3 + k]``; no graph, view-independent fields only.
 
-        Every column is one forward difference (backward at the box's or the limits' upper side) of
-        ``_FD_TEXELS`` of the finest plane's texel along its axis; a plane is looked up again only where
+        Every column is one difference along its axis that keeps every lookup between the same two texel
+        centres (:func:`~narf_core.fields.encodings.in_texel_step`: there the bilinear lookup is linear, and
+        the difference its derivative); a plane is looked up again only where
         the moved axis is one of its pair's (one ``grid_sample`` per plane for the point and its two moves),
         and the decoder runs once on the ``1 + 3 + k`` feature sets (see
         :meth:`~narf_core.fields.articulated.ArticulatedField.jacobian`)."""
@@ -147,14 +146,15 @@ class KPlanesField(RadianceField):
         n, k = x.shape[0], self.n_theta
         z = self.normalize_positions(x)  # [n, 3 + k] over [-1, 1], the planes' coordinates
         extent = self.aabb[1] - self.aabb[0]
-        texels = [max(2, math.ceil(max(self.resolution) * float(e / extent.max()) - 1e-6)) for e in extent]
+        texels = [[max(2, math.ceil(r * float(e / extent.max()) - 1e-6)) for r in self.resolution] for e in extent]
         per_unit = 2 / extent  # dz/dx
         if k:
             z = torch.cat([z, self.normalize_theta(theta, n)], 1)
-            texels += [max(self.theta_resolution)] * k
+            texels += [self.theta_resolution] * k
             per_unit = torch.cat([per_unit, 2 / (self.theta_upper - self.theta_lower)])
-        step = _FD_TEXELS * 2 / (torch.tensor(texels, dtype=z.dtype, device=z.device) - 1)  # [3 + k], z units
-        h = torch.where(z + step > 1, -step, step)  # [n, 3 + k]
+        rate = _EDGE_SHRINK * (torch.tensor(texels, dtype=z.dtype, device=z.device) - 1) / 2  # [3 + k, S] texels per z
+        texel = (z[..., None] * _EDGE_SHRINK + 1) * rate / _EDGE_SHRINK  # [n, 3 + k, S]: each axis's texel coordinate per scale
+        h = torch.stack([in_texel_step(texel[:, a], rate[a].expand(n, -1)) for a in range(3 + k)], 1)  # [n, 3 + k]
         T, n_pairs = 4 + k, len(self.pairs)
         scales = []
         for s_ in range(len(self.resolution)):
