@@ -31,6 +31,10 @@ __all__ = [
 ]
 
 
+_TRANSMITTANCE_EPS = 1e-3  # render_rays' defaults: a ray stops below this transmittance ...
+_MAX_SAMPLES = 1024  # ... or after this many intervals
+
+
 def render_rays(
     field: Field,
     rays: Rays,
@@ -41,8 +45,8 @@ def render_rays(
     step: float,
     outputs: Sequence[str] = ("rgb",),
     background: float | Tensor = 0.0,
-    transmittance_eps: float = 1e-3,
-    max_samples: int = 1024,
+    transmittance_eps: float = _TRANSMITTANCE_EPS,
+    max_samples: int = _MAX_SAMPLES,
     jitter: bool = False,
     generator: torch.Generator | None = None,
     t_range: tuple[Tensor, Tensor] | None = None,
@@ -84,22 +88,12 @@ def render_rays(
     return composite(field, rays, samples, theta=marcher.theta, outputs=outputs, background=background)
 
 
-def march_samples(
-    field: Field,
-    rays: Rays,
-    aabb: Tensor,
-    *,
-    theta: Tensor | None = None,
-    grid: Occupancy | None = None,
-    step: float,
-    transmittance_eps: float = 1e-3,
-    max_samples: int = 1024,
-    t_range: tuple[Tensor, Tensor] | None = None,
-) -> Samples:
-    """The samples a differentiable :func:`render_rays` of these arguments composites (marched on densities,
-    without a graph): for a caller that differentiates the compositing itself."""
-    marcher = Marcher(len(rays), grid=grid, theta=theta, step=step, max_samples=max_samples,
-                      transmittance_eps=transmittance_eps, t_range=t_range)
+def march_samples(field: Field, rays: Rays, aabb: Tensor, *, theta: Tensor | None = None, grid: Occupancy | None = None,
+                  step: float, t_range: tuple[Tensor, Tensor] | None = None) -> Samples:
+    """The samples a differentiable :func:`render_rays` of these arguments (and its default stopping rules)
+    composites, marched on densities without a graph: for a caller that differentiates the compositing itself."""
+    marcher = Marcher(len(rays), grid=grid, theta=theta, step=step, max_samples=_MAX_SAMPLES,
+                      transmittance_eps=_TRANSMITTANCE_EPS, t_range=t_range)
     return marcher.samples(density_fn(field), rays, aabb)
 
 
