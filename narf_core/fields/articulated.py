@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from narf_core.fields.base import SIGMA_MAX_LOG, RadianceField, trunc_exp
+from narf_core.fields.base import SIGMA_MAX_LOG, RadianceField, activated_jacobian, trunc_exp
 from narf_core.fields.encodings import _EDGE_SHRINK, in_texel_step  # the same border shrink as K-planes' lookups
 from narf_core.fields.kplanes import KPlanesField
 from narf_core.geometry import box_corners, invert_pose, make_pose, skew, transform_points
@@ -446,10 +446,7 @@ class ArticulatedField(RadianceField):
         raw = torch.cat([self.decoders[i](f.reshape(-1, f.shape[-1])).reshape(T, -1, 4)
                          for i, f in enumerate(features.split(counts, dim=1)) if f.shape[1]], dim=1).to(x.dtype)
         draw = ((raw[1:] - raw[:1]) / step.t()[..., None]).permute(1, 2, 0)  # [m, 4, 3 + k]
-        s = raw[0, :, 0].clamp(max=SIGMA_MAX_LOG).exp()  # as trunc_exp: its derivative is its value
-        c = torch.sigmoid(raw[0, :, 1:])
-        ds = s[:, None] * draw[:, 0]  # [m, 3 + k]
-        dc = (c * (1 - c))[..., None] * draw[:, 1:]  # [m, 3, 3 + k]
+        s, c, ds, dc = activated_jacobian(raw[0], draw)  # each pair's density and colour, [m, 3 + k], [m, 3, 3 + k]
         sigma = x.new_zeros(n).index_add(0, sample, s)
         weighted = x.new_zeros(n, 3).index_add(0, sample, s[:, None] * c)
         dsigma = x.new_zeros(n, 3 + k).index_add(0, sample, ds)

@@ -25,6 +25,15 @@ def trunc_exp(raw: Tensor) -> Tensor:
     return torch.exp(raw - (raw - raw.clamp(max=SIGMA_MAX_LOG)).detach())
 
 
+def activated_jacobian(raw: Tensor, draw: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``σ [m]`` and colour ``[m, 3]`` of a decoder's raw outputs ``raw [m, 4]`` (as :func:`trunc_exp` and the
+    sigmoid give them), with their derivatives ``[m, c]``, ``[m, 3, c]`` from the raw outputs' ``draw [m, 4, c]``:
+    ``trunc_exp``'s derivative is its value, the sigmoid's ``c (1 - c)``."""
+    sigma = raw[:, 0].clamp(max=SIGMA_MAX_LOG).exp()
+    colour = torch.sigmoid(raw[:, 1:])
+    return sigma, colour, sigma[:, None] * draw[:, 0], (colour * (1 - colour))[..., None] * draw[:, 1:]
+
+
 def _as_box(aabb) -> Tensor:
     box = torch.as_tensor(aabb, dtype=torch.float32)
     if tuple(box.shape) != (2, 3):

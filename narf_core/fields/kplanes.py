@@ -17,7 +17,7 @@ from itertools import combinations
 import torch
 from torch import Tensor, nn
 
-from narf_core.fields.base import SIGMA_MAX_LOG, RadianceField, trunc_exp
+from narf_core.fields.base import RadianceField, activated_jacobian, trunc_exp
 from narf_core.fields.encodings import _EDGE_SHRINK, in_texel_step, sample_plane, spherical_harmonics
 
 
@@ -152,8 +152,9 @@ class KPlanesField(RadianceField):
             z = torch.cat([z, self.normalize_theta(theta, n)], 1)
             texels += [self.theta_resolution] * k
             per_unit = torch.cat([per_unit, 2 / (self.theta_upper - self.theta_lower)])
-        rate = _EDGE_SHRINK * (torch.tensor(texels, dtype=z.dtype, device=z.device) - 1) / 2  # [3 + k, S] texels per z
-        texel = (z[..., None] * _EDGE_SHRINK + 1) * rate / _EDGE_SHRINK  # [n, 3 + k, S]: each axis's texel coordinate per scale
+        half = (torch.tensor(texels, dtype=z.dtype, device=z.device) - 1) / 2  # [3 + k, S]: grid_sample's texels per unit
+        texel = (z[..., None] * _EDGE_SHRINK + 1) * half  # [n, 3 + k, S]: each axis's texel coordinate per scale
+        rate = _EDGE_SHRINK * half  # its change per unit of z
         h = torch.stack([in_texel_step(texel[:, a], rate[a].expand(n, -1)) for a in range(3 + k)], 1)  # [n, 3 + k]
         T, n_pairs = 4 + k, len(self.pairs)
         scales = []
@@ -171,11 +172,7 @@ class KPlanesField(RadianceField):
         features = torch.cat(scales, 1).transpose(1, 2).reshape(T * n, -1)  # [T n, F S]
         raw = self.head(self.decoder(features)).reshape(T, n, 4)
         draw = ((raw[1:] - raw[:1]) / h.t()[..., None] * per_unit[:, None, None]).permute(1, 2, 0).to(x.dtype)
-        raw = raw[0].to(x.dtype)
-        sigma = raw[:, 0].clamp(max=SIGMA_MAX_LOG).exp()  # as trunc_exp: its derivative is its value
-        colour = torch.sigmoid(raw[:, 1:])
-        dsigma = sigma[:, None] * draw[:, 0]
-        dcolour = (colour * (1 - colour))[..., None] * draw[:, 1:]
+        sigma, colour, dsigma, dcolour = activated_jacobian(raw[0].to(x.dtype), draw)
         return torch.cat([sigma[:, None], colour], 1), torch.cat([dsigma[:, None], dcolour], 1)
 
     def color(self, features: Tensor, d: Tensor) -> Tensor:
