@@ -169,9 +169,8 @@ def composite_jacobian(
     values, dvalues = values.double(), dvalues.double()
     tau = values[:, 0] * delta
     padded = tau.new_zeros(rays_hit.shape[0], int(slot.max()) + 1).index_put((row, slot), tau)
-    before = torch.cat([padded.new_zeros(padded.shape[0], 1), padded[:, :-1].cumsum(1)], 1)[row, slot]
-    after = torch.exp(-(before + tau))  # T_{j+1}, the transmittance behind the sample
-    w = torch.exp(-before) * -torch.expm1(-tau)
+    w, transmittance = (a[row, slot] for a in _weights_from_optical_depth(padded, None))
+    after = transmittance * torch.exp(-tau)  # T_{j+1}, the transmittance behind the sample
     v = torch.cat([values[:, 1:], torch.ones_like(tau)[:, None], (t * rays.z_per_t[ray].double())[:, None]], 1)  # [s, 5]
     wv = w[:, None] * v
     P = P.index_add(0, ray, wv)
