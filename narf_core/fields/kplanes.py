@@ -145,18 +145,19 @@ class KPlanesField(RadianceField):
             raise ValueError("a field whose colour depends on the view direction has no jacobian here")
         n, k = x.shape[0], self.n_theta
         z = self.normalize_positions(x)  # [n, 3 + k] over [-1, 1], the planes' coordinates
-        extent = self.aabb[1] - self.aabb[0]
-        texels = [[max(2, math.ceil(r * float(e / extent.max()) - 1e-6)) for r in self.resolution] for e in extent]
-        per_unit = 2 / extent  # dz/dx
+        per_unit = 2 / (self.aabb[1] - self.aabb[0])  # dz/dx
         if k:
             z = torch.cat([z, self.normalize_theta(theta, n)], 1)
-            texels += [self.theta_resolution] * k
             per_unit = torch.cat([per_unit, 2 / (self.theta_upper - self.theta_lower)])
+        T, n_pairs = 4 + k, len(self.pairs)
+        texels = []  # along each axis at each scale, as a plane over it holds them (rows follow a pair's second axis)
+        for a in range(3 + k):
+            p, pair = next((p, pair) for p, pair in enumerate(self.pairs) if a in pair)
+            texels.append([self.planes[s_ * n_pairs + p].shape[1 - pair.index(a)] for s_ in range(len(self.resolution))])
         half = (torch.tensor(texels, dtype=z.dtype, device=z.device) - 1) / 2  # [3 + k, S]: grid_sample's texels per unit
         texel = (z[..., None] * _EDGE_SHRINK + 1) * half  # [n, 3 + k, S]: each axis's texel coordinate per scale
         rate = _EDGE_SHRINK * half  # its change per unit of z
         h = torch.stack([in_texel_step(texel[:, a], rate[a].expand(n, -1)) for a in range(3 + k)], 1)  # [n, 3 + k]
-        T, n_pairs = 4 + k, len(self.pairs)
         scales = []
         for s_ in range(len(self.resolution)):
             f = z.new_ones(T, self.features, n)  # the point's features, then each column's moved point's
