@@ -553,9 +553,10 @@ def refine_frame(
     projects near it). An iteration takes the lattice samples of its rays in that band
     (:func:`frame_band`), keeps those the occupancy grid holds at the iteration's pose
     (:func:`occupied`) and evaluates the field there: no marching rounds, one field call; with
-    depth (without it, only in a box larger than ``options.reference_box_px``, a finer camera where the
-    silhouette pins the distance: at the reference size the RGB-only track is bistable and the pruning
-    was not harmless, docs/benchmarks.md), only at those light reaches (:func:`visible`), so that the
+    depth (without it, only in a box larger than the reference box, :data:`~narf_core.estimate.ROBUST_BOX_PX`,
+    whatever the preset's ``reference_box_px``: a finer camera where the silhouette pins the distance; at
+    the reference size the RGB-only track is bistable and the pruning was not harmless, docs/benchmarks.md),
+    only at those light reaches (:func:`visible`), so that the
     backward pass skips what lies behind the surface. The final loss (``options.eval_rays`` rays) and the covariance
     (``options.uncertainty_rays`` rays) take their samples the same way. ``narf`` mode; where the
     band cannot be trusted (surface points behind the camera) this is :func:`refine`.
@@ -570,8 +571,8 @@ def refine_frame(
     from narf_core.band import ray_band
     from narf_core.compositing import composite
     from narf_core.estimate import (
-        _box_scale, _check_observation, _Loss, _mask_box, _object_rays, _observation, _overlaps, _Parameterisation,
-        _ray_index, _uncertainty,
+        ROBUST_BOX_PX, _box_scale, _check_observation, _Loss, _mask_box, _object_rays, _observation, _overlaps,
+        _Parameterisation, _ray_index, _uncertainty,
     )
     from narf_core.gauss_newton import GaussNewtonRun, Problem, cluster_sample
     from narf_core.geometry import pose_to_position_quaternion
@@ -591,7 +592,7 @@ def refine_frame(
     obs.scale = scale
     param = _Parameterisation.around(T0, model)
     uses_depth = depth is not None and options.depth_weight > 0
-    prune = uses_depth or scale > 1  # keep only the samples light reaches (visible)
+    prune = uses_depth or max(box[2] - box[0], box[3] - box[1]) > ROBUST_BOX_PX  # keep only what light reaches
 
     def result(status: str, p: Tensor | None, loss: float | None, iterations: int = 0, trace=(),
                uncertainty=None, recovered: bool = False) -> EstimateResult:

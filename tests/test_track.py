@@ -918,12 +918,13 @@ def test_bench_track_prints_joint_errors_in_mm_or_degrees() -> None:
 
 def test_without_depth_only_a_large_box_prunes_the_unreached_samples(clamp, clamp_sequence: Path, monkeypatch) -> None:
     """Without depth a warm-started frame's iterations keep only the samples light reaches
-    (:func:`~narf_core.track.visible`) where the mask's box is larger than the reference (a finer
-    camera), and keep every sample at the reference size (where the RGB-only track is bistable);
-    with depth always."""
+    (:func:`~narf_core.track.visible`) where the mask's box is larger than the reference box
+    (:data:`~narf_core.estimate.ROBUST_BOX_PX`: a finer camera), whatever the preset's own
+    ``reference_box_px`` (0 for the tracker's Gauss-Newton), and keep every sample at the reference
+    size (where the RGB-only track is bistable); with depth always."""
     from dataclasses import replace
 
-    from narf_core import track
+    from narf_core import estimate, track
     from narf_core.data.dataset import Dataset
 
     dataset = Dataset.open(clamp_sequence)
@@ -934,12 +935,18 @@ def test_without_depth_only_a_large_box_prunes_the_unreached_samples(clamp, clam
     monkeypatch.setattr(track, "visible", lambda *a, **k: calls.append(1) or real(*a, **k))
     options = replace(track.TrackOptions(iterations=2, rays_per_iteration=64, uncertainty_rays=0).step_options(False),
                       reference_box_px=0)
-    for depth, reference, pruned in ((None, 0, False), (None, 20, True), (images.depth, 0, True)):
+    box = estimate._mask_box(images.labels > 0, options.box_margin)
+    assert max(box[2] - box[0], box[3] - box[1]) < estimate.ROBUST_BOX_PX  # this 160x120 view: the reference size
+    for depth, reference, robust_box_px, pruned in ((None, 0, estimate.ROBUST_BOX_PX, False),
+                                                    (None, 20, estimate.ROBUST_BOX_PX, False), (None, 0, 20, True),
+                                                    (images.depth, 0, estimate.ROBUST_BOX_PX, True)):
         calls.clear()
+        monkeypatch.setattr(estimate, "ROBUST_BOX_PX", robust_box_px)
         result = track.refine_frame(clamp, dataset.camera, images.rgb, images.labels > 0, depth, frame.T_cam_obj,
                                     frame.joints, replace(options, reference_box_px=reference))
         assert result.status == "max_iterations"
-        assert (len(calls) == options.iterations) is pruned and (len(calls) == 0) is not pruned, (depth is None, reference)
+        assert (len(calls) == options.iterations) is pruned and (len(calls) == 0) is not pruned, \
+            (depth is None, reference, robust_box_px)
 
 
 def test_gauss_newton_frame_reaches_the_label_from_an_offset_without_marching(clamp, clamp_sequence: Path,
