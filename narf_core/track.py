@@ -592,7 +592,7 @@ def refine_frame(
     obs.scale = scale
     param = _Parameterisation.around(T0, model)
     uses_depth = depth is not None and options.depth_weight > 0
-    prune = uses_depth or max(box[2] - box[0], box[3] - box[1]) > ROBUST_BOX_PX  # keep only what light reaches
+    prune = uses_depth or max(obs.shape) > ROBUST_BOX_PX  # keep only the samples light reaches (visible)
 
     def result(status: str, p: Tensor | None, loss: float | None, iterations: int = 0, trace=(),
                uncertainty=None, recovered: bool = False) -> EstimateResult:
