@@ -146,7 +146,7 @@ def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, m
                           f"{one['add_m']['mean'] * 100:.2f} cm, lost {one['lost']}", file=sys.stderr)
     per_frame = {}
     for modality in modalities:
-        step = options.step_options(modality == "rgbd")
+        step = options.step_options(modality == "rgbd", next(iter(models.values())).aabb.device if models else "cpu")
         per_frame[modality] = {"solver": options.solver_for(modality == "rgbd"), "iterations": step.iterations,
                                "rays_per_iteration": step.rays_per_iteration}
     result = {"frames": frames, "seed": seed, "options": options.__dict__, "per_frame": per_frame, "runs": runs,

@@ -76,6 +76,10 @@ SIGMA_SCALE = {"gauss-newton": {"rgbd": 0.4, "rgb": 2.4}, "adam": {"rgbd": 3.0, 
 AUTO_SOLVER = {"rgbd": "gauss-newton", "rgb": "gauss-newton"}
 # A frame's iterations and rays per iteration per solver, where TrackOptions leaves them at 0.
 BUDGETS = {"adam": (6, 768), "gauss-newton": (2, 768)}
+# Rays per Gauss-Newton iteration on a CUDA device, where TrackOptions leaves them at 0: there a frame's time is
+# its kernel launches', about the same for 768 rays as for 6144, and 4x the rays halve the track's error
+# (docs/benchmarks.md, session 29).
+GPU_RAYS = {"gauss-newton": 3072}
 
 
 def budget_text(which: int = 0) -> str:
@@ -105,8 +109,8 @@ class TrackOptions:
     ``solver``: a warm-started frame's solver, "adam" (the robust preset with one start),
     "gauss-newton", or "auto" (:data:`AUTO_SOLVER`: by whether the frame has depth).
     ``iterations``/``rays_per_iteration``: its budget per frame from the prediction, 0 for the
-    solver's own (:data:`BUDGETS`; few iterations on many rays: an iteration's cost is mostly per
-    render call, little per ray); ``reinit_iterations``/``reinit_theta_starts``: that of a
+    solver's own (:data:`BUDGETS`, on a GPU :data:`GPU_RAYS`; few iterations on many rays: an
+    iteration's cost is mostly per render call, little per ray); ``reinit_iterations``/``reinit_theta_starts``: that of a
     re-initialisation (multi-start, coarse-to-fine).
     """
 
@@ -230,11 +234,13 @@ class TrackOptions:
         """A warm-started frame's solver, with ``depth`` or without."""
         return AUTO_SOLVER["rgbd" if depth else "rgb"] if self.solver == "auto" else self.solver
 
-    def step_options(self, depth: bool) -> EstimateOptions:
-        """The refiner's options for a warm-started frame (from the prediction alone: a frame that misses
-        is the re-initialisation's to find, so no pose starts)."""
+    def step_options(self, depth: bool, device: torch.device | str = "cpu") -> EstimateOptions:
+        """The refiner's options for a warm-started frame on a model on ``device`` (from the prediction
+        alone: a frame that misses is the re-initialisation's to find, so no pose starts)."""
         solver = self.solver_for(depth)
         iterations, rays = BUDGETS[solver]
+        if torch.device(device).type == "cuda":
+            rays = GPU_RAYS.get(solver, rays)
         common = {"iterations": self.iterations or iterations, "rays_per_iteration": self.rays_per_iteration or rays,
                   "mode": self.mode,
                   "theta_starts": 1, "coarse_to_fine": 1, "early_stop": False, "seed": self.seed,
@@ -848,7 +854,7 @@ def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.
                  T: np.ndarray, joints: Mapping[str, float], opts: TrackOptions) -> EstimateResult:
     """A warm-started frame's iterations from ``T`` and ``joints``: :func:`refine_frame` (narf mode,
     ``march = "frame"``, no band) or :func:`refine` (any other mode or march)."""
-    step_options = opts.step_options(depth is not None)
+    step_options = opts.step_options(depth is not None, model.aabb.device)
     if (opts.march == "frame" and opts.band_m == 0
             and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf"):
         position, rotation = ((opts.frame_prior_position_m, opts.frame_prior_rotation_deg) if depth is not None

@@ -1102,3 +1102,19 @@ def test_cli_track_iterations_help_names_the_trackers_budgets() -> None:
 
     assert cli.TRACK_ITERATIONS == budget_text(0) == f"{BUDGETS['gauss-newton'][0]} gauss-newton, {BUDGETS['adam'][0]} adam"
     assert budget_text(1) == f"{BUDGETS['gauss-newton'][1]} gauss-newton, {BUDGETS['adam'][1]} adam"
+
+
+def test_a_gpu_frame_takes_more_rays_unless_the_options_name_them() -> None:
+    import torch
+
+    from narf_core.track import BUDGETS, GPU_RAYS, TrackOptions
+
+    gauss_newton, adam = TrackOptions(solver="gauss-newton"), TrackOptions(solver="adam")
+    assert gauss_newton.step_options(True).rays_per_iteration == BUDGETS["gauss-newton"][1]
+    assert gauss_newton.step_options(True, torch.device("cpu")).rays_per_iteration == BUDGETS["gauss-newton"][1]
+    on_gpu = gauss_newton.step_options(False, "cuda:0")
+    assert on_gpu.rays_per_iteration == GPU_RAYS["gauss-newton"] > BUDGETS["gauss-newton"][1]
+    assert on_gpu.iterations == BUDGETS["gauss-newton"][0]  # only the rays change
+    assert adam.step_options(True, "cuda").rays_per_iteration == BUDGETS["adam"][1]  # not measured: as on the CPU
+    named = TrackOptions(solver="gauss-newton", rays_per_iteration=512)
+    assert named.step_options(True, "cuda").rays_per_iteration == 512
