@@ -1647,6 +1647,7 @@ def _uncertainty(
     uses_depth: bool,
     problem=None,
     rays: tuple[Tensor, Tensor, Tensor] | None = None,
+    trained_floor: bool = False,
 ) -> Uncertainty | None:
     """The covariance at ``(T [4,4], θ [k])``: one Gauss-Newton linearisation on the box's rays
     (narf_core/gauss_newton.py) plus the model's error and the options' floors on the diagonal;
@@ -1655,7 +1656,10 @@ def _uncertainty(
 
     The model's error is in footprints of a pixel at the object, but never of a pixel finer than in a
     box of the reference size (:data:`ROBUST_BOX_PX`, whatever the preset's ``reference_box_px``): a
-    camera finer than the views the model was trained on does not make the model itself more exact."""
+    camera finer than the views the model was trained on does not make the model itself more exact.
+    ``trained_floor``: nor finer than a pixel of the training views (:func:`trained_footprint`), for an
+    estimate from one set of rays (the tracker's frame with depth), whose error at a finer camera stays
+    that of the rays' draw of the model's error (docs/benchmarks.md, session 29)."""
     from narf_core.gauss_newton import Problem, covariance
 
     aabb = model.aabb.detach().double().cpu()
@@ -1667,6 +1671,8 @@ def _uncertainty(
     if not bool(torch.isfinite(stat.sigma).all()):
         return None
     pixel = model_footprint(camera, T, centre, obs.shape)
+    if trained_floor:
+        pixel = max(pixel, trained_footprint(model, T, centre))
     span = (2 * param.half).cpu()
     floor = torch.cat([
         torch.full((3,), opts.sigma_floor_position), torch.full((3,), opts.sigma_floor_rotation), opts.sigma_floor_joint * span
@@ -1707,8 +1713,24 @@ def model_footprint(camera: Pinhole, T: Tensor, centre: Tensor, box_shape: tuple
     """The pixel footprint (m) in which the model's error is counted: a pixel's span at the object's
     ``centre [3]`` (object frame) under ``T [4,4]``, times the mask box's longer side (``box_shape``, ``(h,
     w)``) over :data:`ROBUST_BOX_PX` where larger, so never finer than in a box of the reference size."""
-    depth = float(T[2, :3].double() @ centre.double() + T[2, 3])
-    return depth / float(camera.K[0, 0]) * max(1.0, max(box_shape) / ROBUST_BOX_PX)
+    return _centre_depth(T, centre) / float(camera.K[0, 0]) * max(1.0, max(box_shape) / ROBUST_BOX_PX)
+
+
+# The focal length (pixels) of the views MODEL_ERROR was fitted on (Pinhole.primesense(160, 120)): the training
+# camera of a bundle that records none of its own (``metadata["training_camera"]``, which ``narf train`` writes;
+# the bundled clamp was trained on such views).
+REFERENCE_TRAINING_FX = 536.5 * 160 / 640
+
+
+def trained_footprint(model: NarfModel, T: Tensor, centre: Tensor) -> float:
+    """A pixel's span (m) at the object's ``centre [3]`` (object frame) under ``T [4,4]`` in the views the
+    model was trained on: its bundle's ``metadata["training_camera"]["fx"]``, else :data:`REFERENCE_TRAINING_FX`."""
+    fx = (model.metadata.get("training_camera") or {}).get("fx") or REFERENCE_TRAINING_FX
+    return _centre_depth(T, centre) / float(fx)
+
+
+def _centre_depth(T: Tensor, centre: Tensor) -> float:
+    return float(T[2, :3].double() @ centre.double() + T[2, 3])
 
 
 def model_error(model: NarfModel, kind: str, pixel_m: float, radius: float, colour_variance: float,

@@ -683,7 +683,7 @@ def refine_frame(
         lattice = visible(field, rays_obj, lattice, th) if prune else lattice
         problem = Problem(model, options, param.radius, uses_depth, samples=lattice)
         uncertainty = _uncertainty(model, options, obs, camera, param, T, theta, uses_depth, problem,
-                                   (index, cluster, weight))
+                                   (index, cluster, weight), trained_floor=uses_depth)
     return result("max_iterations", p, loss, options.iterations, trace, uncertainty, failures > 0)
 
 

@@ -88,6 +88,11 @@ def test_train_writes_a_bundle_with_its_command(capsys, tiny_dataset, tmp_path):
     assert provenance["command"] == "narf " + " ".join(str(a) for a in argv)  # what was typed, not pytest's argv
     assert provenance["config"]["part_steps"] == 1 and provenance["config"]["keep_parts"] is False
     assert provenance["config"]["sparsity_weight"] == 0.05  # the flag, not the default
+    from narf_core.data.dataset import Dataset
+
+    camera = Dataset.open(tiny_dataset).camera
+    assert model.metadata["training_camera"] == {"width": camera.width, "height": camera.height,
+                                                 "fx": float(camera.K[0, 0]), "fy": float(camera.K[1, 1])}
     assert not (tmp_path / "m.narf.work").exists()
 
 

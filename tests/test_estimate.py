@@ -1061,6 +1061,22 @@ def test_model_error_of_a_revolute_joint_is_the_position_over_how_fast_it_moves_
                        position / 0.25)
 
 
+def test_trained_footprint_is_a_pixel_of_the_training_views_at_the_object():
+    """The bundle's own training camera where it records one, else the 160x120 views the defaults were fitted on."""
+    from types import SimpleNamespace
+
+    from narf_core.estimate import REFERENCE_TRAINING_FX, trained_footprint
+
+    T = torch.eye(4, dtype=torch.float64)
+    T[2, 3] = 0.6
+    centre = torch.tensor([0.0, 0.0, 0.1], dtype=torch.float64)
+    assert REFERENCE_TRAINING_FX == pytest.approx(float(Pinhole.primesense(160, 120).K[0, 0]))
+    unrecorded = SimpleNamespace(metadata={})
+    assert trained_footprint(unrecorded, T, centre) == pytest.approx(0.7 / REFERENCE_TRAINING_FX)
+    fine = SimpleNamespace(metadata={"training_camera": {"width": 640, "height": 480, "fx": 536.5, "fy": 536.5}})
+    assert trained_footprint(fine, T, centre) == pytest.approx(0.7 / 536.5)
+
+
 def test_model_footprint_is_never_finer_than_in_a_reference_box():
     """The model's error is counted in pixels at the object, never finer than in a mask box of the
     reference size: the same view on a camera four times finer (a box four times larger) keeps the footprint."""

@@ -384,6 +384,35 @@ def test_model_error_footprint_is_never_finer_than_the_reference_box(clamp, clam
     assert seen[2] == pytest.approx(seen[0] * side / 20, rel=0.05)
 
 
+def test_a_frame_with_depth_counts_the_model_error_in_training_pixels(clamp, clamp_sequence: Path, monkeypatch) -> None:
+    """With depth a tracked frame's model error is counted in pixels no finer than the training views'
+    (:func:`~narf_core.estimate.trained_footprint`; the bundled clamp records none: the reference camera's);
+    without depth, and where the training views are no coarser than the camera, in the camera's own."""
+    from narf_core import estimate
+    from narf_core.data.dataset import Dataset
+    from narf_core.track import TrackOptions, refine_frame
+
+    dataset = Dataset.open(clamp_sequence)
+    frame = dataset.frames()[1]
+    images = dataset.load(frame)
+    mask = images.labels > 0
+    assert "training_camera" not in clamp.metadata
+    assert estimate.REFERENCE_TRAINING_FX == pytest.approx(float(dataset.camera.K[0, 0]))  # trained on such views
+    seen = []
+    real = estimate.model_error
+    monkeypatch.setattr(estimate, "model_error", lambda *a: seen.append(a[2]) or real(*a))
+    for coarser in (1.0, 4.0):
+        monkeypatch.setattr(estimate, "REFERENCE_TRAINING_FX", float(dataset.camera.K[0, 0]) / coarser)
+        for depth in (images.depth, None):
+            options = TrackOptions(iterations=1, rays_per_iteration=64, uncertainty_rays=64).step_options(depth is not None)
+            result = refine_frame(clamp, dataset.camera, images.rgb, mask, depth, frame.T_cam_obj, frame.joints, options)
+            assert result.uncertainty is not None
+    own = seen[0]
+    assert seen[1] == pytest.approx(own, rel=0.05)  # without depth: the camera's own
+    assert seen[2] == pytest.approx(4 * own, rel=0.05)  # with depth: the training views' pixel, 4x coarser
+    assert seen[3] == pytest.approx(own, rel=0.05)
+
+
 def test_model_error_grows_only_above_the_usual_residual(clamp) -> None:
     """``usual`` (the tracker's ``usual_residual`` with depth): a colour residual up to it gives the
     model's error at its reference (pixel footprints alone), above it the error grows in proportion;

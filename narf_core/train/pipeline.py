@@ -321,6 +321,9 @@ def train(
                 "config": asdict(config),
                 "timings_s": timings,
             },
+            # the views' camera: the finest footprint the model's error is counted in (estimate.trained_footprint)
+            "training_camera": {"width": dataset.camera.width, "height": dataset.camera.height,
+                                "fx": float(dataset.camera.K[0, 0]), "fy": float(dataset.camera.K[1, 1])},
         },
         step=march_step(aabb),
     )
