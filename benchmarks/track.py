@@ -145,8 +145,9 @@ def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, m
                     print(f"narf bench track: {name}: {one['frames_per_second']:.1f} frames/s, ADD mean "
                           f"{one['add_m']['mean'] * 100:.2f} cm, lost {one['lost']}", file=sys.stderr)
     per_frame = {}
+    device = next(iter(models.values())).aabb.device if models else "cpu"  # the frames' budget depends on it
     for modality in modalities:
-        step = options.step_options(modality == "rgbd", next(iter(models.values())).aabb.device if models else "cpu")
+        step = options.step_options(modality == "rgbd", device)
         per_frame[modality] = {"solver": options.solver_for(modality == "rgbd"), "iterations": step.iterations,
                                "rays_per_iteration": step.rays_per_iteration}
     result = {"frames": frames, "seed": seed, "options": options.__dict__, "per_frame": per_frame, "runs": runs,

@@ -1719,7 +1719,7 @@ def model_footprint(camera: Pinhole, T: Tensor, centre: Tensor, box_shape: tuple
 # The focal length (pixels) of the views MODEL_ERROR was fitted on (Pinhole.primesense(160, 120)): the training
 # camera of a bundle that records none of its own (``metadata["training_camera"]``, which ``narf train`` writes;
 # the bundled clamp was trained on such views).
-REFERENCE_TRAINING_FX = 536.5 * 160 / 640
+REFERENCE_TRAINING_FX = float(Pinhole.primesense(160, 120).K[0, 0])
 
 
 def trained_footprint(model: NarfModel, T: Tensor, centre: Tensor) -> float:

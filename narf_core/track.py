@@ -110,8 +110,8 @@ class TrackOptions:
     "gauss-newton", or "auto" (:data:`AUTO_SOLVER`: by whether the frame has depth).
     ``iterations``/``rays_per_iteration``: its budget per frame from the prediction, 0 for the
     solver's own (:data:`BUDGETS`, on a GPU :data:`GPU_RAYS`; few iterations on many rays: an
-    iteration's cost is mostly per render call, little per ray); ``reinit_iterations``/``reinit_theta_starts``: that of a
-    re-initialisation (multi-start, coarse-to-fine).
+    iteration's cost is mostly per render call, little per ray); ``reinit_iterations``/
+    ``reinit_theta_starts``: that of a re-initialisation (multi-start, coarse-to-fine).
     """
 
     solver: str = "auto"
