@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import tempfile
 from collections.abc import Mapping
@@ -332,6 +333,7 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> NarfMod
         raise BundleError(f"{path}: corrupt model bundle ({_one_line(e)})") from None
     verify_tensors(path, meta, tensors)
     try:
+        _check_training_camera(meta.get("training_camera"))
         kin = KinematicTree.from_urdf_string(meta["urdf"])
         theta_range = meta.get("grid_theta_range")
         grid = OccupancyGrid(
@@ -362,6 +364,18 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> NarfMod
         )
     except (KeyError, RuntimeError, TypeError, ValueError) as e:  # ValueError: UrdfError, bad field config or grid
         raise BundleError(f"{path}: incomplete or inconsistent model bundle ({_one_line(e)})") from None
+
+
+def _check_training_camera(camera) -> None:
+    """``metadata["training_camera"]`` (``narf train``'s record of the views' camera, read by the tracker's
+    uncertainty) absent, or positive sizes and focal lengths; ``ValueError`` naming what is wrong."""
+    if camera is None:
+        return
+    keys = ("width", "height", "fx", "fy")
+    if not isinstance(camera, dict) or not all(
+            isinstance(camera.get(k), (int, float)) and not isinstance(camera.get(k), bool)
+            and math.isfinite(camera[k]) and camera[k] > 0 for k in keys):
+        raise ValueError(f"training_camera must hold positive numbers {', '.join(keys)}, got {camera!r}")
 
 
 def tensors_digest(tensors: Mapping[str, Tensor]) -> str:

@@ -273,6 +273,16 @@ def test_weights_of_the_wrong_shape_are_refused(tiny_bundle, tmp_path):
     assert_refused(path, "incomplete or inconsistent")
 
 
+@pytest.mark.parametrize("camera", [{"width": 160, "height": 120, "fx": "wide", "fy": 134.1},
+                                    {"width": 160, "height": 120, "fx": -1.0, "fy": 134.1}, {"fx": 134.1}, [1, 2]])
+def test_a_malformed_training_camera_is_refused(tiny_bundle, tmp_path, camera):
+    path = rewrite_metadata(tiny_bundle, tmp_path / "camera.narf", lambda m: {**m, "training_camera": camera})
+    assert_refused(path, "incomplete or inconsistent", "training_camera must hold positive numbers")
+    good = {"width": 160, "height": 120, "fx": 134.125, "fy": 134.125}
+    path = rewrite_metadata(tiny_bundle, tmp_path / "good.narf", lambda m: {**m, "training_camera": good})
+    assert load_bundle(path).metadata["training_camera"] == good
+
+
 @pytest.mark.slow
 def test_broken_urdf_in_the_metadata_is_refused(tiny_bundle, tmp_path):
     path = rewrite_metadata(tiny_bundle, tmp_path / "urdf.narf", lambda m: {**m, "urdf": "<robot name='x'>"})
