@@ -22,7 +22,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import math
 import os
 import tempfile
 from collections.abc import Mapping
@@ -35,7 +34,7 @@ from safetensors import SafetensorError
 from safetensors.torch import load_file, save_file
 from torch import Tensor
 
-from narf_core.checks import JointSpec
+from narf_core.checks import InputError, JointSpec, check_number
 from narf_core.fields import ArticulatedField, make_field
 from narf_core.fields.composed import ComposedField, compose_parts
 from narf_core.diameter import object_diameter
@@ -372,9 +371,11 @@ def _check_training_camera(camera) -> None:
     if camera is None:
         return
     keys = ("width", "height", "fx", "fy")
-    if not isinstance(camera, dict) or not all(
-            isinstance(camera.get(k), (int, float)) and not isinstance(camera.get(k), bool)
-            and math.isfinite(camera[k]) and camera[k] > 0 for k in keys):
+    try:
+        good = isinstance(camera, Mapping) and all(check_number(camera.get(k), k) > 0 for k in keys)
+    except InputError:  # not a finite number
+        good = False
+    if not good:
         raise ValueError(f"training_camera must hold positive numbers {', '.join(keys)}, got {camera!r}")
 
 
