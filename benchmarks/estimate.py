@@ -23,6 +23,7 @@ with ``--quick`` takes the bundled models and small datasets.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 from collections.abc import Mapping, Sequence
@@ -32,6 +33,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from narf_benchmarks.checkpoint import SceneLog, remove_logs, scene_log
 from narf_benchmarks.load import describe_machine, machine
 from narf_core.bundle import NarfModel, load_bundle
 from narf_core.data.dataset import Dataset, Frame
@@ -133,11 +135,13 @@ def run_scenes(
     perturbation: tuple[float, float] = (10.0, 0.02),
     seed: int = 0,
     progress: bool = False,
+    log: SceneLog | None = None,
 ) -> list[dict]:
     """Refine every frame from a perturbed start; one JSON-able row per scene.
 
     The perturbation of a scene depends only on ``seed`` and the frame id, so runs with other
-    options or modes start from the same poses.
+    options or modes start from the same poses. ``log``: each finished row is kept there as it
+    finishes, and a scene it already holds is not refined again (a stopped run resumes).
     """
     from tqdm import tqdm
 
@@ -145,7 +149,13 @@ def run_scenes(
     aabb = model.aabb.double().cpu()
     centre = ((aabb[0] + aabb[1]) / 2).numpy()
     rows = []
+    if log is not None:
+        log.note(len(frames))
     for frame in tqdm(frames, desc=f"{model.name} {options.mode} x{scale:g}", disable=not progress, leave=False):
+        kept = log.get(frame.id) if log is not None else None
+        if kept is not None:
+            rows.append(kept)
+            continue
         images = dataset.load(frame)
         rng = np.random.default_rng([seed, frame.id])
         T_init = perturb_pose(frame.T_cam_obj, centre, perturbation[0] * scale, perturbation[1] * scale, rng)
@@ -170,7 +180,22 @@ def run_scenes(
             **(view_errors(model, result.T_cam_obj, result.joints, gt) if _has_points(model) else {}),
             "along_run": _add_along_run(model, result, gt, T_init) if options.record_every else [],
         })
+        if log is not None:
+            rows[-1] = log.add(rows[-1])
     return rows
+
+
+def scenes_log(
+    out_dir: Path, tool: str, block: str, model: NarfModel, dataset: Dataset, frames: Sequence[Frame],
+    options: EstimateOptions, *, scale: float = 1.0, perturbation: tuple[float, float] = (10.0, 0.02), seed: int = 0,
+) -> SceneLog:
+    """The :class:`~narf_benchmarks.checkpoint.SceneLog` of one block of :func:`run_scenes` under ``out_dir``,
+    keyed by everything its rows depend on: the options, the starts, the frames and the data they are read from."""
+    generator = hashlib.sha256(json.dumps(dataset.generator, sort_keys=True, default=str).encode()).hexdigest()
+    key = {"options": asdict(options), "scale": scale, "perturbation": list(perturbation), "seed": seed,
+           "frames": [f.id for f in frames], "view": type(dataset).__name__,
+           "dataset": {"root": str(Path(dataset.root).resolve()), "generator": generator}}
+    return scene_log(out_dir, tool, block, key, model)
 
 
 def _preset_options(preset: str, iterations: int, **overrides) -> EstimateOptions:
@@ -313,7 +338,10 @@ def run(
                 for preset in presets:
                     options = _preset_options(preset, iterations, **overrides, mode=mode, record_every=RECORD_EVERY,
                                               seed=seed)
-                    rows = run_scenes(model, dataset, frames, options, perturbation=perturbation, seed=seed, progress=progress)
+                    log = scenes_log(out_dir, tool, f"{split}-{mode}-{preset}", model, dataset, frames, options,
+                                     perturbation=perturbation, seed=seed)
+                    rows = run_scenes(model, dataset, frames, options, perturbation=perturbation, seed=seed,
+                                      progress=progress, log=log)
                     table.append({"tool": tool, "split": split, "mode": mode, "preset": preset, **summarise(model, rows),
                                   "scenes_detail": rows})
                     if frames is sweep_frames:
@@ -326,8 +354,10 @@ def run(
                 if scale == 1:
                     rows = first[preset]  # the same runs as the table's (same starts and seeds)
                 else:
+                    log = scenes_log(out_dir, tool, f"sweep-{sweep_mode}-{preset}-x{scale:g}", model, dataset,
+                                     sweep_frames, options, scale=scale, perturbation=perturbation, seed=seed)
                     rows = run_scenes(model, dataset, sweep_frames, options, scale=scale, perturbation=perturbation,
-                                      seed=seed, progress=progress)
+                                      seed=seed, progress=progress, log=log)
                 s = summarise(model, rows)
                 sweep.append({"tool": tool, "mode": sweep_mode, "preset": preset, "scale": scale,
                               "rotation_deg": perturbation[0] * scale, "translation_m": perturbation[1] * scale,
@@ -340,6 +370,7 @@ def run(
               "paper": PAPER_TABLE_II, "jacobian": jacobian, "auto": auto, "machine": machine(m for _, m, _ in pairs)}
     (out_dir / "estimate.json").write_text(json.dumps(result, indent=1))
     (out_dir / "estimate.md").write_text(markdown(result))
+    remove_logs(out_dir)
     plot_curves(curves, out_dir / "estimate_error_vs_iterations.png")
     plot_sweep(sweep, out_dir / "estimate_sweep.png")
     return result

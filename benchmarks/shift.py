@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from narf_benchmarks.estimate import _preset_options, _pyplot, pick_frames, run_scenes, summarise
+from narf_benchmarks.checkpoint import remove_logs
+from narf_benchmarks.estimate import _preset_options, _pyplot, pick_frames, run_scenes, scenes_log, summarise
 from narf_benchmarks.load import describe_machine, machine
 from narf_core.bundle import NarfModel
 from narf_core.data.dataset import Dataset, FrameImages
@@ -162,13 +163,17 @@ def run(
                     for preset in presets:
                         for scale in scales:
                             options = _preset_options(preset, iterations, **{"seed": seed, **overrides})
-                            rows = run_scenes(model, view, frames, options, scale=scale, seed=seed, progress=progress)
+                            log = scenes_log(out_dir, tool, f"{condition}-{split}-{kind}-{preset}-x{scale:g}", model,
+                                             view, frames, options, scale=scale, seed=seed)
+                            rows = run_scenes(model, view, frames, options, scale=scale, seed=seed, progress=progress,
+                                              log=log)
                             table.append({"tool": tool, "condition": condition, "split": split, "input": kind,
                                           "preset": preset, "scale": scale, **summarise(model, rows),
                                           "scenes_detail": rows})
     result = {"config": config, "table": table, "warnings": warnings, "machine": machine(models.values())}
     (out_dir / "shift.json").write_text(json.dumps(result, indent=1))
     (out_dir / "shift.md").write_text(markdown(result))
+    remove_logs(out_dir)
     plot(result, out_dir / "shift.png")
     return result
 

@@ -1,0 +1,113 @@
+"""Scene logs: a long benchmark run stopped part-way resumes where it stopped.
+
+``narf bench estimate`` and ``narf bench shift`` refine hundreds of scenes (an hour and more on two
+cores); their tables are written once at the end. Each block of scenes (a tool, split, condition,
+input, preset and scale) appends every finished scene's row to its own JSON-lines file under
+``<out>/scenes/`` as it finishes; the same command run again reads the rows back instead of refining
+those scenes again, and the logs are removed once the run's results are written.
+
+A log's first line is its block's key: the refiner's options, the perturbation, the seed, the
+model's weights (the bundle's tensor checksum), the dataset, and a digest of the code that
+computes the rows (``narf_core`` and ``benchmarks``). A log under another key (other options, a
+retrained model, an edited refiner) is started again, so a resumed table never mixes rows of two
+different runs. A reused row keeps the seconds measured when it was refined.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+from collections.abc import Mapping
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+FOLDER = "scenes"
+
+
+@lru_cache(maxsize=1)
+def code_digest() -> str:
+    """SHA-256 (hex) over the source files that compute a scene's row (``narf_core`` and
+    ``benchmarks``), in path order: any edit starts the logs again."""
+    import narf_core
+
+    digest = hashlib.sha256()
+    for package in (Path(narf_core.__file__).resolve().parent, Path(__file__).resolve().parent):
+        for path in sorted(package.rglob("*.py")):
+            digest.update(f"{package.name}/{path.relative_to(package)}".encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()
+
+
+def model_digest(model: Any) -> str | None:
+    """The bundle's tensor checksum (verified when it was loaded), or ``None`` for a model never saved."""
+    checksum = (getattr(model, "metadata", None) or {}).get("checksum") or {}
+    return checksum.get("tensors")
+
+
+class SceneLog:
+    """The finished rows of one block of scenes, keyed by frame id, kept in ``path`` (JSON lines).
+
+    ``key`` (JSON-able) identifies the block; a file under another key, or one that cannot be read,
+    is started again. ``enabled=False`` (a model without a checksum) keeps nothing."""
+
+    def __init__(self, path: Path, key: Mapping[str, Any], enabled: bool = True) -> None:
+        self.path, self.enabled = Path(path), enabled
+        self.key = json.loads(json.dumps(dict(key), sort_keys=True, default=str))
+        self.rows: dict[int, dict] = self._read() if enabled else {}
+        self.resumed = len(self.rows)
+        if enabled and not self.rows:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self.path.write_text(json.dumps({"key": self.key}) + "\n")
+
+    def _read(self) -> dict[int, dict]:
+        try:
+            lines = self.path.read_text().splitlines()
+        except OSError:
+            return {}
+        rows: dict[int, dict] = {}
+        try:
+            if not lines or json.loads(lines[0]).get("key") != self.key:
+                return {}
+            for line in lines[1:]:
+                row = json.loads(line)
+                rows[int(row["frame"])] = row
+        except (ValueError, KeyError, TypeError, AttributeError):
+            pass  # a line cut short by the stop: the rows before it stand
+        return rows
+
+    def get(self, frame_id: int) -> dict | None:
+        return self.rows.get(int(frame_id))
+
+    def add(self, row: dict) -> dict:
+        """Keep a finished scene's row (written and flushed before the next scene starts); returns it as
+        the log reads it back (JSON types), so fresh and resumed rows are alike."""
+        text = json.dumps(row)
+        row = json.loads(text)
+        self.rows[int(row["frame"])] = row
+        if self.enabled:
+            with self.path.open("a") as f:
+                f.write(text + "\n")
+                f.flush()
+        return row
+
+    def note(self, total: int) -> None:
+        """One line on stderr where rows were read back, so a resumed run says so."""
+        if self.resumed:
+            print(f"narf bench: resuming {self.path.name}: {min(self.resumed, total)} of {total} scenes from "
+                  f"{self.path}", file=sys.stderr)
+
+
+def scene_log(out_dir: Path, tool: str, block: str, key: Mapping[str, Any], model: Any) -> SceneLog:
+    """The log of ``block`` (a file name: split, condition, preset, ...) of ``tool`` under
+    ``out_dir/scenes``; its key adds the model's and the code's digests to ``key``."""
+    digest = model_digest(model)
+    full = {**key, "tool": tool, "model": digest, "code": code_digest()}
+    return SceneLog(Path(out_dir) / FOLDER / tool / f"{block}.jsonl", full, enabled=digest is not None)
+
+
+def remove_logs(out_dir: Path) -> None:
+    """Remove the scene logs of a finished run (its results are written)."""
+    import shutil
+
+    shutil.rmtree(Path(out_dir) / FOLDER, ignore_errors=True)
