@@ -557,6 +557,28 @@ class Uncertainty:
         }
 
 
+# A joint whose σ is at least this share of its half range: what bounds it is the prior Σ₀ (the half range,
+# narf_core/gauss_newton.py), not the view, which hardly sees it (a drawer whose front faces away, a part
+# behind another): its value is a guess within its range (docs/benchmarks.md, session 31).
+UNOBSERVED_SHARE = 0.5
+
+
+def unobserved_joints(model: NarfModel, uncertainty: Uncertainty | None) -> list[str]:
+    """One warning ``"unobserved_joint: <joint>: ..."`` for each joint of ``model`` whose σ in
+    ``uncertainty`` is at least :data:`UNOBSERVED_SHARE` of its half range; none without an uncertainty."""
+    if uncertainty is None:
+        return []
+    out = []
+    lower, upper = model.kinematics.lower.tolist(), model.kinematics.upper.tolist()
+    for joint, lo, hi in zip(model.joints, lower, upper, strict=True):
+        sigma, half = uncertainty.joint_sigma[joint.name], (hi - lo) / 2
+        if half > 0 and sigma >= UNOBSERVED_SHARE * half:
+            scale, unit = (1000.0, "mm") if joint.type == "prismatic" else (180.0 / math.pi, "deg")
+            out.append(f"unobserved_joint: {joint.name}: the view hardly constrains it (σ {sigma * scale:.1f} {unit} "
+                       f"over a range of {2 * half * scale:.1f} {unit}); its value is a guess within that range")
+    return out
+
+
 def local_error(
     T_est: np.ndarray, theta_est: Mapping[str, float], T_true: np.ndarray, theta_true: Mapping[str, float], model: NarfModel
 ) -> np.ndarray:
@@ -1485,7 +1507,7 @@ def refine(
             metrics=metrics,
             history=[] if run is None else run.history,
             uncertainty=uncertainty,
-            warnings=warnings,
+            warnings=warnings + unobserved_joints(model, uncertainty),
             mode=mode,
             mode_reason=mode_reason,
         )

@@ -342,8 +342,9 @@ class EstimateResponse(BaseModel):
     uncertainty: UncertaintyOut | None = Field(None, description="Covariance of the estimate; null when not computed")
     warnings: list[str] = Field(
         default_factory=list,
-        description="Doubts about the input, as '<code>: <message>' (codes: clipped, mask_border, depth_unit, "
-                    "depth_overlap); after depth_unit or depth_overlap the depth was not used",
+        description="Doubts about the input and the answer, as '<code>: <message>' (codes: clipped, mask_border, "
+                    "depth_unit, depth_overlap, unobserved_joint); after depth_unit or depth_overlap the depth was "
+                    "not used; unobserved_joint: the view hardly constrains that joint, its value is a guess",
     )
     mode: RenderMode = Field(description=_MODE_OUT)
     mode_reason: str = Field(description=_MODE_REASON)

@@ -29,7 +29,7 @@ from narf_core.estimate import (
     refine,
 )
 from narf_core.geometry import Pinhole
-from tests.test_estimate import ASSETS, CAMERA, TRUTH, SliderField, make_model, observe, perturbed, view
+from tests.test_estimate import ASSETS, CAMERA, LOWER, TRUTH, UPPER, SliderField, make_model, observe, perturbed, view
 
 pytest_plugins = ("conftest_model",)  # tiny_bundle, tiny_dataset (the CLI test)
 
@@ -122,17 +122,28 @@ def test_nees_coverage_near_95_percent_with_known_gaussian_noise(model):
 
 
 def test_unobserved_joint_gets_a_large_finite_sigma(model):
-    """The jaw outside the image: θ does not change any ray, Σ stays finite with θ's σ near its prior."""
+    """The jaw outside the image: θ does not change any ray, Σ stays finite with θ's σ near its prior,
+    and the result says the joint is a guess (``unobserved_joint``); with the jaw in view it does not."""
+    from narf_core.estimate import UNOBSERVED_SHARE
+
     T = view()
     joints = {"slide": 0.06}
-    image, mask, _ = observe(model, T, joints)
+    image, full, _ = observe(model, T, joints)
     # Hide the jaw: keep only the bar's pixels (the left part of the object in this view).
-    cols = np.nonzero(mask.any(0))[0]
+    cols = np.nonzero(full.any(0))[0]
+    mask = full.copy()
     mask[:, (cols[0] + cols[-1]) // 2 :] = False
     options = EstimateOptions.preset("gauss-newton", adam_iterations=0, iterations=0, box_margin=0.0, **NO_FLOOR)
-    u = refine(model, image, mask, CAMERA, T, joints_init=joints, options=options).uncertainty
+    hidden = refine(model, image, mask, CAMERA, T, joints_init=joints, options=options)
+    u = hidden.uncertainty
     assert np.isfinite(u.covariance).all()
-    assert u.joint_sigma["slide"] > 0.001
+    half = (UPPER - LOWER) / 2
+    assert u.joint_sigma["slide"] >= UNOBSERVED_SHARE * half  # the prior's half range is what bounds it
+    (warning,) = [w for w in hidden.warnings if w.startswith("unobserved_joint: slide: ")]
+    assert f"over a range of {2 * half * 1000:.1f} mm" in warning
+    seen = refine(model, image, full, CAMERA, T, joints_init=joints, options=options)
+    assert seen.uncertainty.joint_sigma["slide"] < 0.1 * half
+    assert not [w for w in seen.warnings if w.startswith("unobserved_joint")]
 
 
 def test_a_non_finite_render_in_the_covariance_pass_gives_no_uncertainty(model, monkeypatch):
