@@ -177,6 +177,7 @@ def run_scenes(
             "seconds": result.seconds,
             "loss": result.loss,
             "metrics": result.metrics,
+            "warnings": list(result.warnings),
             **(view_errors(model, result.T_cam_obj, result.joints, gt) if _has_points(model) else {}),
             "along_run": _add_along_run(model, result, gt, T_init) if options.record_every else [],
         })
@@ -234,6 +235,16 @@ def summarise(model: NarfModel, rows: list[dict]) -> dict:
         if unit == "deg":
             errors = np.degrees(errors)
         out["joints"][joint.name] = {"unit": unit, "mean": float(errors.mean()), "std": float(errors.std())}
+        # the scenes whose estimate said the view hardly constrains this joint (narf_core.estimate.unobserved_joints)
+        flagged = np.array([any(w.startswith(f"unobserved_joint: {joint.name}: ") for w in r.get("warnings", []))
+                            for r in rows], dtype=bool)
+        if flagged.any():
+            seen = errors[~flagged]
+            out["joints"][joint.name].update({
+                "unobserved": int(flagged.sum()),
+                "observed_mean": float(seen.mean()) if len(seen) else None,
+                "observed_std": float(seen.std()) if len(seen) else None,
+            })
     return out
 
 
@@ -384,11 +395,22 @@ def _num(x: float | None) -> str:
     return "-" if x is None else f"{x:.3g}"
 
 
+def unobserved_note(joint: dict, scale: float, unit: str, digits: int = 2) -> str:
+    """`` (N flagged unobserved; the others mean ± std unit)`` for a joint of :func:`summarise` that some
+    scenes' estimates flagged (``unobserved_joint``), else empty."""
+    if not joint.get("unobserved"):
+        return ""
+    rest = ("" if joint["observed_mean"] is None else
+            f"; the others {scale * joint['observed_mean']:.{digits}f} ± {scale * joint['observed_std']:.{digits}f} {unit}")
+    return f" ({joint['unobserved']} flagged unobserved{rest})"
+
+
 def _fmt_joints(joints: dict) -> str:
-    """Each joint's error, mean ± std: prismatic joints in mm, revolute ones in degrees."""
+    """Each joint's error, mean ± std: prismatic joints in mm, revolute ones in degrees; where some scenes'
+    estimates flagged the joint unobserved, how many, and the error over the others."""
     def one(j: dict) -> str:
         scale, unit = (1000, "mm") if j["unit"] == "m" else (1, j["unit"])
-        return f"{scale * j['mean']:.2f} ± {scale * j['std']:.2f} {unit}"
+        return f"{scale * j['mean']:.2f} ± {scale * j['std']:.2f} {unit}{unobserved_note(j, scale, unit)}"
 
     return "<br>".join(f"{name}: {one(j)}" for name, j in joints.items()) or "-"
 

@@ -30,7 +30,15 @@ from pathlib import Path
 import numpy as np
 
 from narf_benchmarks.checkpoint import remove_logs
-from narf_benchmarks.estimate import _preset_options, _pyplot, pick_frames, run_scenes, scenes_log, summarise
+from narf_benchmarks.estimate import (
+    _preset_options,
+    _pyplot,
+    pick_frames,
+    run_scenes,
+    scenes_log,
+    summarise,
+    unobserved_note,
+)
 from narf_benchmarks.load import describe_machine, machine
 from narf_core.bundle import NarfModel
 from narf_core.data.dataset import Dataset, FrameImages
@@ -200,7 +208,7 @@ def _joints(row: dict) -> str:
     parts = []
     for name, j in row["joints"].items():
         scale, unit = (1000.0, "mm") if j["unit"] == "m" else (1.0, "deg")
-        parts.append(f"{name} {scale * j['mean']:.1f} ± {scale * j['std']:.1f} {unit}")
+        parts.append(f"{name} {scale * j['mean']:.1f} ± {scale * j['std']:.1f} {unit}{unobserved_note(j, scale, unit, 1)}")
     return "<br>".join(parts) or "-"
 
 

@@ -758,3 +758,35 @@ def test_tied_starts_go_on_until_the_last_pruning(model, monkeypatch):
         result = refine(model, image, mask, CAMERA, T0, depth=depth, options=options, ground_truth=(T, TRUTH))
         assert calls == expected and result.iterations == 12
         assert result.metrics["add"] < 0.02, result.metrics
+
+
+def test_bench_estimate_counts_the_scenes_that_flag_a_joint_unobserved(model, tmp_path):
+    """A scene whose mask leaves the jaw out is flagged (``unobserved_joint``); the table counts it and
+    gives the joint's error over the other scenes beside the error over all."""
+    from benchmarks import shift
+    from benchmarks.estimate import _fmt_joints, run_scenes, summarise
+    from narf_core.data.dataset import Dataset, DatasetWriter, FrameImages, read_urdf
+
+    joints = {"slide": 0.06}
+    root = tmp_path / "toy"
+    with DatasetWriter(root, read_urdf(ASSETS / "estimate_slider.urdf"), CAMERA) as writer:
+        for hide in (False, True):
+            T = view()
+            image, mask, _ = observe(model, T, joints)
+            if hide:  # only the bar's left third: from mid-range the jaw stays out of it
+                cols = np.nonzero(mask.any(0))[0]
+                mask[:, cols[0] + (cols[-1] - cols[0]) // 3 :] = False
+            writer.add("test", FrameImages(image, None, mask.astype(np.uint8)), T, joints)
+    dataset = Dataset.open(root)
+    options = EstimateOptions.preset("gauss-newton", adam_iterations=0, iterations=2, box_margin=0.0, theta_starts=1,
+                                     refinements=0, pose_starts=1)
+    rows = run_scenes(model, dataset, dataset.frames("test"), options, scale=0.0)
+    assert [any(w.startswith("unobserved_joint: slide: ") for w in r["warnings"]) for r in rows] == [False, True]
+    slide = summarise(model, rows)["joints"]["slide"]
+    assert slide["unobserved"] == 1
+    assert slide["observed_mean"] == pytest.approx(rows[0]["metrics"]["joint_error/slide"])
+    assert slide["mean"] == pytest.approx(np.mean([r["metrics"]["joint_error/slide"] for r in rows]))
+    seen = 1000 * slide["observed_mean"]
+    assert f"(1 flagged unobserved; the others {seen:.2f} ± 0.00 mm)" in _fmt_joints({"slide": slide})
+    row = {"joints": {"slide": slide}}
+    assert f"slide {1000 * slide['mean']:.1f} ± " in shift._joints(row) and f"the others {seen:.1f} ± 0.0 mm)" in shift._joints(row)

@@ -318,5 +318,8 @@ def test_benchmarks_cover_an_object_with_two_joints(tiny_dataset, tmp_path):
         assert all(np.isfinite(j["mean"]) for j in r["joints"].values()) and r["seconds_mean"] > 0
     text = (tmp_path / "est" / "estimate.md").read_text()
     slide_mm = 1000 * rows[0]["joints"]["slide"]["mean"]
-    assert f"slide: {slide_mm:.2f} ± " in text and " mm<br>lever: " in text and " deg |" in text
+    assert f"slide: {slide_mm:.2f} ± " in text and "<br>lever: " in text and " deg" in text
+    for name, after in (("slide", " mm<br>lever: "), ("lever", " deg |")):  # a tiny model may flag a joint unobserved
+        joint = rows[0]["joints"][name]
+        assert (f" ({joint['unobserved']} flagged unobserved" if joint.get("unobserved") else after) in text
     assert out["auto"]["slider"]["mode"] == choose_mode(model)[0]
