@@ -37,7 +37,7 @@ from narf_benchmarks.checkpoint import SceneLog, remove_logs, scene_log
 from narf_benchmarks.load import describe_machine, machine
 from narf_core.bundle import NarfModel, load_bundle
 from narf_core.data.dataset import Dataset, Frame
-from narf_core.estimate import PRESETS, EstimateOptions, EstimateResult, chi2_quantile, refine
+from narf_core.estimate import PRESETS, UNOBSERVED_CODE, EstimateOptions, EstimateResult, chi2_quantile, refine
 from narf_core.geometry import so3_exp, transform_points
 from narf_core.metrics import add
 from narf_core.modes import choose_mode
@@ -236,7 +236,7 @@ def summarise(model: NarfModel, rows: list[dict]) -> dict:
             errors = np.degrees(errors)
         out["joints"][joint.name] = {"unit": unit, "mean": float(errors.mean()), "std": float(errors.std())}
         # the scenes whose estimate said the view hardly constrains this joint (narf_core.estimate.unobserved_joints)
-        flagged = np.array([any(w.startswith(f"unobserved_joint: {joint.name}: ") for w in r.get("warnings", []))
+        flagged = np.array([any(w.startswith(f"{UNOBSERVED_CODE}: {joint.name}: ") for w in r.get("warnings", []))
                             for r in rows], dtype=bool)
         if flagged.any():
             seen = errors[~flagged]

@@ -561,11 +561,12 @@ class Uncertainty:
 # narf_core/gauss_newton.py), not the view, which hardly sees it (a drawer whose front faces away, a part
 # behind another): its value is a guess within its range (docs/benchmarks.md, session 31).
 UNOBSERVED_SHARE = 0.5
+UNOBSERVED_CODE = "unobserved_joint"  # the warning's code: "unobserved_joint: <joint>: <why>"
 
 
 def unobserved_joints(model: NarfModel, uncertainty: Uncertainty | None) -> list[str]:
-    """One warning ``"unobserved_joint: <joint>: ..."`` for each joint of ``model`` whose σ in
-    ``uncertainty`` is at least :data:`UNOBSERVED_SHARE` of its half range; none without an uncertainty."""
+    """One warning ``"unobserved_joint: <joint>: ..."`` (:data:`UNOBSERVED_CODE`) for each joint of ``model``
+    whose σ in ``uncertainty`` is at least :data:`UNOBSERVED_SHARE` of its half range; none without one."""
     if uncertainty is None:
         return []
     out = []
@@ -574,7 +575,7 @@ def unobserved_joints(model: NarfModel, uncertainty: Uncertainty | None) -> list
         sigma, half = uncertainty.joint_sigma[joint.name], (hi - lo) / 2
         if half > 0 and sigma >= UNOBSERVED_SHARE * half:
             scale, unit = (1000.0, "mm") if joint.type == "prismatic" else (180.0 / math.pi, "deg")
-            out.append(f"unobserved_joint: {joint.name}: the view hardly constrains it (σ {sigma * scale:.1f} {unit} "
+            out.append(f"{UNOBSERVED_CODE}: {joint.name}: the view hardly constrains it (σ {sigma * scale:.1f} {unit} "
                        f"over a range of {2 * half * scale:.1f} {unit}); its value is a guess within that range")
     return out
 
