@@ -49,14 +49,14 @@ class SceneLog:
     """The finished rows of one block of scenes, keyed by frame id, kept in ``path`` (JSON lines).
 
     ``key`` (JSON-able) identifies the block; a file under another key, or one that cannot be read,
-    is started again. ``enabled=False`` (a model without a checksum) keeps nothing."""
+    is started again."""
 
-    def __init__(self, path: Path, key: Mapping[str, Any], enabled: bool = True) -> None:
-        self.path, self.enabled = Path(path), enabled
+    def __init__(self, path: Path, key: Mapping[str, Any]) -> None:
+        self.path = Path(path)
         self.key = json.loads(json.dumps(dict(key), sort_keys=True, default=str))
-        self.rows: dict[int, dict] = self._read() if enabled else {}
+        self.rows: dict[int, dict] = self._read()
         self.resumed = len(self.rows)
-        if enabled and not self.rows:
+        if not self.rows:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self.path.write_text(json.dumps({"key": self.key}) + "\n")
 
@@ -85,10 +85,9 @@ class SceneLog:
         text = json.dumps(row)
         row = json.loads(text)
         self.rows[int(row["frame"])] = row
-        if self.enabled:
-            with self.path.open("a") as f:
-                f.write(text + "\n")
-                f.flush()
+        with self.path.open("a") as f:
+            f.write(text + "\n")
+            f.flush()
         return row
 
     def note(self, total: int) -> None:
@@ -98,12 +97,15 @@ class SceneLog:
                   f"{self.path}", file=sys.stderr)
 
 
-def scene_log(out_dir: Path, tool: str, block: str, key: Mapping[str, Any], model: Any) -> SceneLog:
+def scene_log(out_dir: Path, tool: str, block: str, key: Mapping[str, Any], model: Any) -> SceneLog | None:
     """The log of ``block`` (a file name: split, condition, preset, ...) of ``tool`` under
-    ``out_dir/scenes``; its key adds the model's and the code's digests to ``key``."""
+    ``out_dir/scenes``; its key adds the model's and the code's digests to ``key``. ``None`` for a model
+    without a checksum (never saved: a later run could not tell it from a retrained one)."""
     digest = model_digest(model)
+    if digest is None:
+        return None
     full = {**key, "tool": tool, "model": digest, "code": code_digest()}
-    return SceneLog(Path(out_dir) / FOLDER / tool / f"{block}.jsonl", full, enabled=digest is not None)
+    return SceneLog(Path(out_dir) / FOLDER / tool / f"{block}.jsonl", full)
 
 
 def remove_logs(out_dir: Path) -> None:

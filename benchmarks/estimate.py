@@ -189,9 +189,10 @@ def run_scenes(
 def scenes_log(
     out_dir: Path, tool: str, block: str, model: NarfModel, dataset: Dataset, frames: Sequence[Frame],
     options: EstimateOptions, *, scale: float = 1.0, perturbation: tuple[float, float] = (10.0, 0.02), seed: int = 0,
-) -> SceneLog:
+) -> SceneLog | None:
     """The :class:`~narf_benchmarks.checkpoint.SceneLog` of one block of :func:`run_scenes` under ``out_dir``,
-    keyed by everything its rows depend on: the options, the starts, the frames and the data they are read from."""
+    keyed by everything its rows depend on: the options, the starts, the frames and the data they are read from
+    (``None`` for a model never saved: :func:`~narf_benchmarks.checkpoint.scene_log`)."""
     generator = hashlib.sha256(json.dumps(dataset.generator, sort_keys=True, default=str).encode()).hexdigest()
     key = {"options": asdict(options), "scale": scale, "perturbation": list(perturbation), "seed": seed,
            "frames": [f.id for f in frames], "view": type(dataset).__name__,

@@ -102,9 +102,9 @@ def test_a_log_cut_short_keeps_its_whole_lines_and_another_key_starts_again(tmp_
     assert json.loads(path.read_text().splitlines()[0]) == {"key": {"options": {"iterations": 3}}}
 
 
-def test_a_model_never_saved_is_not_logged(model, tmp_path):
+def test_a_model_never_saved_is_not_logged(model, saved, tmp_path):
     """Without the bundle's checksum a later process could not tell the model from a retrained one."""
+    assert scene_log(tmp_path, "toy", "test-narf-paper", {"seed": 0}, saved) is not None
     model.metadata = {k: v for k, v in (model.metadata or {}).items() if k != "checksum"}
-    log = scene_log(tmp_path, "toy", "test-narf-paper", {"seed": 0}, model)
-    log.add({"frame": 1, "add": 0.01})
-    assert not (tmp_path / FOLDER).exists() and log.get(1) == {"frame": 1, "add": 0.01}
+    assert scene_log(tmp_path / "unsaved", "toy", "test-narf-paper", {"seed": 0}, model) is None
+    assert not (tmp_path / "unsaved").exists()
