@@ -56,9 +56,9 @@ class SceneLog:
         self.key = json.loads(json.dumps(dict(key), sort_keys=True, default=str))
         self.rows: dict[int, dict] = self._read()
         self.resumed = len(self.rows)
-        if not self.rows:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            self.path.write_text(json.dumps({"key": self.key}) + "\n")
+        # written again whole: the key, and only the rows read back (not a line the stop cut short)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.path.write_text("".join(json.dumps(x) + "\n" for x in ({"key": self.key}, *self.rows.values())))
 
     def _read(self) -> dict[int, dict]:
         try:

@@ -97,6 +97,8 @@ def test_a_log_cut_short_keeps_its_whole_lines_and_another_key_starts_again(tmp_
     path.write_text(path.read_text()[:-8])  # stopped while writing the last row
     again = SceneLog(path, {"options": {"iterations": 2}})
     assert again.resumed == 1 and again.get(4) == {"frame": 4, "add": 0.01, "along_run": []} and again.get(7) is None
+    again.add({"frame": 7, "add": 0.03})  # refined again after the stop, appended after whole lines only
+    assert {f: r["add"] for f, r in SceneLog(path, {"options": {"iterations": 2}}).rows.items()} == {4: 0.01, 7: 0.03}
     other = SceneLog(path, {"options": {"iterations": 3}})
     assert other.resumed == 0 and other.get(4) is None
     assert json.loads(path.read_text().splitlines()[0]) == {"key": {"options": {"iterations": 3}}}
