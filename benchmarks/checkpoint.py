@@ -91,9 +91,10 @@ class SceneLog:
         return row
 
     def note(self, total: int) -> None:
-        """One line on stderr where rows were read back, so a resumed run says so."""
+        """One line on stderr where rows were read back, so a resumed run says so (the key holds the block's
+        frames, so they are some of its ``total``)."""
         if self.resumed:
-            print(f"narf bench: resuming {self.path.name}: {min(self.resumed, total)} of {total} scenes from "
+            print(f"narf bench: resuming {self.path.name}: {self.resumed} of {total} scenes from "
                   f"{self.path}", file=sys.stderr)
 
 
