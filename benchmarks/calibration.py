@@ -4,20 +4,23 @@ on scenes the benchmarks do not use, and print the NEES coverage they give there
     python -m narf_benchmarks.calibration --work runs/calibration [--write-bundle models/clamp.narf]
 
 Data: ``narf bench estimate``'s protocol (10 deg / 2 cm perturbation, θ at mid-range) on a 160x120
-dataset of seed 1 (its ``test`` and ``novel`` splits, every preset), and ``narf bench track``'s
-tracker on a 60-frame sequence of seed 1; the benchmarks use seed 0. Per scene or frame it keeps
-the true local error ``e`` (:func:`~narf_core.estimate.local_error`), the statistical covariance at
-the estimate (no model error), the mean squared colour residual ``v`` and the pixel footprint at
-the object. The model error's σ is ``pixels · footprint · v / reference_variance`` (``exponent``
-1), ``reference_variance`` the median ``v`` of the ``shape`` class, and ``pixels`` per class of
-:func:`~narf_core.estimate._error_class` the smallest whose 95 % regions hold 95 % of the class's
-errors. ``--write-bundle`` stores the result in a bundle's ``metadata["uncertainty"]``.
+dataset of seed 1 (its ``test`` and ``novel`` splits, every preset with the depth image and
+without), and ``narf bench track``'s tracker on a 60-frame sequence of seed 1; the benchmarks use
+seed 0. Per scene or frame it keeps the true local error ``e`` (:func:`~narf_core.estimate.local_error`),
+the statistical covariance at the estimate (no model error), the mean squared colour residual ``v``,
+the pixel footprint at the object and the line of sight to it. The model error's σ is
+``pixels · footprint · v / reference_variance`` (``exponent`` 1; without depth longer along the line
+of sight: :func:`~narf_core.estimate.model_error_covariance`), ``reference_variance`` the median
+``v`` of the ``shape`` class, and ``pixels`` per class of :func:`~narf_core.estimate._error_class`
+the smallest whose 95 % regions hold 95 % of the class's errors. ``--inputs rgb`` (or ``rgbd``)
+fits only the classes without depth (with it). ``--write-bundle`` stores the result in a bundle's
+``metadata["uncertainty"]``.
 
     python -m narf_benchmarks.calibration --model M.narf --data DATASET [--write-bundle M.narf]
 
 fits them on a labelled dataset of the model's own object instead (its ``test`` and ``novel`` splits, held
 out from training): the way to a calibrated Σ for an object of your own (the defaults were fitted on
-the clamp).
+the clamp, those without depth on the clamp and lineman-a pooled).
 
     python -m narf_benchmarks.calibration --tracker --model M.narf --tool TOOL [--write-bundle M.narf]
 
@@ -68,13 +71,16 @@ def statistics(
     stat = covariance(Problem(model, options, param.radius, uses_depth), obs, camera, param, T,
                       model.kinematics.joint_vector(joints), centre, options.uncertainty_rays,
                       options.uncertainty_patch, torch.Generator().manual_seed(options.seed + 1))
+    sight = E.line_of_sight(model, T)
     return {"sigma": stat.sigma.numpy(), "colour_variance": stat.colour_variance,
             "pixel_m": E.model_footprint(camera, T, centre, obs.shape), "radius": param.radius,
+            "line_of_sight": sight[0].numpy(), "stretch": sight[1],
             "joint_speeds": E._joint_speeds(model, param.radius).numpy(), "class": E._error_class(options, uses_depth)}
 
 
-def scene_rows(model: NarfModel, dataset: Dataset, scenes: int) -> list[dict]:
-    """Every preset on ``scenes`` frames of each of the dataset's ``test`` and ``novel`` splits."""
+def scene_rows(model: NarfModel, dataset: Dataset, scenes: int, inputs: tuple[str, ...] = ("rgbd", "rgb")) -> list[dict]:
+    """Every preset on ``scenes`` frames of each of the dataset's ``test`` and ``novel`` splits, with the
+    depth image (``rgbd`` in ``inputs``; a preset without a depth term only without) and without (``rgb``)."""
     from narf_benchmarks.estimate import _preset_options, perturb_pose, pick_frames
 
     aabb = model.aabb.double()
@@ -84,13 +90,17 @@ def scene_rows(model: NarfModel, dataset: Dataset, scenes: int) -> list[dict]:
         for frame in pick_frames(dataset, split, scenes, 0):
             images = dataset.load(frame)
             mask = images.labels > 0
-            for preset in E.PRESETS:
+            for preset, given in ((p, g) for g in inputs for p in E.PRESETS):
+                depth = images.depth if given == "rgbd" else None
                 options = _preset_options(preset, 150, uncertainty=False)
+                if given == "rgbd" and options.depth_weight == 0:
+                    continue  # an estimate without depth whatever it is given: its row is an "rgb" one
                 T_init = perturb_pose(frame.T_cam_obj, centre, 10.0, 0.02, np.random.default_rng([0, frame.id]))
-                result = E.refine(model, images.rgb, mask, dataset.camera, T_init, depth=images.depth, options=options)
-                rows.append({"preset": preset, "split": split, "frame": frame.id,
+                result = E.refine(model, images.rgb, mask, dataset.camera, T_init, depth=depth, options=options)
+                rows.append({"preset": preset if given == "rgbd" else f"{preset} (rgb)", "split": split,
+                             "frame": frame.id,
                              "e": E.local_error(result.T_cam_obj, result.joints, frame.T_cam_obj, frame.joints, model),
-                             **statistics(model, images.rgb, mask, images.depth, dataset.camera, result.T_cam_obj,
+                             **statistics(model, images.rgb, mask, depth, dataset.camera, result.T_cam_obj,
                                           result.joints, options)})
     return rows
 
@@ -124,18 +134,27 @@ def model_sigma(row: dict, calibration: dict) -> np.ndarray:
                                torch.as_tensor(row["joint_speeds"])).numpy()
 
 
+def model_covariance(row: dict, calibration: dict) -> np.ndarray:
+    """The model error's covariance ``[6+k, 6+k]`` of one row under ``calibration``: the refiner's own
+    (:func:`~narf_core.estimate.model_error_covariance`)."""
+    return E.model_error_covariance(torch.as_tensor(model_sigma(row, calibration)), row["class"],
+                                    (torch.as_tensor(row["line_of_sight"]), row["stretch"])).numpy()
+
+
 def inside(row: dict, calibration: dict) -> bool:
     """Whether the row's true error lies inside the 95 % region of its calibrated covariance."""
-    S = row["sigma"] + np.diag(model_sigma(row, calibration) ** 2)
+    S = row["sigma"] + model_covariance(row, calibration)
     e = np.asarray(row["e"])
     return float(e @ np.linalg.pinv(S, hermitian=True) @ e) <= E.chi2_quantile(COVERAGE, len(e))
 
 
-def fit(rows: list[dict]) -> dict:
-    """``MODEL_ERROR``'s constants from ``rows`` (see the module docstring)."""
-    reference = float(np.median([r["colour_variance"] for r in rows if r["class"] == "shape"]))
+def fit(rows: list[dict], kinds: tuple[str, ...] | None = None) -> dict:
+    """``MODEL_ERROR``'s constants from ``rows`` (see the module docstring), only the ``pixels`` of the
+    classes ``kinds`` where given (the others and the reference as in ``MODEL_ERROR``)."""
+    shape = [r["colour_variance"] for r in rows if r["class"] == "shape"]
+    reference = float(np.median(shape)) if shape and kinds is None else E.MODEL_ERROR["reference_variance"]
     calibration = {"reference_variance": reference, "exponent": 1.0, "pixels": dict(E.MODEL_ERROR["pixels"])}
-    for kind in calibration["pixels"]:
+    for kind in kinds or tuple(calibration["pixels"]):
         group = [r for r in rows if r["class"] == kind]
         for pixels in PIXELS_GRID if group else ():
             calibration["pixels"][kind] = float(pixels)  # the grid's largest where none holds the share
@@ -222,6 +241,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenes", type=int, default=17, help="per split")
     parser.add_argument("--frames", type=int, default=60)
     parser.add_argument("--seed", type=int, default=1, help="of the data (the benchmarks use 0)")
+    parser.add_argument("--inputs", nargs="+", choices=("rgbd", "rgb"), default=["rgbd", "rgb"],
+                        help="the estimates fitted: with the depth image, without; only the classes these "
+                             "reach are fitted (the others and the reference stay MODEL_ERROR's)")
     parser.add_argument("--write-bundle", type=Path, help="store the constants in this bundle's metadata")
     parser.add_argument("--tracker", action="store_true",
                         help="fit only the tracker's factors on σ, on smooth sequences of --track-seeds")
@@ -238,17 +260,18 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.data is not None:
         try:
-            rows = scene_rows(model, Dataset.open(args.data), args.scenes)
+            rows = scene_rows(model, Dataset.open(args.data), args.scenes, tuple(args.inputs))
         except (OSError, ValueError) as e:
             parser.error(f"--data {args.data}: {e}")
     else:
         root = args.work / f"{args.tool}-160x120-seed{args.seed}"
         if not (root / "scene.json").exists():
             synthesize(args.tool, root, size=(160, 120), views=24, seed=args.seed)
-        rows = scene_rows(model, Dataset.open(root), args.scenes)
-        rows += track_rows(model, Dataset.open(sequence(args.work, args.tool, (160, 120), args.frames, False,
-                                                        seed=args.seed)))
-    calibration = fit(rows)
+        rows = scene_rows(model, Dataset.open(root), args.scenes, tuple(args.inputs))
+        if "rgbd" in args.inputs:
+            rows += track_rows(model, Dataset.open(sequence(args.work, args.tool, (160, 120), args.frames, False,
+                                                            seed=args.seed)))
+    calibration = fit(rows, None if len(args.inputs) == 2 else tuple(sorted({r["class"] for r in rows})))
     print(json.dumps({"calibration": calibration, "coverage_95_on_fit_data": coverage(rows, calibration),
                       "rows": len(rows)}, indent=1))
     if args.write_bundle:

@@ -1700,9 +1700,9 @@ def _uncertainty(
     floor = torch.cat([
         torch.full((3,), opts.sigma_floor_position), torch.full((3,), opts.sigma_floor_rotation), opts.sigma_floor_joint * span
     ]).double()
-    sd = model_error(model, _error_class(opts, uses_depth), pixel, param.radius,
-                     stat.colour_variance, opts.uncertainty_usual_residual)
-    Sigma = stat.sigma + torch.diag(sd**2 + floor**2)
+    kind = _error_class(opts, uses_depth)
+    sd = model_error(model, kind, pixel, param.radius, stat.colour_variance, opts.uncertainty_usual_residual)
+    Sigma = stat.sigma + model_error_covariance(sd, kind, line_of_sight(model, T)) + torch.diag(floor**2)
     return Uncertainty.from_covariance(Sigma.numpy().copy(), [j.name for j in model.joints], stat.variance, stat.dof)
 
 
@@ -1712,23 +1712,28 @@ def _uncertainty(
 # with ``v`` the estimate's mean squared colour residual: an estimate that explains the image worse
 # than the model usually does is less trustworthy. ``pixels`` depends on the loss and the solver
 # (:func:`_error_class`), which set how often the refiner ends in a wrong basin: a colour-only loss
-# hardly sees the distance or a jaw it does not overlap. A bundle may carry its own in
-# ``metadata["uncertainty"]``. These were fitted on the bundled clamp (160x120 synthetic views and a
-# 60-frame sequence of seed 1, none of the benchmarks' scenes; benchmarks/calibration.py repeats the
-# fit and can store it in a bundle): per class the smallest ``pixels`` whose 95 % regions hold 95 %
-# of the errors; ``narf bench estimate`` and ``narf bench track`` report the coverage on their scenes.
+# hardly sees the distance or a jaw it does not overlap; without depth the distance is the least
+# certain (model_error_covariance). A bundle may carry its own in ``metadata["uncertainty"]``. The
+# classes with depth were fitted on the bundled clamp (160x120 synthetic views and a 60-frame sequence
+# of seed 1, none of the benchmarks' scenes), the two without on the clamp's and lineman-a's seed-1
+# views pooled, given no depth (benchmarks/calibration.py repeats the fit and can store it in a
+# bundle): per class the smallest ``pixels`` whose 95 % regions hold 95 % of the errors; ``narf bench
+# estimate`` and ``narf bench track`` report the coverage on their scenes.
 MODEL_ERROR = {
-    "pixels": {"colour": 1.4, "shape": 0.57, "shape-gauss-newton": 0.94},
+    "pixels": {"colour": 1.27, "silhouette": 1.24, "shape": 0.57, "shape-gauss-newton": 0.94},
     "reference_variance": 0.0065,
     "exponent": 1.0,
 }
+# The classes without a depth term, whose position error along the line of sight is the error of the
+# object's scale in the image: see model_error_covariance.
+LINE_OF_SIGHT_CLASSES = ("colour", "silhouette")
 
 
 def _error_class(opts: EstimateOptions, uses_depth: bool) -> str:
-    """The key of :data:`MODEL_ERROR`'s ``pixels``: ``colour`` without silhouette and depth terms, else
-    ``shape`` (Adam) or ``shape-gauss-newton``."""
-    if opts.silhouette_weight == 0 and not uses_depth:
-        return "colour"
+    """The key of :data:`MODEL_ERROR`'s ``pixels``: without depth ``colour`` (no silhouette term) or
+    ``silhouette``; with depth ``shape`` (Adam) or ``shape-gauss-newton``."""
+    if not uses_depth:
+        return "colour" if opts.silhouette_weight == 0 else "silhouette"
     return "shape-gauss-newton" if opts.solver == "gauss-newton" else "shape"
 
 
@@ -1782,6 +1787,32 @@ def model_error_sigma(calibration: Mapping, kind: str, pixel_m: float, radius: f
     position = calibration["pixels"][kind] * pixel_m * fit
     joints = position / joint_speeds.to(torch.float64)
     return torch.cat([torch.tensor([position] * 3 + [position / radius] * 3, dtype=torch.float64), joints])
+
+
+def model_error_covariance(sd: Tensor, kind: str, sight: tuple[Tensor, float]) -> Tensor:
+    """The model error's covariance ``[6+k, 6+k]`` from its σ ``sd [6 + k]`` (:func:`model_error`):
+    ``diag(sd²)``, and for a class without depth (:data:`LINE_OF_SIGHT_CLASSES`) the position's σ along
+    the line of sight ``sight = (u [3], stretch)`` (:func:`line_of_sight`) ``stretch`` times the σ
+    across it. Without depth the distance is read from the object's size in the image: an outline
+    ``p`` footprints off moves the object ``p`` footprints times its distance over its radius along
+    the line of sight."""
+    cov = torch.diag(sd.to(torch.float64) ** 2)
+    if kind in LINE_OF_SIGHT_CLASSES:
+        u, stretch = sight
+        u = u.to(torch.float64)
+        cov[:3, :3] += float(sd[0]) ** 2 * (stretch**2 - 1.0) * torch.outer(u, u)
+    return cov
+
+
+def line_of_sight(model: NarfModel, T: Tensor) -> tuple[Tensor, float]:
+    """The unit vector ``[3]`` (camera frame) to the object's box centre under ``T [4,4]`` and the factor
+    ``d / radius`` (at least 1; ``d`` the centre's distance, ``radius`` half the box's diagonal) by which
+    the model's error along it exceeds the error across it without depth (:func:`model_error_covariance`)."""
+    aabb = model.aabb.detach().to("cpu", torch.float64)
+    T = torch.as_tensor(T).to("cpu", torch.float64)
+    centre_cam = T[:3, :3] @ ((aabb[0] + aabb[1]) / 2) + T[:3, 3]
+    distance = float(torch.linalg.norm(centre_cam))
+    return centre_cam / distance, max(distance / (float((aabb[1] - aabb[0]).norm()) / 2), 1.0)
 
 
 def _joint_speeds(model: NarfModel, radius: float) -> Tensor:

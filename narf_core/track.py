@@ -43,7 +43,8 @@ from torch import Tensor
 
 from narf_core.checks import check_number, check_option_types, check_pose, option_rule
 from narf_core.estimate import (
-    MIN_MASK_PIXELS, SOLVERS, EstimateInputError, EstimateOptions, EstimateResult, Uncertainty, refine,
+    MIN_MASK_PIXELS, SOLVERS, EstimateInputError, EstimateOptions, EstimateResult, Uncertainty, line_of_sight,
+    refine,
 )
 from narf_core.gauss_newton import Problem
 from narf_core.geometry import Pinhole, Rays, so3_exp, so3_log
@@ -69,7 +70,7 @@ _DEPTH_CELL = 0.7  # its cells' side over the mean spacing of the projected poin
 # A warm-started frame's σ over the refiner's (TrackOptions.sigma_scale), per solver, with depth and
 # without, for a model whose bundle carries no factor of its own for that solver: fitted on four tools'
 # seed-1 sequences pooled (Adam without depth: on the clamp's; docs/benchmarks.md).
-SIGMA_SCALE = {"gauss-newton": {"rgbd": 0.4, "rgb": 2.4}, "adam": {"rgbd": 3.0, "rgb": 1.8}}
+SIGMA_SCALE = {"gauss-newton": {"rgbd": 0.4, "rgb": 1.6}, "adam": {"rgbd": 3.0, "rgb": 0.9}}
 # A frame's solver where TrackOptions.solver is "auto": Levenberg-Marquardt on one set of rays, with depth
 # and without (a few iterations reach the bottom that Adam's fixed steps trail behind; without depth its
 # steps along the line of sight follow the silhouette's scale, where Adam's drift: docs/benchmarks.md).
@@ -865,11 +866,21 @@ def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.
     return refine(model, image, mask, camera, T, joints_init=joints, depth=depth, options=step_options)
 
 
-def _too_uncertain(info: dict | None, options: TrackOptions) -> bool:
+def _too_uncertain(info: dict | None, options: TrackOptions, sight: tuple[Tensor, float] | None = None) -> bool:
+    """Whether a frame's σ (``info``: ``Uncertainty.to_dict``) passes the options' limits. ``sight``: a frame
+    without depth, its line of sight and stretch (``estimate.line_of_sight``): along it the position may be
+    the stretch times the limit uncertain, as the model's error is there; across it the limit holds."""
     if info is None:
         return False
-    position = max(info.get("position_sigma_m", [0.0]))
     rotation = math.degrees(max(info.get("rotation_sigma_rad", [0.0])))
+    if sight is None:
+        position = max(info.get("position_sigma_m", [0.0]))
+    else:
+        u, stretch = sight[0].numpy(), sight[1]
+        C = np.asarray(info["covariance"], dtype=np.float64)[:3, :3]
+        across = np.eye(3) - np.outer(u, u)
+        position = max(math.sqrt(max(float(u @ C @ u), 0.0)) / stretch,
+                       math.sqrt(max(float(np.linalg.eigvalsh(across @ C @ across)[-1]), 0.0)))
     return position > options.max_position_sigma_m or rotation > options.max_rotation_sigma_deg
 
 
@@ -950,7 +961,7 @@ def _step(
             status, reason = "tracking", None
             if score < opts.uncertain_overlap:
                 status, reason = "uncertain", f"the estimate explains only {score:.0%} of the mask (occlusion?)"
-            elif _too_uncertain(info, opts):
+            elif _too_uncertain(info, opts, None if depth is not None else line_of_sight(model, result.T_cam_obj)):
                 status, reason = "uncertain", "large covariance"
             velocity, joint_velocity = np.asarray(state.velocity, dtype=np.float64), dict(state.joint_velocity)
             if gap >= _MIN_VELOCITY_GAP_S:  # (not at a track's first frame, where the estimate has no predecessor)

@@ -9,17 +9,19 @@ import pytest
 
 from narf_benchmarks.calibration import COVERAGE, PIXELS_GRID, coverage, fit, main
 from narf_core.bundle import load_bundle
-from narf_core.estimate import chi2_quantile
+from narf_core.estimate import MODEL_ERROR, chi2_quantile
 
 pytest_plugins = ("conftest_model",)
 
 
-def rows(errors_m, kind="shape"):
-    """One 6 + 1 parameter row per position error along x: no statistical σ, a pixel of 1 mm, the
-    same colour residual everywhere (so the fitted reference is it and the residual factor 1)."""
-    return [{"preset": "robust", "class": kind, "sigma": np.zeros((7, 7)), "colour_variance": 0.02,
-             "pixel_m": 0.001, "radius": 0.1, "joint_speeds": np.array([0.05]),
-             "e": np.array([e, 0, 0, 0, 0, 0, 0])} for e in errors_m]
+def rows(errors_m, kind="shape", axis=0, variance=0.02):
+    """One 6 + 1 parameter row per position error along ``axis`` (camera frame; the object 0.5 m down
+    z, its radius 0.1 m): no statistical σ, a pixel of 1 mm, the same colour residual everywhere (so the fitted
+    reference is it and the residual factor 1; ``variance``: that residual)."""
+    return [{"preset": "robust", "class": kind, "sigma": np.zeros((7, 7)), "colour_variance": variance,
+             "pixel_m": 0.001, "radius": 0.1, "joint_speeds": np.array([0.05]), "line_of_sight": np.array([0.0, 0.0, 1.0]),
+             "stretch": 5.0,
+             "e": np.eye(7)[axis] * e} for e in errors_m]
 
 
 def test_fit_finds_the_smallest_factor_that_holds_the_share_also_past_five_pixels(capsys):
@@ -30,6 +32,22 @@ def test_fit_finds_the_smallest_factor_that_holds_the_share_also_past_five_pixel
     assert calibration["reference_variance"] == 0.02
     assert needed <= pixels and pixels == PIXELS_GRID[np.searchsorted(PIXELS_GRID, needed)]
     assert coverage(group, calibration) == {"robust": 0.95}
+    assert capsys.readouterr().err == ""
+
+
+def test_fit_without_depth_counts_the_line_of_sight_as_distance_over_radius_footprints(capsys):
+    """The same errors along the line of sight need a fifth of the factor without depth (the object 0.5 m
+    away, radius 0.1 m: 5 footprints along it per footprint across); only the classes asked are fitted."""
+    needed = 0.019 / 0.001 / np.sqrt(chi2_quantile(COVERAGE, 7))
+    usual = MODEL_ERROR["reference_variance"]  # the reference kept: rows at it have the residual factor 1
+    calibration = fit(rows(np.arange(1, 21) * 0.001, "silhouette", axis=2, variance=usual), kinds=("silhouette",))
+    pixels = calibration["pixels"]["silhouette"]
+    assert needed / 5 <= pixels and pixels == PIXELS_GRID[np.searchsorted(PIXELS_GRID, needed / 5)]
+    assert {k: v for k, v in calibration["pixels"].items() if k != "silhouette"} == {
+        k: v for k, v in MODEL_ERROR["pixels"].items() if k != "silhouette"}
+    assert calibration["reference_variance"] == MODEL_ERROR["reference_variance"]
+    across = fit(rows(np.arange(1, 21) * 0.001, "silhouette", axis=0, variance=usual), kinds=("silhouette",))
+    assert across["pixels"]["silhouette"] == PIXELS_GRID[np.searchsorted(PIXELS_GRID, needed)]  # across: as with depth
     assert capsys.readouterr().err == ""
 
 
@@ -47,9 +65,12 @@ def test_calibration_fits_a_bundle_on_a_labelled_dataset_of_its_own(tiny_bundle,
     shutil.copy(tiny_bundle, bundle)
     assert main(["--model", str(bundle), "--data", str(tiny_dataset), "--scenes", "1", "--write-bundle", str(bundle)]) == 0
     printed = json.loads(capsys.readouterr().out)
-    assert printed["rows"] == 2 * 3  # one test and one novel frame, three presets
+    assert printed["rows"] == 2 * 5  # one test and one novel frame; two presets with depth, three without
     own = load_bundle(bundle).metadata["uncertainty"]
-    assert own == printed["calibration"] and set(own["pixels"]) == {"colour", "shape", "shape-gauss-newton"}
+    assert own == printed["calibration"]
+    assert set(own["pixels"]) == {"colour", "silhouette", "shape", "shape-gauss-newton"}
+    assert set(printed["coverage_95_on_fit_data"]) == {"robust", "gauss-newton", "paper (rgb)", "robust (rgb)",
+                                                       "gauss-newton (rgb)"}
     assert all(value == 1.0 for value in printed["coverage_95_on_fit_data"].values())  # one row per class: inside
     with pytest.raises(SystemExit):
         main(["--model", str(bundle), "--data", str(tmp_path / "missing")])

@@ -1056,6 +1056,14 @@ def test_model_error_of_a_revolute_joint_is_the_position_over_how_fast_it_moves_
     row = {"colour_variance": MODEL_ERROR["reference_variance"], "pixel_m": 0.004, "radius": 0.25, "class": "shape",
            "joint_speeds": _joint_speeds(model, 0.25).numpy()}
     assert np.allclose(model_sigma(row, MODEL_ERROR), sd)  # the calibration fits the σ the refiner reports
+    from narf_benchmarks.calibration import model_covariance
+    from narf_core.estimate import model_error_covariance
+
+    u = np.array([0.0, 0.6, 0.8])
+    rgb = {**row, "class": "silhouette", "line_of_sight": u, "stretch": 2.4}
+    assert np.allclose(model_covariance(rgb, MODEL_ERROR), model_error_covariance(
+        model_error(model, "silhouette", 0.004, 0.25, MODEL_ERROR["reference_variance"]), "silhouette",
+        (torch.as_tensor(u), 2.4)).numpy())  # and its covariance, along the line of sight too
     bare = SimpleNamespace(metadata={}, joints=joints, kinematics=chain.kinematics, sample_points={})
     assert np.allclose(model_error(bare, "shape", 0.004, 0.25, MODEL_ERROR["reference_variance"]).numpy()[6:],
                        position / 0.25)

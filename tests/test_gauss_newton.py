@@ -24,6 +24,8 @@ from narf_core.estimate import (
     chi2_quantile,
     local_error,
     model_error,
+    model_error_covariance,
+    line_of_sight,
     nees,
     _error_class,
     refine,
@@ -317,9 +319,32 @@ def test_model_error_scales_with_the_pixel_and_the_fit(model):
                        model_error(calibrated, "colour", 0.004, 0.1, reference).numpy())
     assert not model_error(model, "shape", 0.004, 0.1, reference).any()  # the exact toy's bundle: none
     assert _error_class(EstimateOptions.preset("paper"), uses_depth=False) == "colour"
-    assert _error_class(EstimateOptions.preset("robust"), uses_depth=False) == "shape"
+    assert _error_class(EstimateOptions.preset("robust"), uses_depth=False) == "silhouette"
+    assert _error_class(EstimateOptions.preset("gauss-newton"), uses_depth=False) == "silhouette"
     assert _error_class(EstimateOptions.preset("paper", depth_weight=1.0), uses_depth=True) == "shape"
     assert _error_class(EstimateOptions.preset("gauss-newton"), uses_depth=True) == "shape-gauss-newton"
+
+
+def test_model_error_without_depth_is_longer_along_the_line_of_sight():
+    """Without depth the position's model error along the line of sight is the across one times the
+    distance over the radius (an outline's error read as the object's scale), across it unchanged, the
+    rotation and joints as their σ; with depth the covariance is the diagonal of the σ."""
+    box = SimpleNamespace(aabb=torch.tensor([[-0.06, -0.08, 0.0], [0.06, 0.08, 0.0]]))  # radius 0.1 m
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, 3] = torch.tensor([0.3, 0.0, 0.4])  # 0.5 m away
+    u, stretch = line_of_sight(box, T)
+    assert torch.allclose(u, torch.tensor([0.6, 0.0, 0.8], dtype=torch.float64)) and stretch == pytest.approx(5.0)
+    sd = torch.tensor([0.002, 0.002, 0.002, 0.02, 0.02, 0.02, 0.003], dtype=torch.float64)
+    across = torch.tensor([0.8, 0.0, -0.6], dtype=torch.float64)
+    for kind in ("silhouette", "colour"):
+        cov = model_error_covariance(sd, kind, (u, stretch))
+        assert float(u @ cov[:3, :3] @ u) == pytest.approx((0.002 * 5) ** 2)
+        assert float(across @ cov[:3, :3] @ across) == pytest.approx(0.002**2)
+        assert torch.allclose(cov[3:, 3:], torch.diag(sd[3:] ** 2)) and not cov[:3, 3:].any()
+    for kind in ("shape", "shape-gauss-newton"):
+        assert torch.allclose(model_error_covariance(sd, kind, (u, stretch)), torch.diag(sd**2))
+    T[:3, 3] = torch.tensor([0.0, 0.0, 0.05])
+    assert line_of_sight(box, T)[1] == 1.0  # nearer than its radius: never shorter along than across
 
 
 # --------------------------------------------------------------------------------------------

@@ -467,7 +467,8 @@ def test_depth_frame_sigma_is_in_pixel_footprints_below_the_usual_residual(clamp
                 expected = sigma_scale(clamp, options, True) * float(model_error(clamp, kind, pixel, 1.0, 0.0, usual=1.0)[0])
                 assert expected <= sigmas[False, 1.0].min() and sigmas[False, 1.0].max() <= 1.3 * expected
     assert sigmas[False, 0.5].min() >= 0.95 * sigmas[False, 1.0].min()
-    assert sigmas[True, 0.5].min() > 1.5 * sigmas[True, 1.0].max()  # RGB only: the colour residual scales σ
+    assert (sigmas[True, 0.5] > 1.5 * sigmas[True, 1.0]).all()  # RGB only: the colour residual scales σ
+    assert sigmas[True, 1.0][2] > 1.5 * sigmas[True, 1.0][:2].max()  # and the distance is the least certain
 
 
 def test_a_frame_whose_sigma_passes_the_limits_gets_a_second_round(clamp, clamp_sequence: Path) -> None:
@@ -1147,3 +1148,29 @@ def test_a_gpu_frame_takes_more_rays_unless_the_options_name_them() -> None:
     assert adam.step_options(True, "cuda").rays_per_iteration == BUDGETS["adam"][1]  # not measured: as on the CPU
     named = TrackOptions(solver="gauss-newton", rays_per_iteration=512)
     assert named.step_options(True, "cuda").rays_per_iteration == 512
+
+
+def test_without_depth_the_limit_along_the_line_of_sight_is_the_model_errors_stretch() -> None:
+    """A frame without depth may be the stretch (distance over radius) times ``max_position_sigma_m``
+    uncertain along its line of sight, as its model error is; across it, and with depth on any camera
+    axis, the limit itself holds."""
+    import torch
+
+    from narf_core.track import TrackOptions, _too_uncertain
+
+    options = TrackOptions(max_position_sigma_m=0.02)
+    u = np.array([0.0, 0.6, 0.8])
+    across = np.array([1.0, 0.0, 0.0])
+
+    def info(along_m: float, across_m: float) -> dict:
+        cov = np.zeros((7, 7))
+        cov[:3, :3] = along_m**2 * np.outer(u, u) + across_m**2 * np.outer(across, across)
+        return {"covariance": cov.tolist(), "position_sigma_m": np.sqrt(np.diag(cov)[:3]).tolist(),
+                "rotation_sigma_rad": [0.01] * 3}
+
+    sight = (torch.tensor(u), 5.0)
+    assert not _too_uncertain(info(0.09, 0.01), options, sight)  # 9 cm along: under 5 x 2 cm
+    assert _too_uncertain(info(0.11, 0.01), options, sight)
+    assert _too_uncertain(info(0.01, 0.03), options, sight)  # across: the limit itself
+    assert _too_uncertain(info(0.09, 0.01), options)  # with depth: 5.4 cm on the z axis
+    assert not _too_uncertain(info(0.015, 0.015), options)
