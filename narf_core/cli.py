@@ -828,6 +828,8 @@ def _run_track(args: argparse.Namespace) -> int:
             print(f"{frame.id:5d} {result.time:7.3f}s {result.status:13s} ADD {row['add_m'] * 100:6.2f} cm  "
                   + " ".join(f"{j.name}={result.joints[j.name]:.4f}" for j in model.joints)
                   + f"  {result.seconds * 1000:6.1f} ms" + (f"  ({result.reason})" if result.reason else ""), flush=True)
+            for warning in result.warnings:
+                print(f"      warning: {warning}", flush=True)
         if args.video is not None:
             pictures.append(overlay(model, dataset.camera, dataset.load(frame).rgb, result))
     seconds = time.perf_counter() - start

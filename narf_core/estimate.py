@@ -564,15 +564,16 @@ UNOBSERVED_SHARE = 0.5
 UNOBSERVED_CODE = "unobserved_joint"  # the warning's code: "unobserved_joint: <joint>: <why>"
 
 
-def unobserved_joints(model: NarfModel, uncertainty: Uncertainty | None) -> list[str]:
+def unobserved_joints(model: NarfModel, joint_sigma: Mapping[str, float] | None) -> list[str]:
     """One warning ``"unobserved_joint: <joint>: ..."`` (:data:`UNOBSERVED_CODE`) for each joint of ``model``
-    whose σ in ``uncertainty`` is at least :data:`UNOBSERVED_SHARE` of its half range; none without one."""
-    if uncertainty is None:
+    whose σ (``joint_sigma``: :attr:`Uncertainty.joint_sigma`) is at least :data:`UNOBSERVED_SHARE` of its
+    half range; none without an uncertainty."""
+    if joint_sigma is None:
         return []
     out = []
     lower, upper = model.kinematics.lower.tolist(), model.kinematics.upper.tolist()
     for joint, lo, hi in zip(model.joints, lower, upper, strict=True):
-        sigma, half = uncertainty.joint_sigma[joint.name], (hi - lo) / 2
+        sigma, half = joint_sigma[joint.name], (hi - lo) / 2
         if half > 0 and sigma >= UNOBSERVED_SHARE * half:
             scale, unit = (1000.0, "mm") if joint.type == "prismatic" else (180.0 / math.pi, "deg")
             out.append(f"{UNOBSERVED_CODE}: {joint.name}: the view hardly constrains it (σ {sigma * scale:.1f} {unit} "
@@ -1508,7 +1509,7 @@ def refine(
             metrics=metrics,
             history=[] if run is None else run.history,
             uncertainty=uncertainty,
-            warnings=warnings + unobserved_joints(model, uncertainty),
+            warnings=warnings + unobserved_joints(model, None if uncertainty is None else uncertainty.joint_sigma),
             mode=mode,
             mode_reason=mode_reason,
         )

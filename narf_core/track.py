@@ -43,13 +43,13 @@ from torch import Tensor
 
 from narf_core.checks import check_number, check_option_types, check_pose, option_rule
 from narf_core.estimate import (
-    MIN_MASK_PIXELS, SOLVERS, EstimateInputError, EstimateOptions, EstimateResult, Uncertainty, line_of_sight,
-    refine,
+    MIN_MASK_PIXELS, SOLVERS, UNOBSERVED_CODE, EstimateInputError, EstimateOptions, EstimateResult, Uncertainty,
+    line_of_sight, refine, unobserved_joints,
 )
 from narf_core.gauss_newton import Problem
 from narf_core.geometry import Pinhole, Rays, so3_exp, so3_log
 from narf_core.modes import MODES, choose_mode
-from narf_core.observation import dilate
+from narf_core.observation import check_observation, dilate, usable_depth
 from narf_core.sampling import Samples
 
 if TYPE_CHECKING:
@@ -333,7 +333,8 @@ class TrackResult:
     """One frame's answer: its ``time``, ``status``, the estimate (for ``lost``: the last one that
     stood), the uncertainty (``position_sigma_m``, ``rotation_sigma_rad``, ``joint_sigma``) where
     known, ``overlap`` (None when not measured), the refiner's ``loss`` and ``iterations``, the
-    wall-clock ``seconds`` and, for ``lost``/``reinitialised``/``uncertain``, a ``reason``."""
+    wall-clock ``seconds``, for ``lost``/``reinitialised``/``uncertain`` a ``reason``, and the estimate's
+    ``warnings`` (``"<code>: <message>"``: the input checks' doubts, ``unobserved_joint``)."""
 
     time: float
     status: str
@@ -348,13 +349,14 @@ class TrackResult:
     covariance: np.ndarray | None = None
     mode: str | None = None  # the render mode the refiner used (``options.mode``, ``auto`` resolved) and why
     mode_reason: str | None = None
+    warnings: list[str] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {
             "time": self.time, "status": self.status, "T_cam_obj": np.asarray(self.T_cam_obj).tolist(),
             "joints": dict(self.joints), "overlap": self.overlap, "loss": self.loss, "iterations": self.iterations,
             "seconds": self.seconds, "reason": self.reason, "uncertainty": self.uncertainty,
-            "mode": self.mode, "mode_reason": self.mode_reason,
+            "mode": self.mode, "mode_reason": self.mode_reason, "warnings": list(self.warnings),
         }
 
 
@@ -866,6 +868,15 @@ def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.
     return refine(model, image, mask, camera, T, joints_init=joints, depth=depth, options=step_options)
 
 
+def _warnings(model: NarfModel, result: EstimateResult, checks: list[str]) -> list[str]:
+    """A frame's warnings: the input checks' (``checks``, then any other its estimate found), and
+    ``unobserved_joint`` judged on the refiner's Σ before the tracker's factor (whether the view
+    constrains a joint is the linearisation's to say; a factor below 1 would hide a joint only its
+    prior bounds), whichever refiner ran the frame."""
+    more = [w for w in result.warnings if w not in checks and not w.startswith(f"{UNOBSERVED_CODE}:")]
+    return [*checks, *more, *unobserved_joints(model, None if result.uncertainty is None else result.uncertainty.joint_sigma)]
+
+
 def _too_uncertain(info: dict | None, options: TrackOptions, sight: tuple[Tensor, float] | None = None) -> bool:
     """Whether a frame's σ (``info``: ``Uncertainty.to_dict``) passes the options' limits. ``sight``: a frame
     without depth, its line of sight and stretch (``estimate.line_of_sight``): along it the position may be
@@ -929,17 +940,23 @@ def _step(
                               "frames must come in time order")
     mask = _check_frame(frame, camera)
     depth = None if frame.depth is None else np.asarray(frame.depth, dtype=np.float32)
+    checks: list[str] = []  # the input checks' warnings, once the mask is known
 
     def lost(reason: str, loss: float | None = None, iterations: int = 0, score: float | None = None):
         nxt = TrackState(state.T_cam_obj, dict(state.joints), t, state.anchor_time, np.asarray(state.velocity),
                          dict(state.joint_velocity), state.covariance, "lost", state.lost_frames + 1)
         return TrackResult(t, "lost", state.T_cam_obj.copy(), dict(state.joints), score, loss, iterations,
-                           _time.perf_counter() - start, reason), nxt
+                           _time.perf_counter() - start, reason, warnings=list(checks)), nxt
 
     if mask is None:
         return lost("no mask in this frame")
     if int(mask.sum()) < MIN_MASK_PIXELS:
         return lost("the object is not in view (empty mask)")
+    # A depth in the wrong unit or off the mask is dropped before the prediction is aligned to it or a
+    # re-initialisation starts from it (the refiners would drop it too, after those had used it).
+    checks = check_observation(np.asarray(frame.image), mask, depth, camera,
+                               expected_depth_m=float(np.asarray(state.T_cam_obj)[2, 3]))
+    depth = usable_depth(depth, checks)
     gap = t - state.anchor_time
     iterations = 0
     if state.status != "lost" and gap <= opts.max_gap_s:
@@ -972,7 +989,7 @@ def _step(
                                   for name, value in result.joints.items()}
             nxt = TrackState(result.T_cam_obj, dict(result.joints), t, t, velocity, joint_velocity, cov, status, 0)
             return TrackResult(t, status, result.T_cam_obj, dict(result.joints), score, result.loss, iterations,
-                               _time.perf_counter() - start, reason, info, cov), nxt
+                               _time.perf_counter() - start, reason, info, cov, warnings=_warnings(model, result, checks)), nxt
         why = "the warm start lost the object"
     else:
         why = "the track was lost" if state.lost_frames else "first frame: multi-start initialisation"
@@ -1001,7 +1018,7 @@ def _step(
     info, cov = _uncertainty(result)
     nxt = TrackState(result.T_cam_obj, dict(result.joints), t, t, np.zeros(6), {}, cov, "reinitialised", 0)
     return TrackResult(t, "reinitialised", result.T_cam_obj, dict(result.joints), score, result.loss, iterations,
-                       _time.perf_counter() - start, why, info, cov), nxt
+                       _time.perf_counter() - start, why, info, cov, warnings=_warnings(model, result, checks)), nxt
 
 
 def track(

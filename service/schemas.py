@@ -444,4 +444,9 @@ class TrackResponse(BaseModel):
     seconds: float = Field(description="Tracking time of this frame")
     mode: RenderMode = Field(description=_MODE_OUT)
     mode_reason: str = Field(description=_MODE_REASON)
+    warnings: list[str] = Field(
+        default_factory=list,
+        description="The frame's doubts, each '<code>: <message>': the input's (as /v1/estimate's) and "
+        "'unobserved_joint' where this frame's Σ leaves a joint a guess within its range",
+    )
     state: str = Field(description="Opaque, signed token: send it with the next frame")

@@ -227,5 +227,5 @@ def _track_frame(key: bytes, params: TrackRequest, model: NarfModel, state: Trac
         joints={k: float(v) for k, v in result.joints.items()}, uncertainty=uncertainty,
         overlap=None if result.overlap is None or not math.isfinite(result.overlap) else float(result.overlap),
         iterations=result.iterations, seconds=result.seconds, mode=result.mode, mode_reason=result.mode_reason,
-        state=encode_state(key, params.model, model, nxt),
+        warnings=list(result.warnings), state=encode_state(key, params.model, model, nxt),
     )

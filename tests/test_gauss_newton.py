@@ -146,6 +146,20 @@ def test_unobserved_joint_gets_a_large_finite_sigma(model):
     seen = refine(model, image, full, CAMERA, T, joints_init=joints, options=options)
     assert seen.uncertainty.joint_sigma["slide"] < 0.1 * half
     assert not [w for w in seen.warnings if w.startswith("unobserved_joint")]
+    # A tracked frame says the same, whichever refiner ran it (the frame refiner adds no such warning of its
+    # own), once, after the input checks' warnings; its result and the service's answer carry them.
+    from narf_core.track import TrackResult, _warnings
+    from service.schemas import TrackResponse
+
+    checks = ["clipped: 12% of the mask's pixels are clipped"]
+    assert _warnings(model, replace(hidden, warnings=checks), checks) == checks + [warning]
+    assert _warnings(model, replace(hidden, warnings=checks + [warning]), checks) == checks + [warning]
+    assert _warnings(model, replace(hidden, warnings=[]), checks) == checks + [warning]  # the frame's checks kept
+    assert _warnings(model, replace(seen, warnings=checks), checks) == checks
+    frame = TrackResult(0.0, "tracking", T, joints, 1.0, 0.0, 0, 0.0, warnings=checks + [warning])
+    assert frame.to_dict()["warnings"] == checks + [warning] and TrackResult(0.0, "lost", T, joints, None, None, 0,
+                                                                               0.0).warnings == []
+    assert TrackResponse.model_fields["warnings"].default_factory is list
 
 
 def test_a_non_finite_render_in_the_covariance_pass_gives_no_uncertainty(model, monkeypatch):

@@ -217,6 +217,12 @@ def test_track_faults_over_http(server: str, frames, clamp) -> None:
         blind = TrackFrame(sent[3].time, sent[3].image, sent[3].mask, np.full_like(sent[3].depth, np.nan))
         nan_depth = narf.track_step(blind, K, model="clamp", state=no_depth.state, options=FAST)
         assert nan_depth.status != "lost" and finite(nan_depth)
+        # a depth in millimetres: said in the frame's warnings (and not used), as /v1/estimate says it
+        in_mm = TrackFrame(sent[2].time, sent[2].image, sent[2].mask, sent[2].depth * 1000)
+        millimetres = narf.track_step(in_mm, K, model="clamp", state=second.state, options=FAST)
+        assert millimetres.status != "lost" and finite(millimetres)
+        assert [w for w in millimetres.warnings if w.startswith("depth_unit: ")]
+        assert second.warnings == ()
         # a gap in time (a dropped stretch of the stream): no prediction, the object is found again
         late = TrackFrame(sent[2].time + 5.0, sent[2].image, sent[2].mask, sent[2].depth)
         found = narf.track_step(late, K, model="clamp", state=second.state, options=FAST)

@@ -189,7 +189,7 @@ def parse_track(body: dict[str, Any]) -> TrackUpdate:
         pose=Pose(np.asarray(body["pose"]["matrix"], dtype=np.float64)), joints=dict(body["joints"]),
         uncertainty=Uncertainty.from_json(body.get("uncertainty")), overlap=body.get("overlap"),
         iterations=int(body["iterations"]), seconds=float(body["seconds"]), state=body["state"],
-        mode=body.get("mode"), mode_reason=body.get("mode_reason"),
+        mode=body.get("mode"), mode_reason=body.get("mode_reason"), warnings=tuple(body.get("warnings", ())),
     )
 
 
