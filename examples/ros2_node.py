@@ -220,6 +220,8 @@ def main(args: list[str] | None = None) -> int:
             finally:
                 self.busy.release()
             self.state = update.state
+            for warning in update.warnings:  # e.g. a depth in the wrong unit, a joint the view leaves a guess
+                self.get_logger().warning(warning, throttle_duration_sec=5.0)
             if update.status == "lost":
                 self.get_logger().info(f"lost: {update.reason}")
                 return
