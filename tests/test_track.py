@@ -72,6 +72,26 @@ def test_smooth_sequence_keeps_the_object_in_view(tmp_path: Path) -> None:
     assert all(dataset.load(f).labels.any() for f in dataset.frames())
 
 
+def test_a_large_object_is_framed_as_its_single_views_are(tmp_path: Path) -> None:
+    """The cabinet, whose views have camera distances of their own (it overflows the rig's at 0.4 m), is
+    seen from as much farther in a sequence: whole in every frame, where the tools' 0.55 m cut it off
+    at the border in all of them; the tools and a URDF of one's own keep the path as it is."""
+    pytest.importorskip("pybullet")
+    from narf_core.data.dataset import Dataset
+    from narf_core.data.synth.sequence import SequencePath, framed_path, synthesize_sequence
+
+    path = SequencePath()
+    assert framed_path("clamp", path) is path and framed_path(tmp_path / "own.urdf", path) is path
+    far = framed_path("cabinet", path)
+    assert far.distance == pytest.approx(path.distance * 1.5) and far.distance_sway == pytest.approx(path.distance_sway * 1.5)
+    out = synthesize_sequence("cabinet", tmp_path / "seq", 6, size=(80, 60), events=False, supersample=1)
+    dataset = Dataset.open(out)
+    assert dataset.generator["sequence"]["path"]["distance"] == pytest.approx(far.distance)
+    for frame in dataset.frames():
+        labels = dataset.load(frame).labels > 0
+        assert labels.any() and not (labels[0].any() or labels[-1].any() or labels[:, 0].any() or labels[:, -1].any())
+
+
 def test_datasets_without_times_still_read(tmp_path: Path, clamp_sequence: Path) -> None:
     """scene.json without "time" (every dataset before sequences) reads, with time None; a bad time is named."""
     import shutil

@@ -5,7 +5,8 @@ frame in the ``test`` split with a ``"time"`` in seconds (``1 / fps`` apart). Th
 like a hand-held camera or a robot's head around the object (which stays at the world origin):
 
   - it orbits at a drifting, oscillating azimuth, with elevation, distance and roll swaying
-    slowly and the look-at point wandering over the object;
+    slowly and the look-at point wandering over the object (an object with camera distances of its
+    own, too large for the rig's, is seen from as much farther: :func:`framed_path`);
   - the joints open and close (a sine between the tool's smallest and largest trained values);
   - with ``events`` (the default), the camera once glances away so that the object leaves the
     view for a few frames, and a grey bar (a stand-in for an arm or a cable) sweeps across the
@@ -23,7 +24,7 @@ from __future__ import annotations
 
 import math
 import tempfile
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,7 @@ import torch
 from tqdm import tqdm
 
 from narf_core.data.dataset import DatasetWriter, FrameImages
-from narf_core.data.synth.generate import _versions, resolve_tool
+from narf_core.data.synth.generate import ViewSampling, _versions, default_sampling, resolve_tool
 from narf_core.data.synth.render import BulletScene
 from narf_core.geometry import Pinhole, invert_pose, look_at, so3_log
 
@@ -88,6 +89,14 @@ class SequencePath:
         c, s = math.cos(roll), math.sin(roll)
         T_obj_cam[:3, :3] = T_obj_cam[:3, :3] @ torch.tensor([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
         return invert_pose(T_obj_cam).numpy()
+
+
+def framed_path(tool: str | Path, path: SequencePath) -> SequencePath:
+    """``path`` with its distances scaled as ``tool``'s own camera distances are the rig's
+    (:func:`~narf_core.data.synth.generate.default_sampling`, by the nearest): an object too large for
+    the rig's stays in the sequence's view as the tools do."""
+    k = default_sampling(tool).distance[0] / ViewSampling().distance[0]
+    return path if k == 1 else replace(path, distance=path.distance * k, distance_sway=path.distance_sway * k)
 
 
 def raised_cosine(x: float) -> float:
@@ -227,6 +236,7 @@ def synthesize_sequence(
     camera = Pinhole.primesense(width, height)
     rng = np.random.default_rng(seed)
     out = Path(out)
+    path = framed_path(tool, path)
     with tempfile.TemporaryDirectory(prefix="narf-seq-") as workdir:
         urdf, train, novel = resolve_tool(tool, Path(workdir))
         ranges = _joint_ranges(urdf, train, novel)
