@@ -538,12 +538,17 @@ class Uncertainty:
     joint_sigma: dict[str, float]
     residual_variance: float
     dof: int
+    # Each joint's σ from the view alone: the statistical part, whose prior bounds a joint no ray sees,
+    # without the model's error (which grows with the residual whatever the view shows); what
+    # :func:`unobserved_joints` judges. Not in :meth:`to_dict`.
+    view_joint_sigma: dict[str, float] | None = None
 
     @classmethod
-    def from_covariance(cls, covariance: np.ndarray, joint_names: list[str], variance: float, dof: int) -> Uncertainty:
+    def from_covariance(cls, covariance: np.ndarray, joint_names: list[str], variance: float, dof: int,
+                        view_joint_sigma: dict[str, float] | None = None) -> Uncertainty:
         sd = np.sqrt(np.clip(np.diag(covariance), 0, None))
         return cls(covariance, sd[:3].copy(), sd[3:6].copy(), dict(zip(joint_names, map(float, sd[6:]), strict=True)),
-                   float(variance), int(dof))
+                   float(variance), int(dof), view_joint_sigma)
 
     def to_dict(self) -> dict:
         """A JSON-able copy."""
@@ -566,8 +571,8 @@ UNOBSERVED_CODE = "unobserved_joint"  # the warning's code: "unobserved_joint: <
 
 def unobserved_joints(model: NarfModel, joint_sigma: Mapping[str, float] | None) -> list[str]:
     """One warning ``"unobserved_joint: <joint>: ..."`` (:data:`UNOBSERVED_CODE`) for each joint of ``model``
-    whose σ (``joint_sigma``: :attr:`Uncertainty.joint_sigma`) is at least :data:`UNOBSERVED_SHARE` of its
-    half range; none without an uncertainty."""
+    whose σ from the view (``joint_sigma``: :attr:`Uncertainty.view_joint_sigma`) is at least
+    :data:`UNOBSERVED_SHARE` of its half range; none without one."""
     if joint_sigma is None:
         return []
     out = []
@@ -1509,7 +1514,7 @@ def refine(
             metrics=metrics,
             history=[] if run is None else run.history,
             uncertainty=uncertainty,
-            warnings=warnings + unobserved_joints(model, None if uncertainty is None else uncertainty.joint_sigma),
+            warnings=warnings + unobserved_joints(model, None if uncertainty is None else uncertainty.view_joint_sigma),
             mode=mode,
             mode_reason=mode_reason,
         )
@@ -1704,7 +1709,9 @@ def _uncertainty(
     kind = _error_class(opts, uses_depth)
     sd = model_error(model, kind, pixel, param.radius, stat.colour_variance, opts.uncertainty_usual_residual)
     Sigma = stat.sigma + model_error_covariance(sd, kind, line_of_sight(model, T)) + torch.diag(floor**2)
-    return Uncertainty.from_covariance(Sigma.numpy().copy(), [j.name for j in model.joints], stat.variance, stat.dof)
+    names = [j.name for j in model.joints]
+    view = torch.sqrt(torch.diagonal(stat.sigma)[6:].clamp_min(0)).tolist()
+    return Uncertainty.from_covariance(Sigma.numpy().copy(), names, stat.variance, stat.dof, dict(zip(names, view, strict=True)))
 
 
 # The model's error, which the residuals cannot see: the field renders the object a little

@@ -837,7 +837,7 @@ def _uncertainty(result: EstimateResult, sigma_scale: float = 1.0) -> tuple[dict
     if not np.isfinite(cov).all():
         return None, None
     if sigma_scale != 1.0:
-        u = Uncertainty.from_covariance(cov, list(u.joint_sigma), u.residual_variance, u.dof)
+        u = Uncertainty.from_covariance(cov, list(u.joint_sigma), u.residual_variance, u.dof, u.view_joint_sigma)
     return u.to_dict(), cov
 
 
@@ -870,11 +870,12 @@ def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.
 
 def _warnings(model: NarfModel, result: EstimateResult, checks: list[str]) -> list[str]:
     """A frame's warnings: the input checks' (``checks``, then any other its estimate found), and
-    ``unobserved_joint`` judged on the refiner's Σ before the tracker's factor (whether the view
-    constrains a joint is the linearisation's to say; a factor below 1 would hide a joint only its
-    prior bounds), whichever refiner ran the frame."""
+    ``unobserved_joint`` judged on the view's own σ (``Uncertainty.view_joint_sigma``: whether the
+    view constrains a joint is the linearisation's to say, before the model's error and the tracker's
+    factor, which a factor below 1 would hide it behind), whichever refiner ran the frame."""
     more = [w for w in result.warnings if w not in checks and not w.startswith(f"{UNOBSERVED_CODE}:")]
-    return [*checks, *more, *unobserved_joints(model, None if result.uncertainty is None else result.uncertainty.joint_sigma)]
+    view = None if result.uncertainty is None else result.uncertainty.view_joint_sigma
+    return [*checks, *more, *unobserved_joints(model, view)]
 
 
 def _too_uncertain(info: dict | None, options: TrackOptions, sight: tuple[Tensor, float] | None = None) -> bool:

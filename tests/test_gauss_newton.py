@@ -146,6 +146,16 @@ def test_unobserved_joint_gets_a_large_finite_sigma(model):
     seen = refine(model, image, full, CAMERA, T, joints_init=joints, options=options)
     assert seen.uncertainty.joint_sigma["slide"] < 0.1 * half
     assert not [w for w in seen.warnings if w.startswith("unobserved_joint")]
+    # A large model error widens Σ past the threshold, but the view still constrains the jaw: not flagged.
+    own = model.metadata["uncertainty"]
+    model.metadata["uncertainty"] = {"pixels": dict.fromkeys(MODEL_ERROR["pixels"], 50.0)}
+    try:
+        wide = refine(model, image, full, CAMERA, T, joints_init=joints, options=options)
+    finally:
+        model.metadata["uncertainty"] = own
+    assert wide.uncertainty.joint_sigma["slide"] >= UNOBSERVED_SHARE * half
+    assert wide.uncertainty.view_joint_sigma["slide"] == pytest.approx(seen.uncertainty.joint_sigma["slide"], rel=1e-6)
+    assert not [w for w in wide.warnings if w.startswith("unobserved_joint")]
     # A tracked frame says the same, whichever refiner ran it (the frame refiner adds no such warning of its
     # own), once, after the input checks' warnings; its result and the service's answer carry them.
     from narf_core.track import TrackResult, _warnings
