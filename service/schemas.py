@@ -447,6 +447,6 @@ class TrackResponse(BaseModel):
     warnings: list[str] = Field(
         default_factory=list,
         description="The frame's doubts, each '<code>: <message>': the input's (as /v1/estimate's) and "
-        "'unobserved_joint' where this frame's Σ leaves a joint a guess within its range",
+        "'unobserved_joint' where this frame's view leaves a joint a guess within its range",
     )
     state: str = Field(description="Opaque, signed token: send it with the next frame")
