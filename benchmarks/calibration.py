@@ -78,7 +78,9 @@ def statistics(
             "joint_speeds": E._joint_speeds(model, param.radius).numpy(), "class": E._error_class(options, uses_depth)}
 
 
-def scene_rows(model: NarfModel, dataset: Dataset, scenes: int, inputs: tuple[str, ...] = ("rgbd", "rgb")) -> list[dict]:
+def scene_rows(
+    model: NarfModel, dataset: Dataset, scenes: int, inputs: tuple[str, ...] = ("rgbd", "rgb")
+) -> list[dict]:
     """Every preset on ``scenes`` frames of each of the dataset's ``test`` and ``novel`` splits, with the
     depth image (``rgbd`` in ``inputs``; a preset without a depth term only without) and without (``rgb``)."""
     from narf_benchmarks.estimate import _preset_options, perturb_pose, pick_frames

@@ -1711,7 +1711,8 @@ def _uncertainty(
     Sigma = stat.sigma + model_error_covariance(sd, kind, line_of_sight(model, T)) + torch.diag(floor**2)
     names = [j.name for j in model.joints]
     view = torch.sqrt(torch.diagonal(stat.sigma)[6:].clamp_min(0)).tolist()
-    return Uncertainty.from_covariance(Sigma.numpy().copy(), names, stat.variance, stat.dof, dict(zip(names, view, strict=True)))
+    return Uncertainty.from_covariance(Sigma.numpy().copy(), names, stat.variance, stat.dof,
+                                       dict(zip(names, view, strict=True)))
 
 
 # The model's error, which the residuals cannot see: the field renders the object a little

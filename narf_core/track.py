@@ -990,7 +990,8 @@ def _step(
                                   for name, value in result.joints.items()}
             nxt = TrackState(result.T_cam_obj, dict(result.joints), t, t, velocity, joint_velocity, cov, status, 0)
             return TrackResult(t, status, result.T_cam_obj, dict(result.joints), score, result.loss, iterations,
-                               _time.perf_counter() - start, reason, info, cov, warnings=_warnings(model, result, checks)), nxt
+                               _time.perf_counter() - start, reason, info, cov,
+                               warnings=_warnings(model, result, checks)), nxt
         why = "the warm start lost the object"
     else:
         why = "the track was lost" if state.lost_frames else "first frame: multi-start initialisation"

@@ -19,8 +19,8 @@ def rows(errors_m, kind="shape", axis=0, variance=0.02):
     z, its radius 0.1 m): no statistical σ, a pixel of 1 mm, the same colour residual everywhere (so the fitted
     reference is it and the residual factor 1; ``variance``: that residual)."""
     return [{"preset": "robust", "class": kind, "sigma": np.zeros((7, 7)), "colour_variance": variance,
-             "pixel_m": 0.001, "radius": 0.1, "joint_speeds": np.array([0.05]), "line_of_sight": np.array([0.0, 0.0, 1.0]),
-             "stretch": 5.0,
+             "pixel_m": 0.001, "radius": 0.1, "joint_speeds": np.array([0.05]),
+             "line_of_sight": np.array([0.0, 0.0, 1.0]), "stretch": 5.0,
              "e": np.eye(7)[axis] * e} for e in errors_m]
 
 

@@ -83,7 +83,8 @@ def test_a_large_object_is_framed_as_its_single_views_are(tmp_path: Path) -> Non
     path = SequencePath()
     assert framed_path("clamp", path) is path and framed_path(tmp_path / "own.urdf", path) is path
     far = framed_path("cabinet", path)
-    assert far.distance == pytest.approx(path.distance * 1.5) and far.distance_sway == pytest.approx(path.distance_sway * 1.5)
+    assert far.distance == pytest.approx(path.distance * 1.5)
+    assert far.distance_sway == pytest.approx(path.distance_sway * 1.5)
     out = synthesize_sequence("cabinet", tmp_path / "seq", 6, size=(80, 60), events=False, supersample=1)
     dataset = Dataset.open(out)
     assert dataset.generator["sequence"]["path"]["distance"] == pytest.approx(far.distance)

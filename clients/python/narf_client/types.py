@@ -223,4 +223,4 @@ class TrackUpdate:
     state: str
     mode: str | None = None  # the render mode the tracker used ("auto" resolved) and why
     mode_reason: str | None = None
-    warnings: tuple[str, ...] = ()  # the frame's doubts ("<code>: <message>"; unobserved_joint under its Σ)
+    warnings: tuple[str, ...] = ()  # the frame's doubts ("<code>: <message>", as Estimate.warnings)
