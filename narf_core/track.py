@@ -550,6 +550,7 @@ def refine_frame(
     distance_prior: float = 0.0,
     polish: bool = False,
     prior: tuple[float, float] | None = None,
+    checks: list[str] | None = None,
 ) -> EstimateResult:
     """The refiner's iterations for a warm-started frame without marching, each ray sampled only in a
     band that is known for the whole frame: ``options.solver`` "adam", :func:`refine`'s loss on fresh
@@ -575,7 +576,8 @@ def refine_frame(
     Gauss-Newton iteration polishes (:attr:`narf_core.gauss_newton.GaussNewtonRun.polish_only`);
     ``prior`` ``(σ position m, σ rotation rad)``: its iterations are held to the prediction, the box
     centre's position per camera axis and the rotation about it per axis (:meth:`~narf_core.gauss_newton.
-    GaussNewtonRun.hold_to`; the joints are free).
+    GaussNewtonRun.hold_to`; the joints are free). ``checks``: the frame's input checks, already made
+    (the tracker's step makes them before it aligns its prediction): not made again.
     """
     from narf_core.band import ray_band
     from narf_core.compositing import composite
@@ -590,7 +592,8 @@ def refine_frame(
     start = _time.perf_counter()
     image, mask, depth = _check_observation(image, mask, depth, camera)
     T0 = torch.from_numpy(check_pose(T_pred, "T_init", error=EstimateInputError))
-    warnings = check_observation(image, mask, depth, camera, expected_depth_m=float(T0[2, 3]))
+    warnings = (list(checks) if checks is not None
+                else check_observation(image, mask, depth, camera, expected_depth_m=float(T0[2, 3])))
     depth = usable_depth(depth, warnings)
     theta0 = model.kinematics.joint_vector(joints_pred, field="joints_init", error=EstimateInputError)
     device = model.aabb.device
@@ -854,9 +857,11 @@ def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool) -> float:
 
 
 def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None,
-                 T: np.ndarray, joints: Mapping[str, float], opts: TrackOptions) -> EstimateResult:
+                 T: np.ndarray, joints: Mapping[str, float], opts: TrackOptions,
+                 checks: list[str] | None = None) -> EstimateResult:
     """A warm-started frame's iterations from ``T`` and ``joints``: :func:`refine_frame` (narf mode,
-    ``march = "frame"``, no band) or :func:`refine` (any other mode or march)."""
+    ``march = "frame"``, no band; given the frame's input ``checks``) or :func:`refine` (any other mode or
+    march)."""
     step_options = opts.step_options(depth is not None, model.aabb.device)
     if (opts.march == "frame" and opts.band_m == 0
             and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf"):
@@ -864,7 +869,8 @@ def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.
                               else (opts.frame_prior_position_m_rgb, opts.frame_prior_rotation_deg_rgb))
         prior = (position, math.radians(rotation)) if position > 0 and rotation > 0 else None
         return refine_frame(model, camera, image, mask, depth, T, joints, step_options,
-                            0.0 if depth is not None else opts.distance_prior_rgb, polish=depth is None, prior=prior)
+                            0.0 if depth is not None else opts.distance_prior_rgb, polish=depth is None, prior=prior,
+                            checks=checks)
     return refine(model, image, mask, camera, T, joints_init=joints, depth=depth, options=step_options)
 
 
@@ -964,14 +970,14 @@ def _step(
         T_pred, joints_pred = predict(model, state, t)
         if depth is not None and opts.depth_align:
             T_pred = depth_aligned(model, camera, T_pred, joints_pred, mask, depth)
-        result = _warm_refine(model, camera, frame.image, mask, depth, T_pred, joints_pred, opts)
+        result = _warm_refine(model, camera, frame.image, mask, depth, T_pred, joints_pred, opts, checks)
         iterations += result.iterations
         retry_scale = opts.sigma_scale or SIGMA_SCALE[opts.solver_for(True)]["rgbd"]
         if depth is not None and opts.retry_uncertain and _too_uncertain(_uncertainty(result, retry_scale)[0], opts):
             # Σ grew past the limits with the colour residual: the estimate explains the image much worse
             # than the model usually does (a track turning away); one more round from where it ended. (Judged
             # at the pooled factor, not the model's own: a model's calibration changes Σ, never the track.)
-            result = _warm_refine(model, camera, frame.image, mask, depth, result.T_cam_obj, result.joints, opts)
+            result = _warm_refine(model, camera, frame.image, mask, depth, result.T_cam_obj, result.joints, opts, checks)
             iterations += result.iterations
         score = overlap(model, camera, mask, result.T_cam_obj, result.joints) if result.loss is not None else 0.0
         if result.status not in ("no_overlap", "non_finite") and score >= opts.lost_overlap:
