@@ -587,7 +587,6 @@ def refine_frame(
     )
     from narf_core.gauss_newton import GaussNewtonRun, Problem, cluster_sample
     from narf_core.geometry import pose_to_position_quaternion
-    from narf_core.observation import check_observation, usable_depth
 
     start = _time.perf_counter()
     image, mask, depth = _check_observation(image, mask, depth, camera)
