@@ -67,6 +67,9 @@ _FRAME_MARGIN_M = 0.006
 _DEPTH_WINDOW_M = 0.005
 _DEPTH_ROUNDS = 3
 _DEPTH_CELL = 0.7  # its cells' side over the mean spacing of the projected points (a pixel at least)
+# A cell's nearest point is hidden where it lies behind the nearest point within this many cells by
+# more than the window plus a 45° surface's rise over that distance (_front_cells).
+_DEPTH_HIDDEN_CELLS = 2
 # A warm-started frame's σ over the refiner's (TrackOptions.sigma_scale), per solver, with depth and
 # without, for a model whose bundle carries no factor of its own for that solver: fitted on four tools'
 # seed-1 sequences pooled (Adam without depth: on the clamp's; docs/benchmarks.md).
@@ -489,14 +492,17 @@ def depth_offset(model: NarfModel, camera: Pinhole, T_cam_obj: np.ndarray, joint
                  mask: np.ndarray, depth: np.ndarray, min_cells: int = 20) -> float | None:
     """How far (m, along z) the observed surface lies behind the model's at ``T_cam_obj``, over the
     image's cells (square, a pixel unless the mask has more pixels than surface points project into
-    the image) where both the mask's depth and a surface point lie: the nearest observed depth minus
-    the nearest point's, its median taken again (``_DEPTH_ROUNDS`` times) over the differences within
-    ``_DEPTH_WINDOW_M`` of the last one. None where fewer than ``min_cells`` cells have both.
+    the image) where both the mask's depth and a surface point the camera sees (:func:`_front_cells`)
+    lie: the nearest observed depth minus the nearest point's, its median taken again
+    (``_DEPTH_ROUNDS`` times) over the differences within ``_DEPTH_WINDOW_M`` of the last one. None
+    where fewer than ``min_cells`` cells have both (where fewer than that are seen, every cell with a
+    point counts).
 
     The surface points stand in for a render (no field evaluation); they are sparse, so in some
-    cells only a point of the far side lands, centimetres behind: a tail that would pull a plain
-    median towards the camera, and that the window leaves out; the cells keep that tail small on a
-    fine camera, where the points are fewer than the object's pixels."""
+    cells only a point of the far side or of a part inside lands, centimetres behind: a tail that
+    would pull a plain median towards the camera. On a thin tool the window leaves it out; on a deep
+    object (a cabinet, its drawers inside) such cells are most of them, and only the visibility test
+    does."""
     x = _surface_points_cam(model, T_cam_obj, joints)
     h, w = mask.shape
     px = np.floor(_pixels(camera, x)).astype(np.int64)
@@ -509,7 +515,10 @@ def depth_offset(model: NarfModel, camera: Pinhole, T_cam_obj: np.ndarray, joint
     observed = np.pad(observed, ((0, rows * cell - h), (0, cols * cell - w)), constant_values=np.inf)
     observed = observed.reshape(rows, cell, cols, cell).min(axis=(1, 3)).reshape(-1)
     both = np.isfinite(nearest) & np.isfinite(observed)
-    if int(both.sum()) < min_cells:
+    seen = both & _front_cells(nearest.reshape(rows, cols), cell / float(camera.K[0, 0])).reshape(-1)
+    if int(seen.sum()) >= min_cells:
+        both = seen
+    elif int(both.sum()) < min_cells:
         return None
     difference = observed[both] - nearest[both]
     offset = float(np.median(difference))
@@ -517,6 +526,22 @@ def depth_offset(model: NarfModel, camera: Pinhole, T_cam_obj: np.ndarray, joint
         near = difference[np.abs(difference - offset) < _DEPTH_WINDOW_M]
         offset = float(np.median(near)) if len(near) else offset
     return offset
+
+
+def _front_cells(nearest: np.ndarray, cell_angle: float) -> np.ndarray:
+    """Which cells of ``nearest [rows, cols]`` (the nearest surface point's z per cell, m; inf where
+    none) hold a point the camera sees: one no more than ``_DEPTH_WINDOW_M`` plus a 45° surface's rise
+    behind the nearest point within ``_DEPTH_HIDDEN_CELLS`` cells (a cell spans ``cell_angle`` rad, so
+    its depth times that in metres). A cell whose points all lie on the far side or on a part inside has a nearer
+    surface's point close by."""
+    r = _DEPTH_HIDDEN_CELLS
+    rows, cols = nearest.shape
+    padded = np.pad(nearest, r, constant_values=np.inf)
+    around = np.full_like(nearest, np.inf)
+    for dv in range(2 * r + 1):
+        for du in range(2 * r + 1):
+            np.minimum(around, padded[dv:dv + rows, du:du + cols], out=around)
+    return nearest <= around + _DEPTH_WINDOW_M + r * cell_angle * nearest
 
 
 def depth_aligned(model: NarfModel, camera: Pinhole, T_cam_obj: np.ndarray, joints: Mapping[str, float],
