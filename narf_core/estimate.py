@@ -283,6 +283,9 @@ class EstimateOptions:
     # > 0: colour residuals up to this count as the model's usual one, and the model's error (MODEL_ERROR)
     # grows only with a residual above it; 0: MODEL_ERROR's reference (model_error; the tracker's with depth).
     uncertainty_usual_residual: float = 0.0
+    # With depth, the model's error in pixels no finer than the training views' (trained_footprint): an
+    # estimate from a few iterations (the tracker's frame) keeps the model's error at a finer camera.
+    uncertainty_trained_footprint: bool = False
 
     def __post_init__(self) -> None:
         check_option_types(self, EstimateInputError)
@@ -1676,7 +1679,6 @@ def _uncertainty(
     uses_depth: bool,
     problem=None,
     rays: tuple[Tensor, Tensor, Tensor] | None = None,
-    trained_floor: bool = False,
 ) -> Uncertainty | None:
     """The covariance at ``(T [4,4], θ [k])``: one Gauss-Newton linearisation on the box's rays
     (narf_core/gauss_newton.py) plus the model's error and the options' floors on the diagonal;
@@ -1686,9 +1688,10 @@ def _uncertainty(
     The model's error is in footprints of a pixel at the object, but never of a pixel finer than in a
     box of the reference size (:data:`ROBUST_BOX_PX`, whatever the preset's ``reference_box_px``): a
     camera finer than the views the model was trained on does not make the model itself more exact.
-    ``trained_floor``: nor finer than a pixel of the training views (:func:`trained_footprint`), for an
-    estimate from one set of rays (the tracker's frame with depth), whose error at a finer camera stays
-    that of the rays' draw of the model's error (docs/benchmarks.md, session 29)."""
+    With depth and ``opts.uncertainty_trained_footprint``: nor finer than a pixel of the training views
+    (:func:`trained_footprint`), for an estimate from a few iterations (the tracker's frame, whichever
+    refiner runs it), whose error at a finer camera stays that of the rays' draw of the model's error
+    (docs/benchmarks.md, sessions 29 and 33)."""
     from narf_core.gauss_newton import Problem, covariance
 
     aabb = model.aabb.detach().double().cpu()
@@ -1700,7 +1703,7 @@ def _uncertainty(
     if not bool(torch.isfinite(stat.sigma).all()):
         return None
     pixel = model_footprint(camera, T, centre, obs.shape)
-    if trained_floor:
+    if uses_depth and opts.uncertainty_trained_footprint:
         pixel = max(pixel, trained_footprint(model, T, centre))
     span = (2 * param.half).cpu()
     floor = torch.cat([

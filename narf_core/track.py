@@ -252,6 +252,7 @@ class TrackOptions:
                   "ray_sampling": self.ray_sampling if depth else self.ray_sampling_rgb,
                   "uncertainty": self.uncertainty_rays > 0, "uncertainty_rays": max(self.uncertainty_rays, 16),
                   "uncertainty_usual_residual": self.usual_residual if depth else 0.0,
+                  "uncertainty_trained_footprint": depth,
                   "occlusion_margin": self.occlusion_margin, "refinements": 0, "rgb_refinements": 0, "pose_starts": 1}
         if solver != "adam":
             return EstimateOptions.preset(solver, **common)
@@ -713,7 +714,7 @@ def refine_frame(
         lattice = visible(field, rays_obj, lattice, th) if prune else lattice
         problem = Problem(model, options, param.radius, uses_depth, samples=lattice)
         uncertainty = _uncertainty(model, options, obs, camera, param, T, theta, uses_depth, problem,
-                                   (index, cluster, weight), trained_floor=uses_depth)
+                                   (index, cluster, weight))
     return result("max_iterations", p, loss, options.iterations, trace, uncertainty, failures > 0)
 
 

@@ -408,9 +408,14 @@ def test_model_error_footprint_is_never_finer_than_the_reference_box(clamp, clam
 def test_a_frame_with_depth_counts_the_model_error_in_training_pixels(clamp, clamp_sequence: Path, monkeypatch) -> None:
     """With depth a tracked frame's model error is counted in pixels no finer than the training views'
     (:func:`~narf_core.estimate.trained_footprint`; the bundled clamp records none: the reference camera's);
-    without depth, and where the training views are no coarser than the camera, in the camera's own."""
+    without depth, and where the training views are no coarser than the camera, in the camera's own.
+    The same whichever refiner runs the frame: ``refine`` (a model whose ``auto`` mode is ``parts``) as
+    ``refine_frame``; a single-image estimate keeps the camera's own."""
     from narf_core import estimate
     from narf_core.data.dataset import Dataset
+    from dataclasses import replace
+
+    from narf_core.estimate import EstimateOptions, refine
     from narf_core.track import TrackOptions, refine_frame
 
     dataset = Dataset.open(clamp_sequence)
@@ -432,6 +437,15 @@ def test_a_frame_with_depth_counts_the_model_error_in_training_pixels(clamp, cla
     assert seen[1] == pytest.approx(own, rel=0.05)  # without depth: the camera's own
     assert seen[2] == pytest.approx(4 * own, rel=0.05)  # with depth: the training views' pixel, 4x coarser
     assert seen[3] == pytest.approx(own, rel=0.05)
+    seen.clear()
+    options = TrackOptions(iterations=1, rays_per_iteration=64, uncertainty_rays=64).step_options(True)
+    single = EstimateOptions.preset("gauss-newton", iterations=1, rays_per_iteration=64, uncertainty_rays=64)
+    for opts in (replace(options, mode="parts"), single):
+        result = refine(clamp, images.rgb, mask, dataset.camera, frame.T_cam_obj, joints_init=frame.joints,
+                        depth=images.depth, options=opts)
+        assert result.uncertainty is not None
+    assert seen[0] == pytest.approx(4 * own, rel=0.05)  # the tracker's frame in parts mode, through refine
+    assert seen[1] == pytest.approx(own, rel=0.05)  # one image, many iterations: the camera's own
 
 
 def test_model_error_grows_only_above_the_usual_residual(clamp) -> None:
