@@ -87,7 +87,7 @@ def run_one(model: NarfModel, dataset: Dataset, rgb_only: bool, options: TrackOp
         "add_m": stats("add_m"),
         **{key: stats(key) for key in rows[0] if key.startswith("joint_error/")},
         "joint_types": {j.name: j.type for j in model.joints},
-        "sigma_scale": sigma_scale(model, options, not rgb_only),
+        "sigma_scale": sigma_scale(model, options, not rgb_only, dataset.camera),
         "lost": sum(r["status"] == "lost" for r in rows),
         "reinitialised": sum(r["status"] == "reinitialised" for r in rows[1:]),
         "uncertain": sum(r["status"] == "uncertain" for r in rows),

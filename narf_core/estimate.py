@@ -1765,8 +1765,13 @@ REFERENCE_TRAINING_FX = float(Pinhole.primesense(160, 120).K[0, 0])
 def trained_footprint(model: NarfModel, T: Tensor, centre: Tensor) -> float:
     """A pixel's span (m) at the object's ``centre [3]`` (object frame) under ``T [4,4]`` in the views the
     model was trained on: its bundle's ``metadata["training_camera"]["fx"]``, else :data:`REFERENCE_TRAINING_FX`."""
-    fx = (model.metadata.get("training_camera") or {}).get("fx") or REFERENCE_TRAINING_FX
-    return _centre_depth(T, centre) / float(fx)
+    return _centre_depth(T, centre) / training_fx(model)
+
+
+def training_fx(model: NarfModel) -> float:
+    """The focal length (pixels) of the views the model was trained on: its bundle's
+    ``metadata["training_camera"]["fx"]``, else :data:`REFERENCE_TRAINING_FX`."""
+    return float((model.metadata.get("training_camera") or {}).get("fx") or REFERENCE_TRAINING_FX)
 
 
 def _centre_depth(T: Tensor, centre: Tensor) -> float:

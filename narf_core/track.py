@@ -44,7 +44,7 @@ from torch import Tensor
 from narf_core.checks import check_number, check_option_types, check_pose, option_rule
 from narf_core.estimate import (
     MIN_MASK_PIXELS, SOLVERS, UNOBSERVED_CODE, EstimateInputError, EstimateOptions, EstimateResult, Uncertainty,
-    line_of_sight, refine, unobserved_joints,
+    line_of_sight, refine, training_fx, unobserved_joints,
 )
 from narf_core.gauss_newton import Problem
 from narf_core.geometry import Pinhole, Rays, so3_exp, so3_log
@@ -71,9 +71,18 @@ _DEPTH_CELL = 0.7  # its cells' side over the mean spacing of the projected poin
 # more than the window plus a 45° surface's rise over that distance (_front_cells).
 _DEPTH_HIDDEN_CELLS = 2
 # A warm-started frame's σ over the refiner's (TrackOptions.sigma_scale), per solver, with depth and
-# without, for a model whose bundle carries no factor of its own for that solver: fitted on four tools'
-# seed-1 sequences pooled (Adam without depth: on the clamp's; docs/benchmarks.md).
-SIGMA_SCALE = {"gauss-newton": {"rgbd": 0.4, "rgb": 1.6}, "adam": {"rgbd": 3.0, "rgb": 0.9}}
+# without, for a model whose bundle carries no factor of its own for that solver, at a camera as fine as
+# the training views: fitted on four tools' seed-1 sequences pooled (Adam without depth: on the clamp's;
+# Gauss-Newton with depth: at 160x120; docs/benchmarks.md).
+SIGMA_SCALE = {"gauss-newton": {"rgbd": 0.3, "rgb": 1.6}, "adam": {"rgbd": 3.0, "rgb": 0.9}}
+# At a camera r times finer than the training views (fx over theirs, r > 1) SIGMA_SCALE's factor times
+# r ** this: the frame's error grows there (the model renders at a resolution it was not trained at),
+# and its Σ, whose model error is counted in training pixels with depth, does not (fitted as SIGMA_SCALE
+# at 640x480, r = 4: 0.6 against 0.3; where absent, 0).
+SIGMA_SCALE_FINER = {"gauss-newton": {"rgbd": 0.5}}
+# The factor at which a frame's Σ is judged for a second round: the one it was tuned with, whatever the
+# calibration (a model's factor, or SIGMA_SCALE's, changes Σ, never the track).
+RETRY_SIGMA_SCALE = {"gauss-newton": 0.4, "adam": 3.0}
 # A frame's solver where TrackOptions.solver is "auto": Levenberg-Marquardt on one set of rays, with depth
 # and without (a few iterations reach the bottom that Adam's fixed steps trail behind; without depth its
 # steps along the line of sight follow the silhouette's scale, where Adam's drift: docs/benchmarks.md).
@@ -869,16 +878,20 @@ def _uncertainty(result: EstimateResult, sigma_scale: float = 1.0) -> tuple[dict
     return u.to_dict(), cov
 
 
-def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool) -> float:
+def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool, camera: Pinhole | None = None) -> float:
     """The factor on a warm-started frame's σ, with ``depth`` or without: the option where set (> 0),
     else the model's own for the frame's solver (its bundle's ``metadata["uncertainty"]["track"]``, keys
     ``rgbd`` / ``rgb``, fitted with the solvers under ``solvers``: "adam" where that is absent), else
-    :data:`SIGMA_SCALE`'s."""
+    :data:`SIGMA_SCALE`'s, for a ``camera`` finer than the training views times their ratio to the power
+    :data:`SIGMA_SCALE_FINER`."""
     key, solver = "rgbd" if depth else "rgb", options.solver_for(depth)
     chosen = options.sigma_scale if depth else options.sigma_scale_rgb
     track = (model.metadata.get("uncertainty") or {}).get("track") or {}
     own = track.get(key) if (track.get("solvers") or {}).get(key, "adam") == solver else None
-    return float(chosen or own or SIGMA_SCALE[solver][key])
+    if chosen or own:
+        return float(chosen or own)
+    finer = 1.0 if camera is None else max(1.0, float(camera.K[0, 0]) / training_fx(model))
+    return float(SIGMA_SCALE[solver][key] * finer ** SIGMA_SCALE_FINER.get(solver, {}).get(key, 0.0))
 
 
 def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None,
@@ -997,7 +1010,7 @@ def _step(
             T_pred = depth_aligned(model, camera, T_pred, joints_pred, mask, depth)
         result = _warm_refine(model, camera, frame.image, mask, depth, T_pred, joints_pred, opts, checks)
         iterations += result.iterations
-        retry_scale = opts.sigma_scale or SIGMA_SCALE[opts.solver_for(True)]["rgbd"]
+        retry_scale = opts.sigma_scale or RETRY_SIGMA_SCALE[opts.solver_for(True)]
         if depth is not None and opts.retry_uncertain and _too_uncertain(_uncertainty(result, retry_scale)[0], opts):
             # Σ grew past the limits with the colour residual: the estimate explains the image much worse
             # than the model usually does (a track turning away); one more round from where it ended. (Judged
@@ -1006,7 +1019,7 @@ def _step(
             iterations += result.iterations
         score = overlap(model, camera, mask, result.T_cam_obj, result.joints) if result.loss is not None else 0.0
         if result.status not in ("no_overlap", "non_finite") and score >= opts.lost_overlap:
-            info, cov = _uncertainty(result, sigma_scale(model, opts, depth is not None))
+            info, cov = _uncertainty(result, sigma_scale(model, opts, depth is not None, camera))
             status, reason = "tracking", None
             if score < opts.uncertain_overlap:
                 status, reason = "uncertain", f"the estimate explains only {score:.0%} of the mask (occlusion?)"

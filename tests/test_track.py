@@ -922,6 +922,27 @@ def test_bench_track_tracks_the_sequence_of_the_seed_asked(tmp_path: Path, capfd
         assert lines[-1] == f"narf bench track: error: argument --seed: {reason}"
 
 
+def test_sigma_scale_grows_at_a_camera_finer_than_the_training_views(clamp, monkeypatch) -> None:
+    """SIGMA_SCALE's factor is the training views' resolution's; a camera ``r`` times finer (fx over
+    theirs) multiplies it by ``r ** SIGMA_SCALE_FINER`` (with depth, Gauss-Newton: 4x finer, twice the
+    factor), a coarser one leaves it; an option or a model's own factor is taken as it is."""
+    from narf_core.geometry import Pinhole
+    from narf_core.track import SIGMA_SCALE, SIGMA_SCALE_FINER, TrackOptions, sigma_scale
+
+    monkeypatch.setitem(clamp.metadata, "uncertainty", {k: v for k, v in clamp.metadata.get("uncertainty", {}).items()
+                                                          if k != "track"})
+    base = SIGMA_SCALE["gauss-newton"]
+    fine, same, coarse = Pinhole.primesense(640, 480), Pinhole.primesense(160, 120), Pinhole.primesense(80, 60)
+    assert SIGMA_SCALE_FINER["gauss-newton"]["rgbd"] == 0.5
+    assert sigma_scale(clamp, TrackOptions(), True, fine) == pytest.approx(2 * base["rgbd"])
+    for camera in (same, coarse, None):
+        assert sigma_scale(clamp, TrackOptions(), True, camera) == pytest.approx(base["rgbd"])
+    assert sigma_scale(clamp, TrackOptions(), False, fine) == pytest.approx(base["rgb"])  # no law fitted without depth
+    assert sigma_scale(clamp, TrackOptions(sigma_scale=0.7), True, fine) == 0.7
+    monkeypatch.setitem(clamp.metadata["uncertainty"], "track", {"rgbd": 1.3, "solvers": {"rgbd": "gauss-newton"}})
+    assert sigma_scale(clamp, TrackOptions(), True, fine) == 1.3
+
+
 def test_sigma_scale_is_the_option_else_the_models_own_else_the_pooled_one(clamp, clamp_sequence: Path,
                                                                              monkeypatch) -> None:
     """A warm-started frame's factor on σ: ``TrackOptions.sigma_scale`` / ``sigma_scale_rgb`` where
