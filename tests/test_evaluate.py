@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import time
 
 import numpy as np
 import pytest
@@ -65,6 +66,26 @@ def test_the_frames_are_rendered_at_their_own_pose_and_configuration(tiny_datase
     wrong = {key(f.T_cam_obj): model.targets[key(g.T_cam_obj)] for f, g in zip(frames, frames[1:] + frames[:1])}
     model.targets.update(wrong)  # every frame now renders its neighbour's view
     assert evaluate_render(model, dataset, split="test").mse > 1e-4
+
+
+class WaitingTruth(MaskedTruth):
+    """:class:`MaskedTruth` on the CPU whose render also waits (as a thread that other processes keep
+    off the cores): wall time passes that is not the render's work."""
+
+    aabb = torch.zeros(2, 3)
+
+    def render(self, T_cam_obj, theta, camera, *, outputs, mode):
+        time.sleep(0.03)
+        return super().render(T_cam_obj, theta, camera, outputs=outputs, mode=mode)
+
+
+def test_cpu_time_leaves_out_the_time_the_render_waits(tiny_dataset):
+    """``cpu_time`` (what ``measure_modes`` takes, so that ``auto`` is not chosen by a busy machine's
+    load): the rendering thread's own CPU time; without it the wall clock, waits included."""
+    dataset = Dataset.open(tiny_dataset)
+    model = WaitingTruth(dataset, 0.0)
+    assert evaluate_render(model, dataset, split="test", limit=3).ms_per_image >= 30
+    assert evaluate_render(model, dataset, split="test", limit=3, cpu_time=True).ms_per_image < 10
 
 
 @pytest.mark.slow
