@@ -78,8 +78,8 @@ SIGMA_SCALE = {"gauss-newton": {"rgbd": 0.3, "rgb": 1.6}, "adam": {"rgbd": 3.0, 
 # At a camera r times finer than the training views (fx over theirs, r > 1) SIGMA_SCALE's factor times
 # r ** this: the frame's error grows there (the model renders at a resolution it was not trained at),
 # and its Σ, whose model error is counted in training pixels with depth, does not (fitted as SIGMA_SCALE
-# at 640x480, r = 4: 0.6 against 0.3; where absent, 0).
-SIGMA_SCALE_FINER = {"gauss-newton": {"rgbd": 0.5}}
+# at 640x480, r = 4: 0.5 against 0.3, log(5/3) / log(4); where absent, 0).
+SIGMA_SCALE_FINER = {"gauss-newton": {"rgbd": 0.37}}
 # The factor at which a frame's Σ is judged for a second round: the one it was tuned with, whatever the
 # calibration (a model's factor, or SIGMA_SCALE's, changes Σ, never the track).
 RETRY_SIGMA_SCALE = {"gauss-newton": 0.4, "adam": 3.0}

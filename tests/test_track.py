@@ -924,7 +924,7 @@ def test_bench_track_tracks_the_sequence_of_the_seed_asked(tmp_path: Path, capfd
 
 def test_sigma_scale_grows_at_a_camera_finer_than_the_training_views(clamp, monkeypatch) -> None:
     """SIGMA_SCALE's factor is the training views' resolution's; a camera ``r`` times finer (fx over
-    theirs) multiplies it by ``r ** SIGMA_SCALE_FINER`` (with depth, Gauss-Newton: 4x finer, twice the
+    theirs) multiplies it by ``r ** SIGMA_SCALE_FINER`` (with depth, Gauss-Newton: 4x finer, 5/3 of the
     factor), a coarser one leaves it; an option or a model's own factor is taken as it is."""
     from narf_core.geometry import Pinhole
     from narf_core.track import SIGMA_SCALE, SIGMA_SCALE_FINER, TrackOptions, sigma_scale
@@ -933,8 +933,8 @@ def test_sigma_scale_grows_at_a_camera_finer_than_the_training_views(clamp, monk
                                                           if k != "track"})
     base = SIGMA_SCALE["gauss-newton"]
     fine, same, coarse = Pinhole.primesense(640, 480), Pinhole.primesense(160, 120), Pinhole.primesense(80, 60)
-    assert SIGMA_SCALE_FINER["gauss-newton"]["rgbd"] == 0.5
-    assert sigma_scale(clamp, TrackOptions(), True, fine) == pytest.approx(2 * base["rgbd"])
+    assert sigma_scale(clamp, TrackOptions(), True, fine) == pytest.approx(base["rgbd"] * 4 ** SIGMA_SCALE_FINER[
+        "gauss-newton"]["rgbd"]) == pytest.approx(0.5, abs=0.01)
     for camera in (same, coarse, None):
         assert sigma_scale(clamp, TrackOptions(), True, camera) == pytest.approx(base["rgbd"])
     assert sigma_scale(clamp, TrackOptions(), False, fine) == pytest.approx(base["rgb"])  # no law fitted without depth
