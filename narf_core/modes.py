@@ -81,9 +81,10 @@ def measure_modes(
 ) -> dict | None:
     """The record of :data:`RECORD_KEY` (see the module docstring): PSNR, MSE and median ms per image
     of every mode ``model`` has, on the first ``views`` frames (or all, if fewer) of each of
-    ``splits`` the dataset has, rendered at the dataset's size on one thread (on the CPU, that thread's
-    CPU time: a training beside other processes measured the lineman pliers' configuration field
-    1.5x slower than their parts, where on its own it is 1.4x faster). ``None`` when no split has frames."""
+    ``splits`` the dataset has, rendered at the dataset's size on one thread (on the CPU, timed in that
+    thread's CPU time, which other processes on the cores do not inflate: the choice is the model's,
+    not the load of the machine it was trained on; docs/benchmarks.md, session 33). ``None`` when no
+    split has frames."""
     import time
 
     import torch

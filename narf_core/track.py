@@ -542,8 +542,8 @@ def _front_cells(nearest: np.ndarray, cell_angle: float) -> np.ndarray:
     """Which cells of ``nearest [rows, cols]`` (the nearest surface point's z per cell, m; inf where
     none) hold a point the camera sees: one no more than ``_DEPTH_WINDOW_M`` plus a 45° surface's rise
     behind the nearest point within ``_DEPTH_HIDDEN_CELLS`` cells (a cell spans ``cell_angle`` rad, so
-    its depth times that in metres). A cell whose points all lie on the far side or on a part inside has a nearer
-    surface's point close by."""
+    its depth times that in metres). A cell whose points all lie on the far side or on a part inside
+    has a nearer surface's point close by."""
     r = _DEPTH_HIDDEN_CELLS
     rows, cols = nearest.shape
     padded = np.pad(nearest, r, constant_values=np.inf)
@@ -1014,7 +1014,7 @@ def _step(
         if depth is not None and opts.retry_uncertain and _too_uncertain(_uncertainty(result, retry_scale)[0], opts):
             # Σ grew past the limits with the colour residual: the estimate explains the image much worse
             # than the model usually does (a track turning away); one more round from where it ended. (Judged
-            # at the pooled factor, not the model's own: a model's calibration changes Σ, never the track.)
+            # at RETRY_SIGMA_SCALE, not the model's own or the camera's: a calibration changes Σ, never the track.)
             result = _warm_refine(model, camera, frame.image, mask, depth, result.T_cam_obj, result.joints, opts, checks)
             iterations += result.iterations
         score = overlap(model, camera, mask, result.T_cam_obj, result.joints) if result.loss is not None else 0.0

@@ -949,8 +949,8 @@ def test_sigma_scale_is_the_option_else_the_models_own_else_the_pooled_one(clamp
     set (> 0), else the bundle's ``metadata["uncertainty"]["track"]`` (fitted per model) where it was
     fitted with the frame's solver (Adam where the bundle does not say), else :data:`SIGMA_SCALE`'s for
     that solver. The model's own factor scales Σ and never changes the track: the second round for a Σ
-    over the limits is judged at the pooled factor (here, Adam's frames: σ 5-6 mm at 3.0, over a 4 mm
-    limit, and 2-3 mm at the model's 1.3)."""
+    over the limits is judged at the factor it was tuned with, ``RETRY_SIGMA_SCALE`` (here, Adam's
+    frames: σ 5-6 mm at 3.0, over a 4 mm limit, and 2-3 mm at the model's 1.3)."""
     from narf_core.data.dataset import Dataset
     from narf_core.track import SIGMA_SCALE, TrackFrame, TrackOptions, TrackState, sigma_scale, step
 
