@@ -887,6 +887,44 @@ def test_bench_track_can_leave_the_depth_alignment_off() -> None:
         assert ("not aligned to the depth" in table) is not align
 
 
+def _bench_sequence(work: str) -> str:
+    from narf_benchmarks.track import sequence
+
+    return str(sequence(Path(work), "clamp", (80, 60), 6, False, seed=3))
+
+
+def test_bench_track_sequences_written_side_by_side_stay_whole(tmp_path: Path, monkeypatch) -> None:
+    """Two benchmarks asking for one missing sequence at once (two processes) both get it whole: each
+    writes a folder of its own and renames it into place, so neither reads nor deletes the other's
+    frames (before, one run stopped at "frames[3].rgb: file not found"). An older run's unfinished
+    folder (frames, no scene.json) is replaced, and a whole one is reused as it is."""
+    import multiprocessing
+
+    from narf_core.data.dataset import Dataset
+
+    stale = tmp_path / "sequences" / "clamp-80x60-6-s3"
+    (stale / "rgb").mkdir(parents=True)
+    (stale / "rgb" / "000000.png").write_bytes(b"half written")
+    with multiprocessing.get_context("spawn").Pool(2) as pool:
+        paths = pool.map(_bench_sequence, [str(tmp_path)] * 2)
+    assert paths[0] == paths[1] == str(stale)
+    dataset = Dataset.open(stale)
+    assert len(dataset.frames()) == 6 and all(dataset.load(f).labels.any() for f in dataset.frames())
+    assert sorted(p.name for p in (tmp_path / "sequences").iterdir()) == [stale.name]  # no folder left behind
+    written = (stale / "scene.json").stat().st_mtime_ns
+    assert _bench_sequence(str(tmp_path)) == str(stale) and (stale / "scene.json").stat().st_mtime_ns == written
+
+    from narf_core.data.synth import sequence as synth
+
+    folders = []
+    real = synth.synthesize_sequence
+    monkeypatch.setattr(synth, "synthesize_sequence", lambda tool, out, *a, **k: folders.append(Path(out)) or real(
+        tool, out, *a, **k))
+    other = _bench_sequence(str(tmp_path / "other"))
+    assert len(folders) == 1 and folders[0].parent == Path(other).parent and folders[0] != Path(other)
+    assert not folders[0].exists() and Dataset.open(other).frames()  # written aside, then renamed into place
+
+
 def test_bench_track_tracks_the_sequence_of_the_seed_asked(tmp_path: Path, capfd) -> None:
     """``narf bench track --seed S`` synthesises and tracks the seed-S sequence (its own folder, its own
     motion) and its result and table name the seed; a negative or non-integer seed is one error line."""
