@@ -411,10 +411,10 @@ def test_a_frame_with_depth_counts_the_model_error_in_training_pixels(clamp, cla
     without depth, and where the training views are no coarser than the camera, in the camera's own.
     The same whichever refiner runs the frame: ``refine`` (a model whose ``auto`` mode is ``parts``) as
     ``refine_frame``; a single-image estimate keeps the camera's own."""
-    from narf_core import estimate
-    from narf_core.data.dataset import Dataset
     from dataclasses import replace
 
+    from narf_core import estimate
+    from narf_core.data.dataset import Dataset
     from narf_core.estimate import EstimateOptions, refine
     from narf_core.track import TrackOptions, refine_frame
 
