@@ -206,11 +206,12 @@ def fit_track_scale(nees: list[float], dof: int, share: float = COVERAGE) -> flo
 
 def track_calibration(model: NarfModel, datasets: list[Dataset], modalities=("rgbd", "rgb")) -> dict:
     """``metadata["uncertainty"]["track"]``: per modality the factor on a warm-started frame's σ
-    (:func:`narf_core.track.sigma_scale`) fitted on the pooled frames of ``datasets``' sequences, and
-    the solver it was fitted with (``solvers``: the default tracker's for that modality)."""
+    (:func:`narf_core.track.sigma_scale`) fitted on the pooled frames of ``datasets``' sequences (one
+    camera, its focal length ``fx`` in pixels), and the solver it was fitted with (``solvers``: the
+    default tracker's for that modality)."""
     from narf_core.track import TrackOptions
 
-    out: dict = {"solvers": {}}
+    out: dict = {"solvers": {}, "fx": float(datasets[0].camera.K[0, 0])}
     for modality in modalities:
         nees = [n for dataset in datasets for n in track_nees(model, dataset, modality == "rgb")]
         out[modality] = fit_track_scale(nees, 6 + len(model.joints))

@@ -881,17 +881,22 @@ def _uncertainty(result: EstimateResult, sigma_scale: float = 1.0) -> tuple[dict
 def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool, camera: Pinhole | None = None) -> float:
     """The factor on a warm-started frame's σ, with ``depth`` or without: the option where set (> 0),
     else the model's own for the frame's solver (its bundle's ``metadata["uncertainty"]["track"]``, keys
-    ``rgbd`` / ``rgb``, fitted with the solvers under ``solvers``: "adam" where that is absent), else
-    :data:`SIGMA_SCALE`'s, for a ``camera`` finer than the training views times their ratio to the power
-    :data:`SIGMA_SCALE_FINER`."""
+    ``rgbd`` / ``rgb``, fitted with the solvers under ``solvers``: "adam" where that is absent, on
+    sequences of a camera of focal length ``fx`` in pixels), else :data:`SIGMA_SCALE`'s (fitted at the
+    training views' resolution). A pooled or own factor, for a ``camera`` finer than the one it was
+    fitted at, is multiplied by their ratio to the power :data:`SIGMA_SCALE_FINER`; an own factor
+    that does not name its camera is taken as it is."""
     key, solver = "rgbd" if depth else "rgb", options.solver_for(depth)
     chosen = options.sigma_scale if depth else options.sigma_scale_rgb
+    if chosen:
+        return float(chosen)
     track = (model.metadata.get("uncertainty") or {}).get("track") or {}
     own = track.get(key) if (track.get("solvers") or {}).get(key, "adam") == solver else None
-    if chosen or own:
-        return float(chosen or own)
-    finer = 1.0 if camera is None else max(1.0, float(camera.K[0, 0]) / training_fx(model))
-    return float(SIGMA_SCALE[solver][key] * finer ** SIGMA_SCALE_FINER.get(solver, {}).get(key, 0.0))
+    factor, fitted_fx = (own, track.get("fx")) if own else (SIGMA_SCALE[solver][key], training_fx(model))
+    if camera is None or not fitted_fx:
+        return float(factor)
+    finer = max(1.0, float(camera.K[0, 0]) / float(fitted_fx))
+    return float(factor * finer ** SIGMA_SCALE_FINER.get(solver, {}).get(key, 0.0))
 
 
 def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None,

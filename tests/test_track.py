@@ -963,7 +963,8 @@ def test_bench_track_tracks_the_sequence_of_the_seed_asked(tmp_path: Path, capfd
 def test_sigma_scale_grows_at_a_camera_finer_than_the_training_views(clamp, monkeypatch) -> None:
     """SIGMA_SCALE's factor is the training views' resolution's; a camera ``r`` times finer (fx over
     theirs) multiplies it by ``r ** SIGMA_SCALE_FINER`` (with depth, Gauss-Newton: 4x finer, 5/3 of the
-    factor), a coarser one leaves it; an option or a model's own factor is taken as it is."""
+    factor), a coarser one leaves it; an option is taken as it is, a model's own factor by the same law
+    from the camera it was fitted at (``fx``), or as it is where it does not name one."""
     from narf_core.geometry import Pinhole
     from narf_core.track import SIGMA_SCALE, SIGMA_SCALE_FINER, TrackOptions, sigma_scale
 
@@ -979,6 +980,12 @@ def test_sigma_scale_grows_at_a_camera_finer_than_the_training_views(clamp, monk
     assert sigma_scale(clamp, TrackOptions(sigma_scale=0.7), True, fine) == 0.7
     monkeypatch.setitem(clamp.metadata["uncertainty"], "track", {"rgbd": 1.3, "solvers": {"rgbd": "gauss-newton"}})
     assert sigma_scale(clamp, TrackOptions(), True, fine) == 1.3
+    fitted_at = float(Pinhole.primesense(320, 240).K[0, 0])
+    clamp.metadata["uncertainty"]["track"]["fx"] = fitted_at
+    assert sigma_scale(clamp, TrackOptions(), True, fine) == pytest.approx(1.3 * 2 ** SIGMA_SCALE_FINER[
+        "gauss-newton"]["rgbd"])
+    for camera in (same, None):
+        assert sigma_scale(clamp, TrackOptions(), True, camera) == 1.3
 
 
 def test_sigma_scale_is_the_option_else_the_models_own_else_the_pooled_one(clamp, clamp_sequence: Path,
