@@ -21,6 +21,7 @@ from narf_core.geometry import Pinhole
 
 CLIPPED_SHARE = 0.10  # of the object's pixels at 255 (or at 0) in some channel
 BORDER_PIXELS = 3  # object pixels on the image's outermost rows and columns
+BORDER_CODE = "mask_border"  # the warning's code (a mask cut by the image's border)
 DEPTH_OVERLAP_SHARE = 0.10  # least share of the object's pixels with a depth return
 DEPTH_UNIT_FACTOR = 20.0  # observed vs expected distance: a wrong unit is a factor of 1000
 DEPTH_RANGE_M = (0.02, 20.0)  # object distances a camera sees it at, without an expected distance
@@ -65,7 +66,7 @@ def check_observation(
         warnings.append(f"clipped: {100 * low:.0f}% of the object's pixels are black (underexposed)")
     border = int(mask[0].sum() + mask[-1].sum() + mask[1:-1, 0].sum() + mask[1:-1, -1].sum())
     if border >= BORDER_PIXELS:
-        warnings.append(f"mask_border: the mask touches the image border on {border} pixels: the object may "
+        warnings.append(f"{BORDER_CODE}: the mask touches the image border on {border} pixels: the object may "
                         f"continue outside the {camera.width}x{camera.height} view, which biases the estimate")
     if depth is None:
         return warnings

@@ -49,7 +49,7 @@ from narf_core.estimate import (
 from narf_core.gauss_newton import Problem
 from narf_core.geometry import Pinhole, Rays, so3_exp, so3_log
 from narf_core.modes import MODES, choose_mode
-from narf_core.observation import check_observation, dilate, usable_depth
+from narf_core.observation import BORDER_CODE, check_observation, dilate, usable_depth
 from narf_core.sampling import Samples
 
 if TYPE_CHECKING:
@@ -195,11 +195,16 @@ class TrackOptions:
     frame_prior_position_m: float = 0.01
     frame_prior_rotation_deg: float = 5.0
     max_gap_s: float = 0.25  # longer since the last estimate: no prediction, re-initialise
-    # With depth, longer since the last estimate (or lost after an `uncertain` or `reinitialised` frame):
-    # re-initialise by detection (every orientation scored, the best refined; narf_core/detect.py)
-    # instead of the multi-start refiner from the last pose. 0 = never. (Without depth detection is
-    # no better than the local refiner: docs/benchmarks.md.)
+    # Longer since the last estimate (or lost after an `uncertain` or `reinitialised` frame): re-initialise
+    # by detection (every orientation scored, the best refined; narf_core/detect.py) instead of the
+    # multi-start refiner from the last pose. 0 = never.
     redetect_after_s: float = 0.5
+    # Without depth, the detector's distance comes from the silhouette's size, which a mask cut by the
+    # image's border or by an occluder makes small: there it re-initialises only where the mask does not
+    # touch the border, and its answer is kept only within this factor of the last estimate's distance
+    # (else the multi-start refiner's from the last pose; a lost track's distance may be tens of per cent
+    # off). 0 = never without depth (docs/benchmarks.md).
+    redetect_rgb_distance: float = 2.0
     lost_overlap: float = 0.35
     uncertain_overlap: float = 0.6
     # Σ includes the model's error (estimate.model_error): a good 160x120 frame at 0.6 m has σ 5-10 mm.
@@ -223,6 +228,8 @@ class TrackOptions:
         need(self.frame_prior_rotation_deg >= 0, "frame_prior_rotation_deg", "must be >= 0 (0 = off)")
         need(self.max_gap_s > 0, "max_gap_s", "must be > 0")
         need(self.redetect_after_s >= 0, "redetect_after_s", "must be >= 0 (0 = never)")
+        need(self.redetect_rgb_distance == 0 or self.redetect_rgb_distance > 1, "redetect_rgb_distance",
+             "must be > 1 (a factor) or 0 (never without depth)")
         need(0 <= self.lost_overlap <= self.uncertain_overlap <= 1, "lost_overlap",
              "must satisfy 0 <= lost_overlap <= uncertain_overlap <= 1")
         need(self.solver in TRACK_SOLVERS, "solver", f"must be one of {', '.join(TRACK_SOLVERS)}")
@@ -979,6 +986,27 @@ def step(
     return result, nxt
 
 
+def _redetected(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None,
+                T0: np.ndarray, joints: Mapping[str, float], opts: TrackOptions, checks: list[str]) -> EstimateResult | None:
+    """A re-initialisation by detection (:func:`narf_core.detect.detect`, ``T0`` and ``joints`` its hint), or
+    None where it cannot be trusted: without depth, a mask cut by the image's border (``checks``' warning) or
+    a detected distance more than ``opts.redetect_rgb_distance`` times ``T0``'s or less than its inverse
+    (both from the silhouette's size, which a partial mask makes small)."""
+    from narf_core.detect import DetectOptions, detect
+
+    if depth is None and (opts.redetect_rgb_distance == 0 or any(w.startswith(f"{BORDER_CODE}:") for w in checks)):
+        return None
+    detector = DetectOptions(preset=opts.reinit_solver, seed=opts.seed)
+    result = detect(model, camera, image, mask, depth, joints=joints, options=detector, hints=[(T0, joints)],
+                    refine_options=replace(opts.reinit_options(), iterations=detector.iterations,
+                                           theta_starts=detector.refine_theta_starts))
+    if depth is None:
+        ratio = np.linalg.norm(result.T_cam_obj[:3, 3]) / np.linalg.norm(np.asarray(T0)[:3, 3])
+        if not 1 / opts.redetect_rgb_distance <= ratio <= opts.redetect_rgb_distance:
+            return None
+    return result
+
+
 def _step(
     model: NarfModel, camera: Pinhole, frame: TrackFrame, state: TrackState, opts: TrackOptions
 ) -> tuple[TrackResult, TrackState]:
@@ -1049,17 +1077,19 @@ def _step(
     T0 = _recentred(model, camera, state.T_cam_obj, state.joints, mask, depth)
     # Long gone, or lost from an estimate that did not hold well: the object may be anywhere, and the
     # last pose may be wrong (narf_core/detect.py; the last pose is one of the detector's candidates).
-    if (opts.redetect_after_s > 0 and depth is not None
-            and (gap > opts.redetect_after_s or state.status in ("uncertain", "reinitialised"))):
-        from narf_core.detect import DetectOptions, detect
-
-        detector = DetectOptions(preset=opts.reinit_solver, seed=opts.seed)
-        result = detect(model, camera, frame.image, mask, depth, joints=state.joints, options=detector,
-                        hints=[(T0, state.joints)], refine_options=replace(
-                            opts.reinit_options(), iterations=detector.iterations, theta_starts=detector.refine_theta_starts))
-    else:
+    # Without depth the silhouette cannot tell a flat tool's turns apart: the detector only where the
+    # multi-start refiner from the last pose does not explain the mask.
+    redetect = opts.redetect_after_s > 0 and (gap > opts.redetect_after_s or state.status in ("uncertain", "reinitialised"))
+    result = _redetected(model, camera, frame.image, mask, depth, T0, state.joints, opts, checks) if (
+        redetect and depth is not None) else None
+    if result is None:
         result = refine(model, frame.image, mask, camera, T0, joints_init=state.joints, depth=depth,
                         options=opts.reinit_options())
+        if redetect and depth is None and (result.status in ("no_overlap", "non_finite") or overlap(
+                model, camera, mask, result.T_cam_obj, result.joints) < opts.uncertain_overlap):
+            found = _redetected(model, camera, frame.image, mask, depth, T0, state.joints, opts, checks)
+            if found is not None:
+                iterations, result = iterations + result.iterations, found
     iterations += result.iterations
     if result.status in ("no_overlap", "non_finite"):
         return lost(f"{why}; re-initialisation failed ({result.status})", result.loss, iterations)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -173,12 +174,62 @@ def test_tracker_redetects_after_a_long_absence(clamp, camera: Pinhole, monkeypa
     lost_once = TrackState(T, joints, 9.99, 9.98, status="lost", lost_frames=1)
     result, _ = step(clamp, camera, frame, lost_once, TrackOptions(reinit_iterations=10))
     assert len(calls) == 1 and result.status == "reinitialised"
-    # redetect_after_s = 0: never; without depth: never (there it is no better than the local refiner).
+    # redetect_after_s = 0: never; without depth with redetect_rgb_distance = 0: never.
     step(clamp, camera, frame, state, TrackOptions(redetect_after_s=0.0, reinit_iterations=5))
-    step(clamp, camera, TrackFrame(image, mask, 10.0), state, TrackOptions(reinit_iterations=5))
+    step(clamp, camera, TrackFrame(image, mask, 10.0), state, TrackOptions(reinit_iterations=5, redetect_rgb_distance=0))
     assert len(calls) == 1
     with pytest.raises(ValueError, match="options.redetect_after_s"):
         TrackOptions(redetect_after_s=-1.0)
+
+
+def test_tracker_redetects_without_depth_where_the_silhouette_holds(clamp, camera: Pinhole, monkeypatch) -> None:
+    """Without depth, a lost track whose multi-start re-initialisation from the last pose does not explain
+    the mask is found again by detection from the silhouette alone; not where the mask touches the
+    image's border, and a detection whose distance moved more than
+    ``redetect_rgb_distance`` times the last estimate's is dropped for the local multi-start (a partial
+    mask's small silhouette puts the object far away)."""
+    import narf_core.detect as detect_module
+    from narf_core.track import TrackFrame, TrackOptions, TrackState, step
+
+    T, joints, image, mask, _ = view(clamp, camera, TURNS["edge-on"], 0.05)
+    stale = view(clamp, camera, TURNS["tilted"], 0.15)[0]
+    found = []
+
+    def spy(*args, **kwargs):
+        found.append(detect(*args, **kwargs))
+        return found[-1]
+
+    monkeypatch.setattr(detect_module, "detect", spy)
+    state = TrackState(stale, {"jaw_opening": 0.15}, 9.99, 9.0, status="uncertain")
+    options = TrackOptions(reinit_iterations=1, reinit_theta_starts=1)  # the refiner alone stays off the mask
+    result, _ = step(clamp, camera, TrackFrame(image, mask, 10.0), state, options)
+    assert len(found) == 1 and result.status == "reinitialised"
+    assert np.allclose(result.T_cam_obj, found[0].T_cam_obj)
+    assert add_of(clamp, T, joints, result.T_cam_obj, result.joints) < 0.02
+    # Where the refiner from the last pose explains the mask, no detection.
+    result, _ = step(clamp, camera, TrackFrame(image, mask, 10.0), TrackState(T, joints, 9.99, 9.0, status="uncertain"),
+                     options)
+    assert len(found) == 1 and result.status == "reinitialised"
+    # The same view with the mask cut by the image's border: no detection.
+    cut = mask.copy()
+    cut[0, :8] = True
+    step(clamp, camera, TrackFrame(image, cut, 10.0), state, options)
+    assert len(found) == 1
+    # A detection 2.5 times as far as the last estimate: not kept.
+    def far(*args, **kwargs):
+        out = detect(*args, **kwargs)
+        moved = out.T_cam_obj.copy()
+        moved[:3, 3] *= 2.5
+        found.append(replace(out, T_cam_obj=moved))
+        return found[-1]
+
+    monkeypatch.setattr(detect_module, "detect", far)
+    result, _ = step(clamp, camera, TrackFrame(image, mask, 10.0), state, options)
+    assert len(found) == 2 and not np.allclose(result.T_cam_obj, found[1].T_cam_obj)
+    assert abs(np.linalg.norm(result.T_cam_obj[:3, 3]) / np.linalg.norm(stale[:3, 3]) - 1) < 0.5
+    for bad in (1.0, 0.5, -1.0):
+        with pytest.raises(ValueError, match="options.redetect_rgb_distance"):
+            TrackOptions(redetect_rgb_distance=bad)
 
 
 def test_narf_track_init_pose_detect(tmp_path: Path, capsys) -> None:
