@@ -11,6 +11,9 @@ model's weights (the bundle's tensor checksum), the dataset, and a digest of the
 computes the rows (``narf_core`` and ``benchmarks``). A log under another key (other options, a
 retrained model, an edited refiner) is started again, so a resumed table never mixes rows of two
 different runs. A reused row keeps the seconds measured when it was refined.
+
+One run at a time per ``--work`` folder (:func:`sole_run`): a second one started there would find its
+logs removed by the first when that finishes, and the two would write over each other's data and results.
 """
 
 from __future__ import annotations
@@ -18,7 +21,8 @@ from __future__ import annotations
 import hashlib
 import json
 import sys
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -114,3 +118,21 @@ def remove_logs(out_dir: Path) -> None:
     import shutil
 
     shutil.rmtree(Path(out_dir) / FOLDER, ignore_errors=True)
+
+
+@contextmanager
+def sole_run(work: Path) -> Iterator[None]:
+    """Hold the benchmarks' lock on the folder ``work`` (``fcntl.flock`` on ``work/.lock``) for the block;
+    where another process holds it, a ``ValueError`` naming the folder at once, before any work. The lock
+    goes with the process that holds it: a run stopped or killed never leaves it behind."""
+    import fcntl
+
+    work = Path(work)
+    work.mkdir(parents=True, exist_ok=True)
+    with (work / ".lock").open("a") as handle:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"--work {work}: another narf benchmark is running on this folder (the two runs' data, "
+                             "scene logs and results would collide); wait for it to finish or give another --work") from None
+        yield

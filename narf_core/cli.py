@@ -1044,15 +1044,19 @@ def _run_bench_estimate(args: argparse.Namespace) -> int:
         argv += ["--tools", *args.tools] if args.tools else []
         argv += ["--quick"] * args.quick + ["--json"] * args.json
         return _run_bench_shift(build_parser().parse_args(argv))
+    from narf_benchmarks.checkpoint import sole_run
     from narf_benchmarks.estimate import main as bench_main
 
-    return bench_main(args)
+    with sole_run(args.work):  # one run per --work: its data, models, logs and results
+        return bench_main(args)
 
 
 def _run_bench_shift(args: argparse.Namespace) -> int:
+    from narf_benchmarks.checkpoint import sole_run
     from narf_benchmarks.shift import main as bench_main
 
-    return bench_main(args)
+    with sole_run(args.work):
+        return bench_main(args)
 
 
 def _run_bench_distill(args: argparse.Namespace) -> int:

@@ -4,12 +4,14 @@ mixes in rows of another run."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from narf_benchmarks import estimate as bench_estimate
-from narf_benchmarks.checkpoint import FOLDER, SceneLog, code_digest, scene_log
+from narf_benchmarks.checkpoint import FOLDER, SceneLog, code_digest, scene_log, sole_run
 from narf_core.data.dataset import DatasetWriter, FrameImages, read_urdf
 from tests.test_estimate import ASSETS, CAMERA, TRUTH, SliderField, make_model, observe, view
 
@@ -110,3 +112,30 @@ def test_a_model_never_saved_is_not_logged(model, saved, tmp_path):
     model.metadata = {k: v for k, v in (model.metadata or {}).items() if k != "checksum"}
     assert scene_log(tmp_path / "unsaved", "toy", "test-narf-paper", {"seed": 0}, model) is None
     assert not (tmp_path / "unsaved").exists()
+
+
+def test_one_benchmark_run_per_work_folder(tmp_path, capsys):
+    """While another process holds a ``--work`` folder, ``narf bench estimate`` and ``narf bench shift`` there
+    stop at once with one error line naming it (their scene logs, which a finished run removes, and
+    results would collide); the lock goes with the process that held it."""
+    from narf_core.cli import main as narf
+
+    work = tmp_path / "work"
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys, time\nfrom narf_benchmarks.checkpoint import sole_run\n"
+         "with sole_run(sys.argv[1]):\n    print('held', flush=True)\n    time.sleep(60)", str(work)],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        for command in (["bench", "estimate", "--quick"], ["bench", "shift", "--quick"]):
+            assert narf(["--threads", "1", *command, "--work", str(work), "--tools", "clamp"]) != 0
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and err[0].startswith(f"narf bench: error: --work {work}: another narf "
+                                                       "benchmark is running on this folder")
+        assert not (work / "data").exists()  # nothing was made
+    finally:
+        holder.kill()
+        holder.wait()
+    with sole_run(work):  # free again
+        with pytest.raises(ValueError, match="another narf benchmark"), sole_run(work):
+            pass
