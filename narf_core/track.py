@@ -199,11 +199,12 @@ class TrackOptions:
     # by detection (every orientation scored, the best refined; narf_core/detect.py) instead of the
     # multi-start refiner from the last pose. 0 = never.
     redetect_after_s: float = 0.5
-    # Without depth, the detector's distance comes from the silhouette's size, which a mask cut by the
-    # image's border or by an occluder makes small: there it re-initialises only where the mask does not
-    # touch the border, and its answer is kept only within this factor of the last estimate's distance
-    # (else the multi-start refiner's from the last pose; a lost track's distance may be tens of per cent
-    # off). 0 = never without depth (docs/benchmarks.md).
+    # Without depth, the detector runs only where the multi-start refiner from the last pose does not
+    # explain the mask (the silhouette cannot tell a flat tool's turns apart), and its distance comes from
+    # the silhouette's size, which a mask cut by the image's border or by an occluder makes small: not where
+    # the mask touches the border, and its answer is kept only within this factor of the last estimate's
+    # distance (a lost track's distance may be tens of per cent off). 0 = never without depth
+    # (docs/benchmarks.md).
     redetect_rgb_distance: float = 2.0
     lost_overlap: float = 0.35
     uncertain_overlap: float = 0.6
