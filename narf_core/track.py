@@ -199,8 +199,9 @@ class TrackOptions:
     # by detection (every orientation scored, the best refined; narf_core/detect.py) instead of the
     # multi-start refiner from the last pose. 0 = never.
     redetect_after_s: float = 0.5
-    # Without depth, the detector runs only where the multi-start refiner from the last pose does not
-    # explain the mask (the silhouette cannot tell a flat tool's turns apart), and its distance comes from
+    # Without depth, the detector runs only after redetect_after_s away and where the multi-start refiner
+    # from the last pose does not explain the mask (the silhouette cannot tell a flat tool's turns apart;
+    # right after an `uncertain` frame it turned a track over), and its distance comes from
     # the silhouette's size, which a mask cut by the image's border or by an occluder makes small: not where
     # the mask touches the border, and its answer is kept only within this factor of the last estimate's
     # distance (a lost track's distance may be tens of per cent off). 0 = never without depth
@@ -1078,9 +1079,10 @@ def _step(
     T0 = _recentred(model, camera, state.T_cam_obj, state.joints, mask, depth)
     # Long gone, or lost from an estimate that did not hold well: the object may be anywhere, and the
     # last pose may be wrong (narf_core/detect.py; the last pose is one of the detector's candidates).
-    # Without depth the silhouette cannot tell a flat tool's turns apart: the detector only where the
-    # multi-start refiner from the last pose does not explain the mask.
-    redetect = opts.redetect_after_s > 0 and (gap > opts.redetect_after_s or state.status in ("uncertain", "reinitialised"))
+    # Without depth the silhouette cannot tell a flat tool's turns apart: the detector only after
+    # redetect_after_s away and where the multi-start refiner from the last pose does not explain the mask.
+    redetect = opts.redetect_after_s > 0 and (gap > opts.redetect_after_s or (
+        depth is not None and state.status in ("uncertain", "reinitialised")))
     result = _redetected(model, camera, frame.image, mask, depth, T0, state.joints, opts, checks) if (
         redetect and depth is not None) else None
     if result is None:

@@ -183,9 +183,10 @@ def test_tracker_redetects_after_a_long_absence(clamp, camera: Pinhole, monkeypa
 
 
 def test_tracker_redetects_without_depth_where_the_silhouette_holds(clamp, camera: Pinhole, monkeypatch) -> None:
-    """Without depth, a lost track whose multi-start re-initialisation from the last pose does not explain
-    the mask is found again by detection from the silhouette alone; not where the mask touches the
-    image's border, and a detection whose distance moved more than
+    """Without depth, a track lost for longer than ``redetect_after_s`` whose multi-start re-initialisation
+    from the last pose does not explain the mask is found again by detection from the silhouette alone; not
+    sooner (after an ``uncertain`` frame, as with depth: the silhouette cannot tell a flat tool's turns
+    apart), not where the mask touches the image's border, and a detection whose distance moved more than
     ``redetect_rgb_distance`` times the last estimate's is dropped for the local multi-start (a partial
     mask's small silhouette puts the object far away)."""
     import narf_core.detect as detect_module
@@ -206,6 +207,10 @@ def test_tracker_redetects_without_depth_where_the_silhouette_holds(clamp, camer
     assert len(found) == 1 and result.status == "reinitialised"
     assert np.allclose(result.T_cam_obj, found[0].T_cam_obj)
     assert add_of(clamp, T, joints, result.T_cam_obj, result.joints) < 0.02
+    # Lost right after an uncertain frame (0.1 s since the last estimate): no detection without depth.
+    step(clamp, camera, TrackFrame(image, mask, 10.0), TrackState(stale, {"jaw_opening": 0.15}, 9.99, 9.9,
+                                                                  status="uncertain"), options)
+    assert len(found) == 1
     # Where the refiner from the last pose explains the mask, no detection.
     result, _ = step(clamp, camera, TrackFrame(image, mask, 10.0), TrackState(T, joints, 9.99, 9.0, status="uncertain"),
                      options)
