@@ -990,8 +990,8 @@ def step(
 
 def _redetected(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None,
                 T0: np.ndarray, joints: Mapping[str, float], opts: TrackOptions, checks: list[str]) -> EstimateResult | None:
-    """A re-initialisation by detection (:func:`narf_core.detect.detect`, ``T0`` and ``joints`` its hint), or
-    None where it cannot be trusted: without depth, a mask cut by the image's border (``checks``' warning) or
+    """A re-initialisation by detection (:func:`narf_core.detect.detect`, ``T0`` and ``joints`` its hint); with
+    depth always, without it None where it cannot be trusted: a mask cut by the image's border (``checks``' warning) or
     a detected distance more than ``opts.redetect_rgb_distance`` times ``T0``'s or less than its inverse
     (both from the silhouette's size, which a partial mask makes small)."""
     from narf_core.detect import DetectOptions, detect
@@ -1083,20 +1083,23 @@ def _step(
     # redetect_after_s away and where the multi-start refiner from the last pose does not explain the mask.
     redetect = opts.redetect_after_s > 0 and (gap > opts.redetect_after_s or (
         depth is not None and state.status in ("uncertain", "reinitialised")))
-    result = _redetected(model, camera, frame.image, mask, depth, T0, state.joints, opts, checks) if (
-        redetect and depth is not None) else None
-    if result is None:
+    score = None  # the re-initialisation's overlap with the mask, once measured
+    if redetect and depth is not None:
+        result = _redetected(model, camera, frame.image, mask, depth, T0, state.joints, opts, checks)
+    else:
         result = refine(model, frame.image, mask, camera, T0, joints_init=state.joints, depth=depth,
                         options=opts.reinit_options())
-        if redetect and depth is None and (result.status in ("no_overlap", "non_finite") or overlap(
-                model, camera, mask, result.T_cam_obj, result.joints) < opts.uncertain_overlap):
+        failed = result.status in ("no_overlap", "non_finite")
+        score = None if failed else overlap(model, camera, mask, result.T_cam_obj, result.joints)
+        if redetect and (failed or score < opts.uncertain_overlap):  # (here without depth)
             found = _redetected(model, camera, frame.image, mask, depth, T0, state.joints, opts, checks)
             if found is not None:
-                iterations, result = iterations + result.iterations, found
+                iterations, result, score = iterations + result.iterations, found, None
     iterations += result.iterations
     if result.status in ("no_overlap", "non_finite"):
         return lost(f"{why}; re-initialisation failed ({result.status})", result.loss, iterations)
-    score = overlap(model, camera, mask, result.T_cam_obj, result.joints)
+    if score is None:
+        score = overlap(model, camera, mask, result.T_cam_obj, result.joints)
     if score < opts.uncertain_overlap:
         return lost(f"{why}; re-initialisation explains only {score:.0%} of the mask", result.loss, iterations, score)
     info, cov = _uncertainty(result)
