@@ -1019,6 +1019,7 @@ def _bench_tools(args: argparse.Namespace) -> tuple[str, ...]:
 
 
 def _run_bench_render(args: argparse.Namespace) -> int:
+    from narf_benchmarks.checkpoint import sole_run
     from narf_benchmarks.render import RenderBenchConfig, markdown, run
 
     tools = _bench_tools(args)
@@ -1031,7 +1032,8 @@ def _run_bench_render(args: argparse.Namespace) -> int:
         if missing:
             raise ValueError(f"--quick evaluates bundled models only: no {', '.join(missing)}")
         config = config.quick_version()
-    result = run(args.work, config)
+    with sole_run(args.work):  # one run per --work: its data, models and results
+        result = run(args.work, config)
     print(json.dumps(result, indent=1) if args.json else markdown(result))
     return 0
 
@@ -1072,9 +1074,11 @@ def _run_bench_distill(args: argparse.Namespace) -> int:
 
 
 def _run_bench_track(args: argparse.Namespace) -> int:
+    from narf_benchmarks.checkpoint import sole_run
     from narf_benchmarks.track import main as bench_main
 
-    return bench_main(args)
+    with sole_run(args.work):  # one run per --work: its sequences and result.json
+        return bench_main(args)
 
 
 def _run_bench_service(args: argparse.Namespace) -> int:

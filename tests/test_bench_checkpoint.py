@@ -115,8 +115,8 @@ def test_a_model_never_saved_is_not_logged(model, saved, tmp_path):
 
 
 def test_one_benchmark_run_per_work_folder(tmp_path, capsys):
-    """While another process holds a ``--work`` folder, ``narf bench estimate`` and ``narf bench shift`` there
-    stop at once with one error line naming it (their scene logs, which a finished run removes, and
+    """While another process holds a ``--work`` folder, ``narf bench render``, ``estimate``, ``shift`` and
+    ``track`` there stop at once with one error line naming it (their scene logs, which a finished run removes, and
     results would collide); the lock goes with the process that held it."""
     from narf_core.cli import main as narf
 
@@ -127,12 +127,13 @@ def test_one_benchmark_run_per_work_folder(tmp_path, capsys):
         stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "held"
-        for command in (["bench", "estimate", "--quick"], ["bench", "shift", "--quick"]):
+        for command in (["bench", "render", "--quick"], ["bench", "estimate", "--quick"], ["bench", "shift", "--quick"],
+                        ["bench", "track", "--frames", "2"]):
             assert narf(["--threads", "1", *command, "--work", str(work), "--tools", "clamp"]) != 0
             err = capsys.readouterr().err.strip().splitlines()
             assert len(err) == 1 and err[0].startswith(f"narf bench: error: --work {work}: another narf "
                                                        "benchmark is running on this folder")
-        assert not (work / "data").exists()  # nothing was made
+        assert sorted(p.name for p in work.iterdir()) == [".lock"]  # nothing was made
     finally:
         holder.kill()
         holder.wait()
