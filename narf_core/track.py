@@ -199,8 +199,9 @@ class TrackOptions:
     # by detection (every orientation scored, the best refined; narf_core/detect.py) instead of the
     # multi-start refiner from the last pose. 0 = never.
     redetect_after_s: float = 0.5
-    # Without depth, the detector runs only after redetect_after_s away and where the multi-start refiner
-    # from the last pose does not explain the mask (the silhouette cannot tell a flat tool's turns apart;
+    # Without depth, the detector runs only after redetect_after_s away (then once per redetect_after_s
+    # while lost: a detection costs seconds) and where the multi-start refiner from the last pose does not
+    # explain the mask (the silhouette cannot tell a flat tool's turns apart;
     # right after an `uncertain` frame it turned a track over), and its distance comes from
     # the silhouette's size, which a mask cut by the image's border or by an occluder makes small: not where
     # the mask touches the border, and its answer is kept only within this factor of the last estimate's
@@ -1081,8 +1082,14 @@ def _step(
     # last pose may be wrong (narf_core/detect.py; the last pose is one of the detector's candidates).
     # Without depth the silhouette cannot tell a flat tool's turns apart: the detector only after
     # redetect_after_s away and where the multi-start refiner from the last pose does not explain the mask.
-    redetect = opts.redetect_after_s > 0 and (gap > opts.redetect_after_s or (
-        depth is not None and state.status in ("uncertain", "reinitialised")))
+    # Without depth a detection that failed is tried again only redetect_after_s later (every such period
+    # since the last estimate, judged from the previous frame's time: the state needs nothing more).
+    if depth is not None:
+        redetect = opts.redetect_after_s > 0 and (gap > opts.redetect_after_s
+                                                  or state.status in ("uncertain", "reinitialised"))
+    else:
+        before, period = state.time - state.anchor_time, opts.redetect_after_s
+        redetect = period > 0 and gap > period and (before <= period or gap // period > before // period)
     score = None  # the re-initialisation's overlap with the mask, once measured
     if redetect and depth is not None:
         result = _redetected(model, camera, frame.image, mask, depth, T0, state.joints, opts, checks)

@@ -188,7 +188,8 @@ def test_tracker_redetects_without_depth_where_the_silhouette_holds(clamp, camer
     sooner (after an ``uncertain`` frame, as with depth: the silhouette cannot tell a flat tool's turns
     apart), not where the mask touches the image's border, and a detection whose distance moved more than
     ``redetect_rgb_distance`` times the last estimate's is dropped for the local multi-start (a partial
-    mask's small silhouette puts the object far away)."""
+    mask's small silhouette puts the object far away); while lost, a detection is tried again only once per
+    ``redetect_after_s`` (each costs seconds)."""
     import narf_core.detect as detect_module
     from narf_core.track import TrackFrame, TrackOptions, TrackState, step
 
@@ -211,6 +212,13 @@ def test_tracker_redetects_without_depth_where_the_silhouette_holds(clamp, camer
     step(clamp, camera, TrackFrame(image, mask, 10.0), TrackState(stale, {"jaw_opening": 0.15}, 9.99, 9.9,
                                                                   status="uncertain"), options)
     assert len(found) == 1
+    # While lost, a detection that failed is tried again once per redetect_after_s since the last estimate:
+    # not within the period of the last try (1.30 and 1.35 s away), again past its end (1.51 s away).
+    for before, now in ((10.30, 10.35), (10.45, 10.51)):
+        step(clamp, camera, TrackFrame(image, mask, now), TrackState(stale, {"jaw_opening": 0.15}, before, 9.0,
+                                                                     status="lost", lost_frames=9), options)
+    assert len(found) == 2 and found[1] is not found[0]
+    found.pop()
     # Where the refiner from the last pose explains the mask, no detection.
     result, _ = step(clamp, camera, TrackFrame(image, mask, 10.0), TrackState(T, joints, 9.99, 9.0, status="uncertain"),
                      options)
