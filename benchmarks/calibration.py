@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -47,8 +46,8 @@ from narf_core.bundle import NarfModel, load_bundle, save_bundle
 from narf_core.data.dataset import Dataset
 from narf_core.modes import choose_mode
 from narf_core.geometry import Pinhole
+from narf_core.train.track_sigma import COVERAGE, track_calibration
 
-COVERAGE = 0.95
 PIXELS_GRID = np.geomspace(0.05, 50.0, 300)
 
 
@@ -173,51 +172,6 @@ def coverage(rows: list[dict], calibration: dict) -> dict[str, float]:
     """The share of rows inside their 95 % region, per preset (and the tracker)."""
     return {p: float(np.mean([inside(r, calibration) for r in rows if r["preset"] == p]))
             for p in sorted({r["preset"] for r in rows})}
-
-
-def track_nees(model: NarfModel, dataset: Dataset, rgb_only: bool, seed: int = 0) -> list[float]:
-    """The default tracker over a sequence from its first label (as ``narf bench track``); per frame
-    with a covariance, the NEES of its true error under the frame's Σ before the tracker's factor
-    (``sigma_scale`` 1: the NEES at the factor used times its square)."""
-    from narf_core.track import SIGMA_SCALE, TrackOptions, track
-    from narf_core.track_io import load_frames, sequence_frames
-
-    pooled = {key: SIGMA_SCALE[TrackOptions().solver_for(key == "rgbd")][key] for key in ("rgbd", "rgb")}
-    scale = pooled["rgb" if rgb_only else "rgbd"]  # the pooled factor: the track does not see a model's own
-    options = TrackOptions(first_frame="warm", seed=seed, sigma_scale=pooled["rgbd"], sigma_scale_rgb=pooled["rgb"])
-    frames = sequence_frames(dataset)
-    nees = []
-    for frame, result in zip(frames, track(model, load_frames(dataset, frames, rgb_only=rgb_only), dataset.camera,
-                                           frames[0].T_cam_obj, frames[0].joints, options)):
-        if result.status != "lost" and result.covariance is not None:
-            e = E.local_error(result.T_cam_obj, result.joints, frame.T_cam_obj, frame.joints, model)
-            nees.append(float(e @ np.linalg.pinv(result.covariance, hermitian=True) @ e) * scale**2)
-    return nees
-
-
-def fit_track_scale(nees: list[float], dof: int, share: float = COVERAGE) -> float:
-    """The smallest factor on σ (0.1 steps) whose 95 % regions hold ``share`` of the errors whose
-    NEES at factor 1 are ``nees`` (a factor ``s`` divides each NEES by ``s²``)."""
-    if not nees:
-        raise ValueError("no tracked frame with a covariance to fit the factor on")
-    needed = float(np.quantile(np.asarray(nees), share, method="inverted_cdf"))
-    return max(0.1, math.ceil(round(10 * math.sqrt(needed / E.chi2_quantile(COVERAGE, dof)), 9)) / 10)
-
-
-def track_calibration(model: NarfModel, datasets: list[Dataset], modalities=("rgbd", "rgb")) -> dict:
-    """``metadata["uncertainty"]["track"]``: per modality the factor on a warm-started frame's σ
-    (:func:`narf_core.track.sigma_scale`) fitted on the pooled frames of ``datasets``' sequences (one
-    camera, its focal length ``fx`` in pixels), and the solver it was fitted with (``solvers``: the
-    default tracker's for that modality)."""
-    from narf_core.track import TrackOptions
-
-    out: dict = {"solvers": {}, "fx": float(datasets[0].camera.K[0, 0])}
-    for modality in modalities:
-        nees = [n for dataset in datasets for n in track_nees(model, dataset, modality == "rgb")]
-        out[modality] = fit_track_scale(nees, 6 + len(model.joints))
-        out[f"{modality}_frames"] = len(nees)
-        out["solvers"][modality] = TrackOptions().solver_for(modality == "rgbd")
-    return out
 
 
 def write_calibration(path: Path, key: str | None, value: dict) -> None:

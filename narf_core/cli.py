@@ -511,6 +511,8 @@ def _add_train(commands: argparse._SubParsersAction) -> None:
         "renders at random points of its box away from its own surfaces, so that it leaves empty what no "
         "training view shows (default 0.1; 0: off)")
     arg("--no-parts", action="store_true", help="leave the part fields out of the bundle (no 'parts' mode)")
+    arg("--track-sequences", type=_non_negative_int, metavar="N", help="fit the tracker's own factor on σ on N "
+        "smooth 60-frame sequences of the dataset's object, about 20 s each (default 3; 0: the pooled factor)")
     arg("--seed", type=_non_negative_int, default=0)
     parser.set_defaults(run=_run_train, auto_threads_max=None)  # batches of thousands of rays with backward
 
@@ -520,7 +522,7 @@ def _run_train(args: argparse.Namespace) -> int:
 
     overrides = {"part_steps": args.part_steps, "distill_steps": args.distill_steps, "batch_rays": args.batch_rays,
                  "composites": args.composites, "free_space_weight": args.free_space_weight,
-                 "sparsity_weight": args.sparsity_weight}
+                 "sparsity_weight": args.sparsity_weight, "track_sequences": args.track_sequences}
     try:
         config = TrainConfig(arch=args.arch, field=args.field, budget_s=args.budget, seed=args.seed, keep_parts=not args.no_parts)
         config = replace(config.for_arch(), **{k: v for k, v in overrides.items() if v is not None})
@@ -531,7 +533,18 @@ def _run_train(args: argparse.Namespace) -> int:
     out = train(args.dataset, args.out, config, command=shlex.join(["narf", *args.argv]), progress=True)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB) in {time.perf_counter() - start:.0f} s")
     _print_auto_mode(out)
+    _print_track_sigma(out)
     return 0
+
+
+def _print_track_sigma(bundle: Path) -> None:
+    """The tracker's own factors on σ that training fitted, if it did."""
+    from narf_core.bundle import load_bundle
+
+    fitted = (load_bundle(bundle).metadata.get("uncertainty") or {}).get("track")
+    if fitted:
+        print(f"  tracker's factor on σ: RGB-D {fitted['rgbd']:g}, RGB only {fitted['rgb']:g} (fitted on "
+              f"{fitted['rgbd_frames']} / {fitted['rgb_frames']} frames of {len(fitted['seeds'])} sequences)")
 
 
 def _print_auto_mode(bundle: Path) -> None:

@@ -22,7 +22,8 @@ def tiny_config(**overrides):
     its part fields)."""
     from narf_core.train.pipeline import TrainConfig
 
-    settings = {"part_steps": 30, "distill_steps": 30, "batch_rays": 256, "grid_resolution": 32, "field": "distilled", **overrides}
+    settings = {"part_steps": 30, "distill_steps": 30, "batch_rays": 256, "grid_resolution": 32, "field": "distilled",
+                "track_sequences": 0, **overrides}
     return TrainConfig(**settings)
 
 

@@ -77,7 +77,7 @@ def view(tiny_dataset, tmp_path_factory):
 def test_train_writes_a_bundle_with_its_command(capsys, tiny_dataset, tmp_path):
     out = tmp_path / "m.narf"
     argv = ["train", tiny_dataset, "--out", out, "--part-steps", "1", "--distill-steps", "1", "--batch-rays", "64",
-            "--no-parts", "--sparsity-weight", "0.05"]
+            "--no-parts", "--sparsity-weight", "0.05", "--track-sequences", "0"]
     code, stdout, err = run(capsys, *argv)
     assert code == 0, err
     assert stdout.startswith(f"wrote {out} (")
@@ -88,6 +88,7 @@ def test_train_writes_a_bundle_with_its_command(capsys, tiny_dataset, tmp_path):
     assert provenance["command"] == "narf " + " ".join(str(a) for a in argv)  # what was typed, not pytest's argv
     assert provenance["config"]["part_steps"] == 1 and provenance["config"]["keep_parts"] is False
     assert provenance["config"]["sparsity_weight"] == 0.05  # the flag, not the default
+    assert provenance["config"]["track_sequences"] == 0 and "uncertainty" not in model.metadata
     from narf_core.data.dataset import Dataset
 
     camera = Dataset.open(tiny_dataset).camera

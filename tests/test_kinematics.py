@@ -538,7 +538,7 @@ def test_a_rigid_chain_of_fixed_joints_trains_end_to_end(tmp_path, assets):
     from narf_core.train.pipeline import TrainConfig, train
 
     data = synthesize(assets / "fixed_chain.urdf", tmp_path / "data", size=(48, 36), views=8, seed=0)
-    config = TrainConfig(part_steps=20, distill_steps=20, batch_rays=256, grid_resolution=24)
+    config = TrainConfig(part_steps=20, distill_steps=20, batch_rays=256, grid_resolution=24, track_sequences=0)
     model = load_bundle(train(data, tmp_path / "m.narf", config, progress=False))
     assert model.kinematics.n_joints == 0 and model.kinematics.part_names == ["a"]
     dataset = Dataset.open(data)
@@ -565,7 +565,7 @@ def test_mimic_continuous_and_fixed_chain_train_end_to_end(tmp_path, assets):
     from narf_core.train.pipeline import TrainConfig, train
 
     data = synthesize(assets / "mimic_gripper.urdf", tmp_path / "data", size=(48, 36), views=8, seed=0)
-    config = TrainConfig(part_steps=20, distill_steps=20, batch_rays=256, grid_resolution=24)
+    config = TrainConfig(part_steps=20, distill_steps=20, batch_rays=256, grid_resolution=24, track_sequences=0)
     model = load_bundle(train(data, tmp_path / "m.narf", config, progress=False))
     assert model.kinematics.joint_names == ["finger_a", "dial"]
     torch.testing.assert_close(model.kinematics.upper, torch.tensor([0.05, math.pi], dtype=torch.float64))

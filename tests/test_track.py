@@ -1040,11 +1040,12 @@ def test_sigma_scale_is_the_option_else_the_models_own_else_the_pooled_one(clamp
 
 
 def test_the_trackers_factor_is_fitted_to_hold_the_share_asked_and_stored_beside_the_rest(clamp, tmp_path: Path) -> None:
-    """``narf_benchmarks.calibration.fit_track_scale``: the smallest factor (0.1 steps) whose 95 %
+    """``narf_core.train.track_sigma.fit_track_scale``: the smallest factor (0.1 steps) whose 95 %
     regions hold the share asked of the errors (a factor ``s`` divides a NEES by ``s²``);
     ``write_calibration`` stores it in the bundle's ``metadata["uncertainty"]["track"]`` and keeps the
     model-error constants there, which :func:`~narf_core.track.sigma_scale` then reads."""
-    from narf_benchmarks.calibration import fit_track_scale, write_calibration
+    from narf_benchmarks.calibration import write_calibration
+    from narf_core.train.track_sigma import fit_track_scale
     from narf_core.bundle import load_bundle, save_bundle
     from narf_core.estimate import chi2_quantile
     from narf_core.track import TrackOptions, sigma_scale

@@ -69,6 +69,46 @@ def test_the_bundle_records_what_was_trained(tiny_bundle):
 
 
 @pytest.mark.slow
+def test_training_fits_the_trackers_own_factor_on_sequences_of_its_object(tiny_dataset, tmp_path):
+    """With ``track_sequences`` N, training tracks N smooth sequences of the dataset's object (seeds 1..N, at
+    its camera) and stores per modality the smallest factor whose 95 % regions hold 95 % of the frames' errors,
+    which the tracker then applies; a dataset that does not name its object keeps the pooled factor."""
+    import json
+    import shutil
+
+    from narf_core.track import SIGMA_SCALE, TrackOptions, sigma_scale
+    from narf_core.train.track_sigma import calibrate_tracker, fit_track_scale, track_nees
+
+    config = tiny_config(part_steps=40, distill_steps=40, field="articulated", track_sequences=1)
+    model = load_bundle(train(tiny_dataset, tmp_path / "m.narf", config, progress=False))
+    fitted = model.metadata["uncertainty"]["track"]
+    camera = Dataset.open(tiny_dataset).camera
+    assert fitted["seeds"] == [1] and fitted["fx"] == float(camera.K[0, 0])
+    assert fitted["rgbd_frames"] > 30 and fitted["rgb_frames"] > 30  # most of the 60 frames held
+    assert fitted["solvers"] == {"rgbd": TrackOptions().solver_for(True), "rgb": TrackOptions().solver_for(False)}
+    assert "track_sigma_s" in model.metadata["provenance"]["timings_s"]
+    assert not (tmp_path / "m.narf.work").exists()
+    # The factor is the fit of the frames' NEES on the same sequence (drawn again: the same frames).
+    again = calibrate_tracker(model, Dataset.open(tiny_dataset), tmp_path / "again", 1)
+    dataset = Dataset.open(tmp_path / "again" / "sequence-48x36-60-s1")
+    nees = track_nees(model, dataset, rgb_only=False)
+    assert again["rgbd"] == fitted["rgbd"] == fit_track_scale(nees, 7) and len(nees) == fitted["rgbd_frames"]
+    for depth, key in ((True, "rgbd"), (False, "rgb")):
+        assert sigma_scale(model, TrackOptions(), depth) == fitted[key]
+    # A dataset that does not say which object drew it: no sequences, the pooled factor.
+    shutil.copytree(tiny_dataset, tmp_path / "unnamed")
+    scene = json.loads((tmp_path / "unnamed" / "scene.json").read_text())
+    scene["generator"] = {}
+    (tmp_path / "unnamed" / "scene.json").write_text(json.dumps(scene))
+    assert calibrate_tracker(model, Dataset.open(tmp_path / "unnamed"), tmp_path / "none", 1) is None
+    assert not (tmp_path / "none").exists()
+    bare = load_bundle(train(tmp_path / "unnamed", tmp_path / "bare.narf", dataclasses.replace(config, part_steps=5,
+                                                                                                distill_steps=5)))
+    assert "uncertainty" not in bare.metadata
+    assert sigma_scale(bare, TrackOptions(), True) == SIGMA_SCALE[TrackOptions().solver_for(True)]["rgbd"]
+
+
+@pytest.mark.slow
 def test_the_articulated_field_is_trained_without_distillation_and_renders_like_the_parts(tiny_dataset, tmp_path):
     """``field="articulated"``: stage 2 copies the part fields into the configuration field (no
     distillation step runs), the bundle loads it back, and narf mode renders what parts mode renders."""
@@ -108,6 +148,8 @@ def test_an_unknown_configuration_field_is_refused_before_training():
         ("budget_s", -5.0, "must be None (no cap) or a finite number of seconds >= 0"),
         ("budget_s", float("inf"), "must be None"),
         ("keep_parts", 1, "must be true or false"),
+        ("track_sequences", 17, "must be in [0, 16]"),
+        ("track_sequences", -1, "must be in [0, 16]"),
     ],
 )
 def test_a_bad_training_setting_is_one_error_naming_its_field(field, value, reason):

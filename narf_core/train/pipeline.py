@@ -12,6 +12,7 @@ import json
 import math
 import shutil
 import subprocess
+import sys
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -19,7 +20,7 @@ from pathlib import Path
 import torch
 
 from narf_core import __version__
-from narf_core.bundle import NarfModel, march_step, save_bundle
+from narf_core.bundle import NarfModel, load_bundle, march_step, save_bundle
 from narf_core.checks import InputError, check_option_types, option_rule
 from narf_core.data.dataset import Dataset
 from narf_core.fields import ArticulatedField, make_field
@@ -30,6 +31,7 @@ from narf_core.occupancy import density_fn
 from narf_core.render import OccupancyGrid, render_rays
 from narf_core.train.distill import composite_rays
 from narf_core.train.loop import run_stage, save_atomic
+from narf_core.train.track_sigma import calibrate_tracker
 from narf_core.train.parts import (
     FreeRays, RayTargets, concat_free, concat_targets as _concat_targets, part_boxes, part_rays, part_surface_points,
 )
@@ -58,6 +60,10 @@ class TrainConfig:
     a clamp's jaw in its body, keeps what no view shows of it). On by default (0.1): it helps most where
     parts hide one another at the training configurations and costs the others little (docs/benchmarks.md).
 
+    ``track_sequences``: after both stages, the tracker's own factor on σ is fitted on this many smooth
+    60-frame sequences of the dataset's object (:mod:`narf_core.train.track_sigma`; about 20 s of CPU
+    each) where the dataset names the object that drew it; 0: none (the tracker's pooled factor applies).
+
     Every field is checked when the configuration is made: :class:`TrainInputError` names the first
     bad one (``options.<name>``).
     """
@@ -82,6 +88,7 @@ class TrainConfig:
     budget_s: float | None = None
     seed: int = 0
     keep_parts: bool = True
+    track_sequences: int = 3
 
     def __post_init__(self) -> None:
         check_option_types(self, TrainInputError)
@@ -108,6 +115,7 @@ class TrainConfig:
             "budget_s", "must be None (no cap) or a finite number of seconds >= 0",
         )
         need(self.seed >= 0, "seed", "must be >= 0")
+        need(0 <= self.track_sequences <= 16, "track_sequences", "must be in [0, 16] (0 = none)")
 
     def for_arch(self) -> TrainConfig:
         """This configuration with the learning rate suited to ``arch`` (MLPs want a smaller one)."""
@@ -331,13 +339,24 @@ def train(
     if record is not None:
         model.metadata[RECORD_KEY] = record
     save_bundle(out, model)
+    if config.track_sequences:  # the tracker's own factor on σ (narf_core/train/track_sigma.py), fitted on
+        started = time.perf_counter()  # the model as it loads (its stored surface points, fields and grids)
+        model = load_bundle(out)
+        fitted = calibrate_tracker(model, dataset, work / "sequences", config.track_sequences)
+        if fitted is not None:
+            model.metadata["uncertainty"] = {**(model.metadata.get("uncertainty") or {}), "track": fitted}
+            model.metadata["provenance"]["timings_s"]["track_sigma_s"] = time.perf_counter() - started
+            save_bundle(out, model)
+        elif progress:
+            print(f"narf train: the tracker's pooled factor on σ stays: {dataset_root} does not name an object "
+                  "to draw sequences of (or every tracked frame was lost)", file=sys.stderr)
     shutil.rmtree(work, ignore_errors=True)
     return out
 
 
 def _check_work_folder(work: Path, config: TrainConfig, dataset_hash: str) -> None:
     # Step counts and the budget only say how long to train: a resumed run may change them.
-    how_long = ("budget_s", "part_steps", "distill_steps")
+    how_long = ("budget_s", "part_steps", "distill_steps", "track_sequences")
     key = {"config": {k: v for k, v in asdict(config).items() if k not in how_long}, "dataset_hash": dataset_hash}
     key = json.loads(json.dumps(key))
     marker = work / "run.json"

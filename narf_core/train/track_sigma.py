@@ -1,0 +1,106 @@
+"""A model's own factor on the tracker's σ, fitted on smooth sequences of its object.
+
+A warm-started frame's covariance (:func:`narf_core.track.sigma_scale`) is scaled by a factor that
+makes its 95 % regions hold 95 % of the true errors. The pooled factors (:data:`narf_core.track.SIGMA_SCALE`)
+were fitted on a few tools; a model whose error differs from theirs (a thinner part, a coarser fit)
+is covered more or less than 95 % by them. Where the dataset says which object it drew (a procedural
+tool or a URDF: ``generator.tool``), training draws ``sequences`` smooth sequences of it (seeds 1, 2,
+...; the benchmarks' is seed 0) at the dataset's camera, tracks them from their first label with the
+default tracker, RGB-D and RGB only, and keeps per modality the smallest factor (0.1 steps) whose
+regions hold 95 % of the pooled frames' errors: ``metadata["uncertainty"]["track"]``.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from narf_core.bundle import NarfModel
+from narf_core.data.dataset import Dataset
+
+COVERAGE = 0.95
+SEQUENCE_FRAMES = 60
+
+
+def track_nees(model: NarfModel, dataset: Dataset, rgb_only: bool, seed: int = 0) -> list[float]:
+    """The default tracker over the sequence ``dataset`` from its first label; per frame with a
+    covariance, the NEES of its true error under the frame's Σ before the tracker's factor (``sigma_scale``
+    1: the NEES at the factor used times its square)."""
+    from narf_core.estimate import local_error
+    from narf_core.track import SIGMA_SCALE, TrackOptions, track
+    from narf_core.track_io import load_frames, sequence_frames
+
+    pooled = {key: SIGMA_SCALE[TrackOptions().solver_for(key == "rgbd")][key] for key in ("rgbd", "rgb")}
+    scale = pooled["rgb" if rgb_only else "rgbd"]  # the pooled factor: the track does not see a model's own
+    options = TrackOptions(first_frame="warm", seed=seed, sigma_scale=pooled["rgbd"], sigma_scale_rgb=pooled["rgb"])
+    frames = sequence_frames(dataset)
+    nees = []
+    for frame, result in zip(frames, track(model, load_frames(dataset, frames, rgb_only=rgb_only), dataset.camera,
+                                           frames[0].T_cam_obj, frames[0].joints, options)):
+        if result.status != "lost" and result.covariance is not None:
+            e = local_error(result.T_cam_obj, result.joints, frame.T_cam_obj, frame.joints, model)
+            nees.append(float(e @ np.linalg.pinv(result.covariance, hermitian=True) @ e) * scale**2)
+    return nees
+
+
+def fit_track_scale(nees: list[float], dof: int, share: float = COVERAGE) -> float:
+    """The smallest factor on σ (0.1 steps) whose 95 % regions hold ``share`` of the errors whose
+    NEES at factor 1 are ``nees`` (a factor ``s`` divides each NEES by ``s²``)."""
+    from narf_core.estimate import chi2_quantile
+
+    if not nees:
+        raise ValueError("no tracked frame with a covariance to fit the factor on")
+    needed = float(np.quantile(np.asarray(nees), share, method="inverted_cdf"))
+    return max(0.1, math.ceil(round(10 * math.sqrt(needed / chi2_quantile(COVERAGE, dof)), 9)) / 10)
+
+
+def track_calibration(model: NarfModel, datasets: list[Dataset], modalities=("rgbd", "rgb")) -> dict:
+    """``metadata["uncertainty"]["track"]``: per modality the factor on a warm-started frame's σ
+    (:func:`narf_core.track.sigma_scale`) fitted on the pooled frames of ``datasets``' sequences (one
+    camera, its focal length ``fx`` in pixels), and the solver it was fitted with (``solvers``: the
+    default tracker's for that modality)."""
+    from narf_core.track import TrackOptions
+
+    out: dict = {"solvers": {}, "fx": float(datasets[0].camera.K[0, 0])}
+    for modality in modalities:
+        nees = [n for dataset in datasets for n in track_nees(model, dataset, modality == "rgb")]
+        out[modality] = fit_track_scale(nees, 6 + len(model.joints))
+        out[f"{modality}_frames"] = len(nees)
+        out["solvers"][modality] = TrackOptions().solver_for(modality == "rgbd")
+    return out
+
+
+def sequence_folders(dataset: Dataset, work: Path, sequences: int, frames: int = SEQUENCE_FRAMES) -> list[Path] | None:
+    """Smooth sequences of ``dataset``'s object (seeds 1 to ``sequences``) at its camera's size, drawn
+    into ``work`` where missing; None where the dataset does not name the object that drew it (a
+    dataset of real images) or its URDF is gone."""
+    from narf_core.data.synth.sequence import synthesize_sequence
+
+    tool = dataset.generator.get("tool")
+    if not isinstance(tool, str) or (tool.endswith(".urdf") and not Path(tool).is_file()):
+        return None
+    size = (dataset.camera.width, dataset.camera.height)
+    folders = []
+    for seed in range(1, sequences + 1):
+        out = Path(work) / f"sequence-{size[0]}x{size[1]}-{frames}-s{seed}"
+        if not (out / "scene.json").is_file():
+            synthesize_sequence(tool, out, frames, size=size, seed=seed, events=False, overwrite=True)
+        folders.append(out)
+    return folders
+
+
+def calibrate_tracker(model: NarfModel, dataset: Dataset, work: Path, sequences: int,
+                      frames: int = SEQUENCE_FRAMES) -> dict | None:
+    """The model's own tracker factors (:func:`track_calibration`) on ``sequences`` smooth sequences of
+    ``dataset``'s object drawn into ``work``, with the ``seeds`` they were drawn from; None where none can
+    be drawn (:func:`sequence_folders`) or none of a modality's frames was held."""
+    folders = sequence_folders(dataset, work, sequences, frames)
+    if not folders:
+        return None
+    try:
+        fitted = track_calibration(model, [Dataset.open(f) for f in folders])
+    except ValueError:  # every frame lost: no factor to fit (the pooled one stays)
+        return None
+    return {**fitted, "seeds": list(range(1, sequences + 1))}
