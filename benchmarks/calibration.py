@@ -26,8 +26,10 @@ the clamp, those without depth on the clamp and lineman-a pooled).
 
 fits only the tracker's own factor on a warm-started frame's σ (:func:`narf_core.track.sigma_scale`),
 per modality (RGB-D, RGB only), for that model: its default tracker over smooth 60-frame sequences of
-seeds 1-4 (``--track-seeds``), the smallest factor (0.1 steps) whose 95 % regions hold 95 % of the
-pooled frames' errors; ``--write-bundle`` stores it under ``metadata["uncertainty"]["track"]``.
+seeds 1-4 (``--track-seeds``) at 160x120 and at 640x480, the smallest factor (0.1 steps) whose 95 %
+regions hold 95 % of the pooled frames' errors (:mod:`narf_core.train.track_sigma`, which ``narf train``
+runs on seeds 1-3 of its dataset's object); ``--write-bundle`` stores it under
+``metadata["uncertainty"]["track"]``.
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ from narf_core.bundle import NarfModel, load_bundle, save_bundle
 from narf_core.data.dataset import Dataset
 from narf_core.modes import choose_mode
 from narf_core.geometry import Pinhole
-from narf_core.train.track_sigma import COVERAGE, track_calibration
+from narf_core.train.track_sigma import COVERAGE, calibrate_tracker
 
 PIXELS_GRID = np.geomspace(0.05, 50.0, 300)
 
@@ -209,11 +211,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     model = load_bundle(args.model)
     if args.tracker:
-        factors = track_calibration(model, [Dataset.open(sequence(args.work, args.tool, (160, 120), args.frames, False,
-                                                                  seed=seed)) for seed in args.track_seeds])
+        factors = calibrate_tracker(model, args.tool, (160, 120), args.work / "track", args.track_seeds, args.frames)
         print(json.dumps({"track": factors}, indent=1))
         if args.write_bundle:
-            write_calibration(args.write_bundle, "track", {**factors, "seeds": args.track_seeds})
+            write_calibration(args.write_bundle, "track", factors)
         return 0
     if args.data is not None:
         try:

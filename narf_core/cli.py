@@ -542,9 +542,10 @@ def _print_track_sigma(bundle: Path) -> None:
     from narf_core.bundle import load_bundle
 
     fitted = (load_bundle(bundle).metadata.get("uncertainty") or {}).get("track")
-    if fitted:
-        print(f"  tracker's factor on σ: RGB-D {fitted['rgbd']:g}, RGB only {fitted['rgb']:g} (fitted on "
-              f"{fitted['rgbd_frames']} / {fitted['rgb_frames']} frames of {len(fitted['seeds'])} sequences)")
+    for fit in (fitted, (fitted or {}).get("fine")):
+        if fit:
+            print(f"  tracker's factor on σ at fx {fit['fx']:g} px: RGB-D {fit['rgbd']:g}, RGB only {fit['rgb']:g} "
+                  f"(fitted on {fit['rgbd_frames']} / {fit['rgb_frames']} frames of {len(fitted['seeds'])} sequences)")
 
 
 def _print_auto_mode(bundle: Path) -> None:

@@ -894,8 +894,9 @@ def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool, camera: Pi
     ``rgbd`` / ``rgb``, fitted with the solvers under ``solvers``: "adam" where that is absent, on
     sequences of a camera of focal length ``fx`` in pixels), else :data:`SIGMA_SCALE`'s (fitted at the
     training views' resolution). A pooled or own factor, for a ``camera`` finer than the one it was
-    fitted at, is multiplied by their ratio to the power :data:`SIGMA_SCALE_FINER`; an own factor
-    that does not name its camera is taken as it is."""
+    fitted at, is multiplied by their ratio to the power :data:`SIGMA_SCALE_FINER`, or, for an own factor
+    also fitted at a finer camera (``fine``: its ``fx`` and factors), to the power that joins the two
+    fits; an own factor that does not name its camera is taken as it is."""
     key, solver = "rgbd" if depth else "rgb", options.solver_for(depth)
     chosen = options.sigma_scale if depth else options.sigma_scale_rgb
     if chosen:
@@ -906,7 +907,11 @@ def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool, camera: Pi
     if camera is None or not fitted_fx:
         return float(factor)
     finer = max(1.0, float(camera.K[0, 0]) / float(fitted_fx))
-    return float(factor * finer ** SIGMA_SCALE_FINER.get(solver, {}).get(key, 0.0))
+    exponent = SIGMA_SCALE_FINER.get(solver, {}).get(key, 0.0)
+    fine = track.get("fine") or {}
+    if own and fine.get(key) and fine.get("fx", 0) > fitted_fx:  # fitted at a finer camera too: its own growth
+        exponent = math.log(fine[key] / own) / math.log(fine["fx"] / fitted_fx)
+    return float(factor * finer ** exponent)
 
 
 def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None,

@@ -70,38 +70,47 @@ def test_the_bundle_records_what_was_trained(tiny_bundle):
 
 @pytest.mark.slow
 def test_training_fits_the_trackers_own_factor_on_sequences_of_its_object(tiny_dataset, tmp_path):
-    """With ``track_sequences`` N, training tracks N smooth sequences of the dataset's object (seeds 1..N, at
-    its camera) and stores per modality the smallest factor whose 95 % regions hold 95 % of the frames' errors,
-    which the tracker then applies; a dataset that does not name its object keeps the pooled factor."""
+    """With ``track_sequences`` N, training tracks N smooth sequences of the dataset's object (seeds 1..N) at
+    its camera and at one 4x finer, and stores per modality the smallest factor whose 95 % regions hold 95 %
+    of the frames' errors, which the tracker then applies (between the two cameras on the power that joins
+    them); a dataset that does not name its object keeps the pooled factor."""
     import json
     import shutil
 
+    from narf_core.geometry import Pinhole
     from narf_core.track import SIGMA_SCALE, TrackOptions, sigma_scale
-    from narf_core.train.track_sigma import calibrate_tracker, fit_track_scale, track_nees
+    from narf_core.train.track_sigma import calibrate_tracker, dataset_tool, fine_size, fit_track_scale, track_nees
 
     config = tiny_config(part_steps=40, distill_steps=40, field="articulated", track_sequences=1)
     model = load_bundle(train(tiny_dataset, tmp_path / "m.narf", config, progress=False))
     fitted = model.metadata["uncertainty"]["track"]
     camera = Dataset.open(tiny_dataset).camera
+    assert fine_size((48, 36)) == (192, 144) and fine_size((160, 120)) == (640, 480) and fine_size((640, 480)) is None
     assert fitted["seeds"] == [1] and fitted["fx"] == float(camera.K[0, 0])
-    assert fitted["rgbd_frames"] > 30 and fitted["rgb_frames"] > 30  # most of the 60 frames held
+    assert fitted["fine"]["fx"] == pytest.approx(4 * float(camera.K[0, 0]))
+    for fit in (fitted, fitted["fine"]):
+        assert fit["rgbd_frames"] > 30 and fit["rgb_frames"] > 30  # most of the 60 frames held
     assert fitted["solvers"] == {"rgbd": TrackOptions().solver_for(True), "rgb": TrackOptions().solver_for(False)}
     assert "track_sigma_s" in model.metadata["provenance"]["timings_s"]
     assert not (tmp_path / "m.narf.work").exists()
     # The factor is the fit of the frames' NEES on the same sequence (drawn again: the same frames).
-    again = calibrate_tracker(model, Dataset.open(tiny_dataset), tmp_path / "again", 1)
-    dataset = Dataset.open(tmp_path / "again" / "sequence-48x36-60-s1")
-    nees = track_nees(model, dataset, rgb_only=False)
-    assert again["rgbd"] == fitted["rgbd"] == fit_track_scale(nees, 7) and len(nees) == fitted["rgbd_frames"]
+    again = calibrate_tracker(model, dataset_tool(Dataset.open(tiny_dataset)), (48, 36), tmp_path / "again", [1])
+    nees = track_nees(model, Dataset.open(tmp_path / "again" / "sequence-48x36-60-s1"), rgb_only=False)
+    assert again == fitted and fitted["rgbd"] == fit_track_scale(nees, 7) and len(nees) == fitted["rgbd_frames"]
     for depth, key in ((True, "rgbd"), (False, "rgb")):
         assert sigma_scale(model, TrackOptions(), depth) == fitted[key]
+        assert sigma_scale(model, TrackOptions(), depth, camera) == pytest.approx(fitted[key])
+        finer = Pinhole(camera.K * torch.tensor([[4.0], [4.0], [1.0]]), 192, 144)
+        assert sigma_scale(model, TrackOptions(), depth, finer) == pytest.approx(fitted["fine"][key])
+        twice = Pinhole(camera.K * torch.tensor([[2.0], [2.0], [1.0]]), 96, 72)  # between: the geometric mean
+        assert sigma_scale(model, TrackOptions(), depth, twice) == pytest.approx(
+            math.sqrt(fitted[key] * fitted["fine"][key]))
     # A dataset that does not say which object drew it: no sequences, the pooled factor.
     shutil.copytree(tiny_dataset, tmp_path / "unnamed")
     scene = json.loads((tmp_path / "unnamed" / "scene.json").read_text())
     scene["generator"] = {}
     (tmp_path / "unnamed" / "scene.json").write_text(json.dumps(scene))
-    assert calibrate_tracker(model, Dataset.open(tmp_path / "unnamed"), tmp_path / "none", 1) is None
-    assert not (tmp_path / "none").exists()
+    assert dataset_tool(Dataset.open(tmp_path / "unnamed")) is None
     bare = load_bundle(train(tmp_path / "unnamed", tmp_path / "bare.narf", dataclasses.replace(config, part_steps=5,
                                                                                                 distill_steps=5)))
     assert "uncertainty" not in bare.metadata

@@ -31,7 +31,7 @@ from narf_core.occupancy import density_fn
 from narf_core.render import OccupancyGrid, render_rays
 from narf_core.train.distill import composite_rays
 from narf_core.train.loop import run_stage, save_atomic
-from narf_core.train.track_sigma import calibrate_tracker
+from narf_core.train.track_sigma import calibrate_tracker, dataset_tool
 from narf_core.train.parts import (
     FreeRays, RayTargets, concat_free, concat_targets as _concat_targets, part_boxes, part_rays, part_surface_points,
 )
@@ -341,8 +341,13 @@ def train(
     save_bundle(out, model)
     if config.track_sequences:  # the tracker's own factor on σ (narf_core/train/track_sigma.py), fitted on
         started = time.perf_counter()  # the model as it loads (its stored surface points, fields and grids)
-        model = load_bundle(out)
-        fitted = calibrate_tracker(model, dataset, work / "sequences", config.track_sequences)
+        model, tool, fitted = load_bundle(out), dataset_tool(dataset), None
+        size = (dataset.camera.width, dataset.camera.height)
+        try:
+            if tool is not None:
+                fitted = calibrate_tracker(model, tool, size, work / "sequences", list(range(1, config.track_sequences + 1)))
+        except ValueError:  # every frame of a modality lost: nothing to fit on
+            pass
         if fitted is not None:
             model.metadata["uncertainty"] = {**(model.metadata.get("uncertainty") or {}), "track": fitted}
             model.metadata["provenance"]["timings_s"]["track_sigma_s"] = time.perf_counter() - started

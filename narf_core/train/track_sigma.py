@@ -7,7 +7,9 @@ is covered more or less than 95 % by them. Where the dataset says which object i
 tool or a URDF: ``generator.tool``), training draws ``sequences`` smooth sequences of it (seeds 1, 2,
 ...; the benchmarks' is seed 0) at the dataset's camera, tracks them from their first label with the
 default tracker, RGB-D and RGB only, and keeps per modality the smallest factor (0.1 steps) whose
-regions hold 95 % of the pooled frames' errors: ``metadata["uncertainty"]["track"]``.
+regions hold 95 % of the pooled frames' errors: ``metadata["uncertainty"]["track"]``; the same again at
+a camera's native 640x480 (four times finer than 160x120 views), where a model's σ need not follow the
+pooled factor's growth with the camera's fineness.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from narf_core.data.dataset import Dataset
 
 COVERAGE = 0.95
 SEQUENCE_FRAMES = 60
+FINE_WIDTH = 640
 
 
 def track_nees(model: NarfModel, dataset: Dataset, rgb_only: bool, seed: int = 0) -> list[float]:
@@ -72,18 +75,22 @@ def track_calibration(model: NarfModel, datasets: list[Dataset], modalities=("rg
     return out
 
 
-def sequence_folders(dataset: Dataset, work: Path, sequences: int, frames: int = SEQUENCE_FRAMES) -> list[Path] | None:
-    """Smooth sequences of ``dataset``'s object (seeds 1 to ``sequences``) at its camera's size, drawn
-    into ``work`` where missing; None where the dataset does not name the object that drew it (a
-    dataset of real images) or its URDF is gone."""
+def fine_size(size: tuple[int, int]) -> tuple[int, int] | None:
+    """The finer camera a factor is also fitted at: ``size`` times the whole number nearest to reach
+    :data:`FINE_WIDTH` pixels across, at most 4 (a camera's native 640x480 for 160x120 training views);
+    None where ``size`` is that fine already."""
+    k = min(4, round(FINE_WIDTH / size[0]))
+    return (size[0] * k, size[1] * k) if k > 1 else None
+
+
+def sequence_folders(tool: str, size: tuple[int, int], work: Path, seeds: list[int],
+                     frames: int = SEQUENCE_FRAMES) -> list[Path]:
+    """Smooth sequences of ``tool`` (a procedural object's name or a URDF) of ``seeds`` at ``size``, drawn
+    into ``work`` where missing."""
     from narf_core.data.synth.sequence import synthesize_sequence
 
-    tool = dataset.generator.get("tool")
-    if not isinstance(tool, str) or (tool.endswith(".urdf") and not Path(tool).is_file()):
-        return None
-    size = (dataset.camera.width, dataset.camera.height)
     folders = []
-    for seed in range(1, sequences + 1):
+    for seed in seeds:
         out = Path(work) / f"sequence-{size[0]}x{size[1]}-{frames}-s{seed}"
         if not (out / "scene.json").is_file():
             synthesize_sequence(tool, out, frames, size=size, seed=seed, events=False, overwrite=True)
@@ -91,16 +98,26 @@ def sequence_folders(dataset: Dataset, work: Path, sequences: int, frames: int =
     return folders
 
 
-def calibrate_tracker(model: NarfModel, dataset: Dataset, work: Path, sequences: int,
-                      frames: int = SEQUENCE_FRAMES) -> dict | None:
-    """The model's own tracker factors (:func:`track_calibration`) on ``sequences`` smooth sequences of
-    ``dataset``'s object drawn into ``work``, with the ``seeds`` they were drawn from; None where none can
-    be drawn (:func:`sequence_folders`) or none of a modality's frames was held."""
-    folders = sequence_folders(dataset, work, sequences, frames)
-    if not folders:
+def calibrate_tracker(model: NarfModel, tool: str, size: tuple[int, int], work: Path, seeds: list[int],
+                      frames: int = SEQUENCE_FRAMES) -> dict:
+    """The model's own tracker factors (:func:`track_calibration`) on smooth sequences of ``tool`` of
+    ``seeds`` at ``size`` (its views' camera) and, under ``fine``, at :func:`fine_size` (where
+    :func:`narf_core.track.sigma_scale` interpolates between the two cameras), drawn into ``work``; with
+    the ``seeds``. A ``ValueError`` where a modality held no frame."""
+    def fitted(at: tuple[int, int]) -> dict:
+        return track_calibration(model, [Dataset.open(f) for f in sequence_folders(tool, at, work, seeds, frames)])
+
+    out = {**fitted(size), "seeds": list(seeds)}
+    fine = fine_size(size)
+    if fine is not None:
+        out["fine"] = {k: v for k, v in fitted(fine).items() if k != "solvers"}
+    return out
+
+
+def dataset_tool(dataset: Dataset) -> str | None:
+    """The object that drew ``dataset`` (a procedural object's name or a URDF that still exists), from its
+    generator's record; None for a dataset that does not name one (real images)."""
+    tool = dataset.generator.get("tool")
+    if not isinstance(tool, str) or (tool.endswith(".urdf") and not Path(tool).is_file()):
         return None
-    try:
-        fitted = track_calibration(model, [Dataset.open(f) for f in folders])
-    except ValueError:  # every frame lost: no factor to fit (the pooled one stays)
-        return None
-    return {**fitted, "seeds": list(range(1, sequences + 1))}
+    return tool
