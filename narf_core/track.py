@@ -896,7 +896,8 @@ def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool, camera: Pi
     training views' resolution). A pooled or own factor, for a ``camera`` finer than the one it was
     fitted at, is multiplied by their ratio to the power :data:`SIGMA_SCALE_FINER`, or, for an own factor
     also fitted at a finer camera (``fine``: its ``fx`` and factors), to the power that joins the two
-    fits; an own factor that does not name its camera is taken as it is."""
+    fits (and the finer fit's as it is for a camera finer still); an own factor that does not name its
+    camera is taken as it is."""
     key, solver = "rgbd" if depth else "rgb", options.solver_for(depth)
     chosen = options.sigma_scale if depth else options.sigma_scale_rgb
     if chosen:
@@ -909,8 +910,9 @@ def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool, camera: Pi
     finer = max(1.0, float(camera.K[0, 0]) / float(fitted_fx))
     exponent = SIGMA_SCALE_FINER.get(solver, {}).get(key, 0.0)
     fine = track.get("fine") or {}
-    if own and fine.get(key) and fine.get("fx", 0) > fitted_fx:  # fitted at a finer camera too: its own growth
-        exponent = math.log(fine[key] / own) / math.log(fine["fx"] / fitted_fx)
+    if own and fine.get(key) and fine.get("fx", 0) > fitted_fx:  # fitted at a finer camera too: its own growth,
+        exponent = math.log(fine[key] / own) / math.log(fine["fx"] / fitted_fx)  # up to that camera
+        finer = min(finer, fine["fx"] / fitted_fx)
     return float(factor * finer ** exponent)
 
 

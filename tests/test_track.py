@@ -964,7 +964,8 @@ def test_sigma_scale_grows_at_a_camera_finer_than_the_training_views(clamp, monk
     """SIGMA_SCALE's factor is the training views' resolution's; a camera ``r`` times finer (fx over
     theirs) multiplies it by ``r ** SIGMA_SCALE_FINER`` (with depth, Gauss-Newton: 4x finer, 5/3 of the
     factor), a coarser one leaves it; an option is taken as it is, a model's own factor by the same law
-    from the camera it was fitted at (``fx``), or as it is where it does not name one."""
+    from the camera it was fitted at (``fx``), or as it is where it does not name one, or, fitted at a
+    finer camera too, by the power that joins its two fits up to that camera."""
     from narf_core.geometry import Pinhole
     from narf_core.track import SIGMA_SCALE, SIGMA_SCALE_FINER, TrackOptions, sigma_scale
 
@@ -986,6 +987,16 @@ def test_sigma_scale_grows_at_a_camera_finer_than_the_training_views(clamp, monk
         "gauss-newton"]["rgbd"])
     for camera in (same, None):
         assert sigma_scale(clamp, TrackOptions(), True, camera) == 1.3
+    # Fitted at a finer camera too (``fine``): the power that joins the two fits, for either modality.
+    fitted_fine = float(Pinhole.primesense(1280, 960).K[0, 0])
+    clamp.metadata["uncertainty"]["track"] = {"rgbd": 1.3, "rgb": 2.0, "fx": fitted_at,
+                                              "solvers": {"rgbd": "gauss-newton", "rgb": "gauss-newton"},
+                                              "fine": {"fx": fitted_fine, "rgbd": 0.325, "rgb": 2.0}}
+    assert sigma_scale(clamp, TrackOptions(), True, fine) == pytest.approx(0.65)  # halfway (x2 of x4): 1.3 / 2
+    for finest in (Pinhole.primesense(1280, 960), Pinhole.primesense(2560, 1920)):  # finer still: the finer fit's
+        assert sigma_scale(clamp, TrackOptions(), True, finest) == pytest.approx(0.325)
+    assert sigma_scale(clamp, TrackOptions(), False, fine) == pytest.approx(2.0)
+    assert sigma_scale(clamp, TrackOptions(), True, same) == 1.3  # coarser than the fit: the fit's
 
 
 def test_sigma_scale_is_the_option_else_the_models_own_else_the_pooled_one(clamp, clamp_sequence: Path,
