@@ -499,7 +499,8 @@ def _add_train(commands: argparse._SubParsersAction) -> None:
     arg("--field", choices=("articulated", "distilled"), default="articulated",
         help="configuration field (default: %(default)s; articulated needs --arch kplanes and a joint, "
              "else the distilled field is trained)")
-    arg("--budget", type=_non_negative_float, metavar="SECONDS", help="total training time cap")
+    arg("--budget", type=_non_negative_float, metavar="SECONDS", help="time cap of the two training stages (the modes' measurement and the tracker's fit after them "
+        "take 1-2 min more on one thread)")
     arg("--part-steps", type=_positive_int, metavar="N", help="stage-1 steps per part")
     arg("--distill-steps", type=_positive_int, metavar="N", help="stage-2 steps")
     arg("--batch-rays", type=_positive_int, metavar="N", help="rays per step")

@@ -39,7 +39,8 @@ from narf_core.train.parts import (
 
 @dataclass
 class TrainConfig:
-    """Hyper-parameters of both stages; ``budget_s`` caps the total training time.
+    """Hyper-parameters of both stages; ``budget_s`` caps their training time (the measurement of the render
+    modes and the tracker's fit that follow are not counted).
 
     ``field``: the configuration field. ``articulated`` (:class:`~narf_core.fields.ArticulatedField`)
     holds the part fields' K-planes and the forward kinematics, so stage 2 takes seconds (the part
