@@ -342,20 +342,20 @@ def train(
     save_bundle(out, model)
     if config.track_sequences:  # the tracker's own factor on σ (narf_core/train/track_sigma.py), fitted on
         started = time.perf_counter()  # the model as it loads (its stored surface points, fields and grids)
-        model, tool, fitted = load_bundle(out), dataset_tool(dataset), None
+        model, tool = load_bundle(out), dataset_tool(dataset)
         size = (dataset.camera.width, dataset.camera.height)
-        try:
-            if tool is not None:
+        why = f"{dataset_root} does not name an object to draw sequences of"
+        if tool is not None:
+            try:
                 fitted = calibrate_tracker(model, tool, size, work / "sequences", list(range(1, config.track_sequences + 1)))
-        except ValueError:  # every frame of a modality lost: nothing to fit on
-            pass
-        if fitted is not None:
-            model.metadata["uncertainty"] = {**(model.metadata.get("uncertainty") or {}), "track": fitted}
-            model.metadata["provenance"]["timings_s"]["track_sigma_s"] = time.perf_counter() - started
-            save_bundle(out, model)
-        elif progress:
-            print(f"narf train: the tracker's pooled factor on σ stays: {dataset_root} does not name an object "
-                  "to draw sequences of (or every tracked frame was lost)", file=sys.stderr)
+                model.metadata["uncertainty"] = {**(model.metadata.get("uncertainty") or {}), "track": fitted}
+                model.metadata["provenance"]["timings_s"]["track_sigma_s"] = time.perf_counter() - started
+                save_bundle(out, model)
+                why = None
+            except ValueError as e:  # e.g. every frame of a modality lost: nothing to fit on
+                why = str(e)
+        if why is not None and progress:
+            print(f"narf train: the tracker's pooled factor on σ stays: {why}", file=sys.stderr)
     shutil.rmtree(work, ignore_errors=True)
     return out
 
