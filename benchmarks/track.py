@@ -190,7 +190,7 @@ def markdown(result: dict) -> str:
         + "." + describe_machine(result.get("machine")),
         "",
         "| tool | size | input | events | frames/s (all / after the 1st) | frames per CPU second (after the 1st) "
-        "| ADD mean / p95 / max (cm) | joint error mean / p95 / max | lost | re-init. | NEES 95% coverage |",
+        "| ADD mean / p95 / max (cm) | joint error mean / p95 / max | lost | re-init. | NEES 95% coverage (σ factor) |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result["runs"]:
@@ -202,7 +202,8 @@ def markdown(result: dict) -> str:
             + (f"{add['mean'] * 100:.2f} / {add['p95'] * 100:.2f} / {add['max'] * 100:.2f}" if add else "-") + " | "
             + _joint_cell(r)
             + f" | {r['lost']} | {r['reinitialised']} | "
-            + (f"{r['nees_coverage_95']:.2f}" if r["nees_coverage_95"] is not None else "-") + " |"
+            + (f"{r['nees_coverage_95']:.2f}" if r["nees_coverage_95"] is not None else "-")
+            + (f" (×{r['sigma_scale']:.2f})" if r.get("sigma_scale") else "") + " |"
         )
     service = result.get("service")
     if service:

@@ -1083,7 +1083,8 @@ def test_the_trackers_factor_is_fitted_to_hold_the_share_asked_and_stored_beside
 
 def test_bench_track_prints_joint_errors_in_mm_or_degrees() -> None:
     """``narf bench track``'s table gives a prismatic joint's error in mm and a revolute one's in
-    degrees (the result keeps metres and radians)."""
+    degrees (the result keeps metres and radians), and beside the NEES coverage the factor on σ it was
+    measured at."""
     from narf_benchmarks.track import markdown
     from narf_core.track import TrackOptions
 
@@ -1092,12 +1093,13 @@ def test_bench_track_prints_joint_errors_in_mm_or_degrees() -> None:
         return {"tool": "t", "size": [160, 120], "modality": "rgbd", "events": False, "frames_per_second": 10.0,
                 "frames_per_second_tracking": 10.0, "frames_per_cpu_second_tracking": 10.0, "lost": 0,
                 "reinitialised": 0, "nees_coverage_95": 0.95, "add_m": {"mean": 0.01, "p95": 0.02, "max": 0.03},
-                "joint_error/j": stats, "joint_types": {"j": joint_type}}
+                "joint_error/j": stats, "joint_types": {"j": joint_type}, "sigma_scale": 0.3}
 
     table = markdown({"frames": 3, "options": TrackOptions(first_frame="warm").__dict__,
                       "runs": [run("prismatic", 0.0009), run("revolute", math.radians(0.57))]})
     assert "| 0.9 / 1.8 / 2.7 mm |" in table
     assert "| 0.57° / 1.14° / 1.71° |" in table
+    assert table.count("| 0 | 0 | 0.95 (×0.30) |") == 2
 
 
 def test_without_depth_only_a_large_box_prunes_the_unreached_samples(clamp, clamp_sequence: Path, monkeypatch) -> None:
