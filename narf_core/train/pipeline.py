@@ -62,8 +62,9 @@ class TrainConfig:
     parts hide one another at the training configurations and costs the others little (docs/benchmarks.md).
 
     ``track_sequences``: after both stages, the tracker's own factor on σ is fitted on this many smooth
-    60-frame sequences of the dataset's object (:mod:`narf_core.train.track_sigma`; about 20 s of CPU
-    each) where the dataset names the object that drew it; 0: none (the tracker's pooled factor applies).
+    60-frame sequences of the dataset's object at its camera and at one 4x finer (:mod:`narf_core.train.track_sigma`;
+    about half a minute of CPU each) where the dataset names the object that drew it; 0: none (the tracker's
+    pooled factor applies).
 
     Every field is checked when the configuration is made: :class:`TrainInputError` names the first
     bad one (``options.<name>``).
