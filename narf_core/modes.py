@@ -30,6 +30,7 @@ from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from narf_core.checks import InputError
+from narf_core.threads import torch_threads
 
 if TYPE_CHECKING:
     from narf_core.bundle import NarfModel
@@ -96,9 +97,7 @@ def measure_modes(
     if not present:
         return None
     modes = RENDER_MODES if model.has_parts else ("narf",)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # the figure a user compares: not the share of a shared machine's cores
-    try:
+    with torch_threads(1):  # the figure a user compares: not the share of a shared machine's cores
         first = dataset.frames(present[0])[0]
         T = torch.as_tensor(first.T_cam_obj, dtype=torch.float32)
         for mode in modes:  # warm-up: allocations and the first-call costs stay out of the times
@@ -113,8 +112,6 @@ def measure_modes(
                                         cpu_time=True)
                 record["splits"][split][mode] = {"psnr": _finite(score.psnr), "mse": score.mse,
                                                  "ms_per_image": score.ms_per_image}
-    finally:
-        torch.set_num_threads(threads)
     record["seconds"] = time.perf_counter() - started  # the measurement's own cost, warm-up included
     return record
 

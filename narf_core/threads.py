@@ -21,6 +21,8 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 AUTO = "auto"
@@ -142,3 +144,17 @@ def choose_threads(requested: int | str = AUTO, *, share: int = 1) -> int:
     if isinstance(requested, bool) or not isinstance(requested, int) or requested <= 0:
         raise ValueError(f"threads must be 'auto' or a positive integer, got {requested!r}")
     return requested
+
+
+@contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """torch's threads set to ``n`` for the block and restored after: for a figure that must not depend on
+    the machine's share of cores, or for small work that a second thread only slows (tracked frames)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)

@@ -56,6 +56,20 @@ def test_choose_threads() -> None:
             threads.choose_threads(bad)
 
 
+def test_torch_threads_sets_the_count_for_the_block_and_restores_it() -> None:
+    """``torch_threads(n)``: n threads inside the block, the count before it after, also after an error."""
+    import torch
+
+    before = torch.get_num_threads()
+    target = 1 if before != 1 else 2
+    with threads.torch_threads(target):
+        assert torch.get_num_threads() == target
+    assert torch.get_num_threads() == before
+    with pytest.raises(KeyError), threads.torch_threads(target):
+        raise KeyError("inside")
+    assert torch.get_num_threads() == before
+
+
 def test_parse_threads() -> None:
     assert threads.parse_threads(" AUTO ") == "auto"
     assert threads.parse_threads("2") == 2

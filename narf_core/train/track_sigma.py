@@ -21,6 +21,7 @@ import numpy as np
 
 from narf_core.bundle import NarfModel
 from narf_core.data.dataset import Dataset
+from narf_core.threads import torch_threads
 
 COVERAGE = 0.95
 SEQUENCE_FRAMES = 60
@@ -105,7 +106,9 @@ def calibrate_tracker(model: NarfModel, tool: str, size: tuple[int, int], work: 
     :func:`narf_core.track.sigma_scale` interpolates between the two cameras), drawn into ``work``; with
     the ``seeds``. A ``ValueError`` where a modality held no frame."""
     def fitted(at: tuple[int, int]) -> dict:
-        return track_calibration(model, [Dataset.open(f) for f in sequence_folders(tool, at, work, seeds, frames)])
+        datasets = [Dataset.open(f) for f in sequence_folders(tool, at, work, seeds, frames)]
+        with torch_threads(1):  # as the tracker runs by default (small work): the fit does not follow the machine
+            return track_calibration(model, datasets)
 
     out = {**fitted(size), "seeds": list(seeds)}
     fine = fine_size(size)
