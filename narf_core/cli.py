@@ -33,7 +33,7 @@ EXIT_INTERRUPTED = 130
 EXPECTED_ERRORS: tuple[type[BaseException], ...] = (ValueError, OSError)
 THREADS_ENV = "NARF_THREADS"
 DEVICE_ENV = "NARF_DEVICE"  # as the service's setting
-SMALL_WORK_THREADS = 1  # 'auto' for rendering, refining and tracking: see _threads_for
+AUTO_THREADS_MAX = 1  # what `--threads auto` takes at most: see _threads_for
 NOISE_PRESETS = ("none", "paper")  # generate.NOISE_PRESETS, named here so that --help imports no pybullet
 MODES = ("auto", "narf", "parts")  # narf_core.modes.MODES, named here so that --help imports no numpy
 PRESET_NAMES = ("auto", "paper", "robust", "gauss-newton")  # narf_core.estimate.PRESET_NAMES, likewise
@@ -71,8 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"narf {narf_core.__version__}")
     parser.add_argument(
         "--threads", type=_threads, default=os.environ.get(THREADS_ENV, AUTO), metavar="N|auto",
-        help=f"CPU threads for torch (default: ${THREADS_ENV}, else 'auto': the cores other processes leave "
-             "free when the command starts). Idle threads sleep instead of spinning (OMP_WAIT_POLICY=PASSIVE "
+        help=f"CPU threads for torch (default: ${THREADS_ENV}, else 'auto': one, as every command's parallel "
+             "regions gain less from a second thread than waking it costs). Idle threads sleep instead of spinning (OMP_WAIT_POLICY=PASSIVE "
              "unless set), so a busy machine slows the command down instead of stalling it",
     )
     parser.add_argument(
@@ -118,16 +118,15 @@ def _mode_line(result: dict[str, Any]) -> str:
 
 
 def _threads_for(args: argparse.Namespace) -> int:
-    """torch threads for a command: ``--threads``, or with ``auto`` the free cores, at most
-    ``SMALL_WORK_THREADS`` unless the command sets ``auto_threads_max`` (``None``: no cap; training).
+    """torch threads for a command: ``--threads``, or with ``auto`` the free cores
+    (:func:`~narf_core.threads.choose_threads`), at most ``AUTO_THREADS_MAX``.
 
-    Rendering, refining and tracking run parallel regions of a few thousand rays each; with idle
-    threads sleeping between them (the passive wait policy a shared machine needs), waking a second
-    thread costs more than it saves (``narf bench`` figures in the README).
+    Rendering, refining, tracking and training run parallel regions of a few thousand rays each; with
+    idle threads sleeping between them (the passive wait policy a shared machine needs), waking a second
+    thread costs more than it saves (``narf bench`` figures in the README; training on 2 cores, docs/benchmarks.md).
     """
     threads = choose_threads(args.threads)
-    cap = getattr(args, "auto_threads_max", SMALL_WORK_THREADS)
-    return min(threads, cap) if args.threads == AUTO and cap else threads
+    return min(threads, AUTO_THREADS_MAX) if args.threads == AUTO else threads
 
 
 def _threads(text: str) -> int | str:
@@ -515,7 +514,7 @@ def _add_train(commands: argparse._SubParsersAction) -> None:
     arg("--track-sequences", type=_non_negative_int, metavar="N", help="fit the tracker's own factor on σ on N "
         "smooth 60-frame sequences of the dataset's object, about 20 s each (default 3; 0: the pooled factor)")
     arg("--seed", type=_non_negative_int, default=0)
-    parser.set_defaults(run=_run_train, auto_threads_max=None)  # batches of thousands of rays with backward
+    parser.set_defaults(run=_run_train)
 
 
 def _run_train(args: argparse.Namespace) -> int:

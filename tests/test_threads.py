@@ -121,7 +121,9 @@ def test_cli_threads_option(capsys, monkeypatch) -> None:
     assert "got 'lots'" in capsys.readouterr().err
 
 
-def test_auto_takes_one_thread_for_small_work_and_the_free_cores_for_training(monkeypatch) -> None:
+def test_auto_takes_one_thread_of_the_free_cores_for_every_command(monkeypatch) -> None:
+    """``auto``: one thread where a core is free, training included (its parallel regions of a few thousand
+    rays gain nothing from a second thread that sleeps between them); ``--threads N`` is taken as it is."""
     from narf_core.cli import _threads_for, build_parser
 
     monkeypatch.setattr(threads, "free_cores", lambda interval_s=0.1: 2)
@@ -131,7 +133,8 @@ def test_auto_takes_one_thread_for_small_work_and_the_free_cores_for_training(mo
 
     assert chosen("--threads", "auto", "track", "m.narf", "seq", "--init-pose", "label") == 1
     assert chosen("--threads", "auto", "bench", "estimate", "--quick") == 1
-    assert chosen("--threads", "auto", "train", "data", "--out", "m.narf") == 2
+    assert chosen("--threads", "auto", "train", "data", "--out", "m.narf") == 1
     assert chosen("--threads", "2", "track", "m.narf", "seq", "--init-pose", "label") == 2
+    assert chosen("--threads", "2", "train", "data", "--out", "m.narf") == 2
     monkeypatch.setattr(threads, "free_cores", lambda interval_s=0.1: 1)
     assert chosen("--threads", "auto", "train", "data", "--out", "m.narf") == 1
