@@ -23,10 +23,13 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import narf_core
 from narf_core.threads import AUTO, choose_threads, parse_threads, prefer_passive_wait
+
+if TYPE_CHECKING:
+    from narf_core.bundle import NarfModel
 
 EXIT_ERROR = 2  # bad input, as argparse uses for bad arguments
 EXIT_INTERRUPTED = 130
@@ -72,8 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--threads", type=_threads, default=os.environ.get(THREADS_ENV, AUTO), metavar="N|auto",
         help=f"CPU threads for torch (default: ${THREADS_ENV}, else 'auto': one, as every command's parallel "
-             "regions gain less from a second thread than waking it costs). Idle threads sleep instead of spinning (OMP_WAIT_POLICY=PASSIVE "
-             "unless set), so a busy machine slows the command down instead of stalling it",
+             "regions gain less from a second thread than waking it costs). Idle threads sleep instead of "
+             "spinning (OMP_WAIT_POLICY=PASSIVE unless set), so a busy machine slows the command down instead "
+             "of stalling it",
     )
     parser.add_argument(
         "--device", default=os.environ.get(DEVICE_ENV, "cpu"), metavar="cpu|cuda[:N]",
@@ -498,8 +502,8 @@ def _add_train(commands: argparse._SubParsersAction) -> None:
     arg("--field", choices=("articulated", "distilled"), default="articulated",
         help="configuration field (default: %(default)s; articulated needs --arch kplanes and a joint, "
              "else the distilled field is trained)")
-    arg("--budget", type=_non_negative_float, metavar="SECONDS", help="time cap of the two training stages (the modes' measurement and the tracker's fit after them "
-        "take 1-2 min more on one thread)")
+    arg("--budget", type=_non_negative_float, metavar="SECONDS", help="time cap of the two training stages "
+        "(the modes' measurement and the tracker's fit after them take 1-2 min more on one thread)")
     arg("--part-steps", type=_positive_int, metavar="N", help="stage-1 steps per part")
     arg("--distill-steps", type=_positive_int, metavar="N", help="stage-2 steps")
     arg("--batch-rays", type=_positive_int, metavar="N", help="rays per step")
@@ -512,7 +516,8 @@ def _add_train(commands: argparse._SubParsersAction) -> None:
         "training view shows (default 0.1; 0: off)")
     arg("--no-parts", action="store_true", help="leave the part fields out of the bundle (no 'parts' mode)")
     arg("--track-sequences", type=_non_negative_int, metavar="N", help="fit the tracker's own factor on σ on N "
-        "smooth 60-frame sequences of the dataset's object, about 20 s each (default 3; 0: the pooled factor)")
+        "smooth 60-frame sequences of the dataset's object, about half a minute each (default 3; 0: the pooled "
+        "factor)")
     arg("--seed", type=_non_negative_int, default=0)
     parser.set_defaults(run=_run_train)
 
@@ -532,28 +537,27 @@ def _run_train(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     out = train(args.dataset, args.out, config, command=shlex.join(["narf", *args.argv]), progress=True)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB) in {time.perf_counter() - start:.0f} s")
-    _print_auto_mode(out)
-    _print_track_sigma(out)
+    from narf_core.bundle import load_bundle
+
+    model = load_bundle(out)
+    _print_auto_mode(model)
+    _print_track_sigma(model)
     return 0
 
 
-def _print_track_sigma(bundle: Path) -> None:
+def _print_track_sigma(model: NarfModel) -> None:
     """The tracker's own factors on σ that training fitted, if it did."""
-    from narf_core.bundle import load_bundle
-
-    fitted = (load_bundle(bundle).metadata.get("uncertainty") or {}).get("track")
+    fitted = (model.metadata.get("uncertainty") or {}).get("track")
     for fit in (fitted, (fitted or {}).get("fine")):
         if fit:
             print(f"  tracker's factor on σ at fx {fit['fx']:g} px: RGB-D {fit['rgbd']:g}, RGB only {fit['rgb']:g} "
                   f"(fitted on {fit['rgbd_frames']} / {fit['rgb_frames']} frames of {len(fitted['seeds'])} sequences)")
 
 
-def _print_auto_mode(bundle: Path) -> None:
-    """The held-out measurement of each render mode in ``bundle`` and the mode ``auto`` takes, and why."""
-    from narf_core.bundle import load_bundle
+def _print_auto_mode(model: NarfModel) -> None:
+    """The held-out measurement of each render mode in ``model`` and the mode ``auto`` takes, and why."""
     from narf_core.modes import RECORD_KEY, choose_mode, describe_record
 
-    model = load_bundle(bundle)
     for line in describe_record(model.metadata.get(RECORD_KEY)):
         print(f"  {line}")
     mode, reason = choose_mode(model)
