@@ -45,26 +45,13 @@ MODALITIES = ("rgbd", "rgb")
 
 
 def sequence(work: Path, tool: str, size: tuple[int, int], frames: int, events: bool, seed: int = 0) -> Path:
-    """The sequence dataset for one setting, synthesised on first use: into a folder of this process's
-    own, renamed into place when whole, so that benchmarks started side by side on one ``work`` folder
-    (or one stopped halfway) never read or overwrite a sequence another is writing."""
-    out = work / "sequences" / f"{tool}-{size[0]}x{size[1]}-{frames}{'-events' if events else ''}{f'-s{seed}' if seed else ''}"
-    if not (out / "scene.json").is_file():  # the generator (pybullet) only where the sequence is missing
-        from narf_core.data.synth.sequence import synthesize_sequence
+    """The sequence dataset for one setting under ``work/sequences``, synthesised on first use
+    (:func:`~narf_core.data.synth.sequence.sequence_once`: benchmarks started side by side on one ``work``
+    folder, or one stopped halfway, never read or overwrite a sequence another is writing)."""
+    from narf_core.data.synth.sequence import sequence_once
 
-        mine = out.with_name(f"{out.name}.part-{os.getpid()}")
-        synthesize_sequence(tool, mine, frames, size=size, seed=seed, events=events, overwrite=True)
-        if (out / "scene.json").is_file():  # another process finished it first: the same sequence
-            shutil.rmtree(mine)
-        else:
-            shutil.rmtree(out, ignore_errors=True)  # an older run's unfinished folder (no scene.json)
-            try:
-                mine.rename(out)
-            except OSError:  # another process renamed its own into place in between
-                if not (out / "scene.json").is_file():
-                    raise
-                shutil.rmtree(mine)
-    return out
+    out = work / "sequences" / f"{tool}-{size[0]}x{size[1]}-{frames}{'-events' if events else ''}{f'-s{seed}' if seed else ''}"
+    return sequence_once(tool, out, frames, size=size, seed=seed, events=events)
 
 
 def run_one(model: NarfModel, dataset: Dataset, rgb_only: bool, options: TrackOptions) -> dict:

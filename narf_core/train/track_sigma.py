@@ -87,16 +87,11 @@ def fine_size(size: tuple[int, int]) -> tuple[int, int] | None:
 def sequence_folders(tool: str, size: tuple[int, int], work: Path, seeds: list[int],
                      frames: int = SEQUENCE_FRAMES) -> list[Path]:
     """Smooth sequences of ``tool`` (a procedural object's name or a URDF) of ``seeds`` at ``size``, drawn
-    into ``work`` where missing."""
-    from narf_core.data.synth.sequence import synthesize_sequence
+    into ``work`` where missing (:func:`~narf_core.data.synth.sequence.sequence_once`)."""
+    from narf_core.data.synth.sequence import sequence_once
 
-    folders = []
-    for seed in seeds:
-        out = Path(work) / f"sequence-{size[0]}x{size[1]}-{frames}-s{seed}"
-        if not (out / "scene.json").is_file():
-            synthesize_sequence(tool, out, frames, size=size, seed=seed, events=False, overwrite=True)
-        folders.append(out)
-    return folders
+    return [sequence_once(tool, Path(work) / f"sequence-{size[0]}x{size[1]}-{frames}-s{seed}", frames, size=size,
+                          seed=seed, events=False) for seed in seeds]
 
 
 def calibrate_tracker(model: NarfModel, tool: str, size: tuple[int, int], work: Path, seeds: list[int],

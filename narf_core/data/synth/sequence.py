@@ -23,6 +23,8 @@ frame, whether the object is in view and how much of it the bar hides.
 from __future__ import annotations
 
 import math
+import os
+import shutil
 import tempfile
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -268,4 +270,27 @@ def synthesize_sequence(
                         images, hidden = occlude(images, plan.occluder[i], plan.poses[i], radius)
                     per_frame.append({"in_view": pixels > 0, "object_pixels": pixels, "occluded": round(hidden, 4)})
                     writer.add("test", images, plan.poses[i], plan.joints[i], time=float(plan.times[i]))
+    return out
+
+
+def sequence_once(tool: str | Path, out: str | Path, frames: int, size: tuple[int, int] = (160, 120), seed: int = 0,
+                  *, events: bool = True) -> Path:
+    """``out``, the sequence :func:`synthesize_sequence` draws, drawn on first use: into a folder of this
+    process's own, renamed into place when whole, so that processes started side by side on one folder (or
+    one stopped halfway) never read or overwrite a sequence another is writing."""
+    out = Path(out)
+    if (out / "scene.json").is_file():  # the generator (pybullet) only where the sequence is missing
+        return out
+    mine = out.with_name(f"{out.name}.part-{os.getpid()}")
+    synthesize_sequence(tool, mine, frames, size=size, seed=seed, events=events, overwrite=True)
+    if (out / "scene.json").is_file():  # another process finished it first: the same sequence
+        shutil.rmtree(mine)
+        return out
+    shutil.rmtree(out, ignore_errors=True)  # an older run's unfinished folder (no scene.json)
+    try:
+        mine.rename(out)
+    except OSError:  # another process renamed its own into place in between
+        if not (out / "scene.json").is_file():
+            raise
+        shutil.rmtree(mine)
     return out
