@@ -1088,9 +1088,8 @@ def _step(
     # Long gone, or lost from an estimate that did not hold well: the object may be anywhere, and the
     # last pose may be wrong (narf_core/detect.py; the last pose is one of the detector's candidates).
     # Without depth the silhouette cannot tell a flat tool's turns apart: the detector only after
-    # redetect_after_s away and where the multi-start refiner from the last pose does not explain the mask.
-    # Without depth a detection that failed is tried again only redetect_after_s later (every such period
-    # since the last estimate, judged from the previous frame's time: the state needs nothing more).
+    # redetect_after_s away and where the multi-start refiner from the last pose does not explain the mask,
+    # and once per such period while lost (judged from the previous frame's time: the state needs nothing more).
     if depth is not None:
         redetect = opts.redetect_after_s > 0 and (gap > opts.redetect_after_s
                                                   or state.status in ("uncertain", "reinitialised"))
