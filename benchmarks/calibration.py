@@ -26,7 +26,7 @@ the clamp, those without depth on the clamp and lineman-a pooled).
 
 fits only the tracker's own factor on a warm-started frame's σ (:func:`narf_core.track.sigma_scale`),
 per modality (RGB-D, RGB only), for that model: its default tracker over smooth 60-frame sequences of
-seeds 1-4 (``--track-seeds``) at 160x120 and at 640x480, the smallest factor (0.1 steps) whose 95 %
+seeds 1-4 (``--track-seeds``) at 160x120 and at 640x480, the smallest factor (0.01 steps) whose 95 %
 regions hold 95 % of the pooled frames' errors (:mod:`narf_core.train.track_sigma`, which ``narf train``
 runs on seeds 1-3 of its dataset's object); ``--write-bundle`` stores it under
 ``metadata["uncertainty"]["track"]``.

@@ -1051,7 +1051,7 @@ def test_sigma_scale_is_the_option_else_the_models_own_else_the_pooled_one(clamp
 
 
 def test_the_trackers_factor_is_fitted_to_hold_the_share_asked_and_stored_beside_the_rest(clamp, tmp_path: Path) -> None:
-    """``narf_core.train.track_sigma.fit_track_scale``: the smallest factor (0.1 steps) whose 95 %
+    """``narf_core.train.track_sigma.fit_track_scale``: the smallest factor (0.01 steps) whose 95 %
     regions hold the share asked of the errors (a factor ``s`` divides a NEES by ``s²``);
     ``write_calibration`` stores it in the bundle's ``metadata["uncertainty"]["track"]`` and keeps the
     model-error constants there, which :func:`~narf_core.track.sigma_scale` then reads."""
@@ -1065,8 +1065,8 @@ def test_the_trackers_factor_is_fitted_to_hold_the_share_asked_and_stored_beside
     nees = [0.1 * bound] * 18 + [4.0 * bound, 9.0 * bound]  # at factor 2 the 19th holds, at 3 all 20
     assert fit_track_scale(nees, 7, share=0.95) == pytest.approx(2.0)
     assert fit_track_scale(nees, 7, share=1.0) == pytest.approx(3.0)
-    assert fit_track_scale(nees, 7, share=0.9) == pytest.approx(0.4)  # sqrt(0.1) = 0.32 -> 0.4
-    assert fit_track_scale([1e-9], 7) == pytest.approx(0.1)
+    assert fit_track_scale(nees, 7, share=0.9) == pytest.approx(0.32)  # sqrt(0.1) = 0.316 -> 0.32
+    assert fit_track_scale([1e-9], 7) == pytest.approx(0.01)
     with pytest.raises(ValueError, match="no tracked frame"):
         fit_track_scale([], 7)
 

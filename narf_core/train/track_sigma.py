@@ -6,7 +6,7 @@ were fitted on a few tools; a model whose error differs from theirs (a thinner p
 is covered more or less than 95 % by them. Where the dataset says which object it drew (a procedural
 tool or a URDF: ``generator.tool``), training draws ``sequences`` smooth sequences of it (seeds 1, 2,
 ...; the benchmarks' is seed 0) at the dataset's camera, tracks them from their first label with the
-default tracker, RGB-D and RGB only, and keeps per modality the smallest factor (0.1 steps) whose
+default tracker, RGB-D and RGB only, and keeps per modality the smallest factor (0.01 steps) whose
 regions hold 95 % of the pooled frames' errors: ``metadata["uncertainty"]["track"]``; the same again at
 a camera's native 640x480 (four times finer than 160x120 views), where a model's σ need not follow the
 pooled factor's growth with the camera's fineness.
@@ -50,14 +50,15 @@ def track_nees(model: NarfModel, dataset: Dataset, rgb_only: bool, seed: int = 0
 
 
 def fit_track_scale(nees: list[float], dof: int, share: float = COVERAGE) -> float:
-    """The smallest factor on σ (0.1 steps) whose 95 % regions hold ``share`` of the errors whose
-    NEES at factor 1 are ``nees`` (a factor ``s`` divides each NEES by ``s²``)."""
+    """The smallest factor on σ (0.01 steps) whose 95 % regions hold ``share`` of the errors whose
+    NEES at factor 1 are ``nees`` (a factor ``s`` divides each NEES by ``s²``). Steps finer than the
+    factor's own spread from one set of sequences to another: a coarser step rounded up over-covers."""
     from narf_core.estimate import chi2_quantile
 
     if not nees:
         raise ValueError("no tracked frame with a covariance to fit the factor on")
     needed = float(np.quantile(np.asarray(nees), share, method="inverted_cdf"))
-    return max(0.1, math.ceil(round(10 * math.sqrt(needed / chi2_quantile(COVERAGE, dof)), 9)) / 10)
+    return max(0.01, math.ceil(round(100 * math.sqrt(needed / chi2_quantile(COVERAGE, dof)), 9)) / 100)
 
 
 def track_calibration(model: NarfModel, datasets: list[Dataset], modalities=("rgbd", "rgb")) -> dict:
