@@ -208,6 +208,10 @@ class TrackOptions:
     # distance (a lost track's distance may be tens of per cent off). 0 = never without depth
     # (docs/benchmarks.md).
     redetect_rgb_distance: float = 2.0
+    # Without depth, a track lost for longer than this since its last estimate runs the multi-start
+    # refiner from its last pose (a second or two per frame on 2 cores) once per this many seconds and
+    # not at every frame between (a frame of redetect_after_s's schedule still runs it). 0 = at every lost frame.
+    reinit_period_s_rgb: float = 0.1
     lost_overlap: float = 0.35
     uncertain_overlap: float = 0.6
     # Σ includes the model's error (estimate.model_error): a good 160x120 frame at 0.6 m has σ 5-10 mm.
@@ -233,6 +237,7 @@ class TrackOptions:
         need(self.redetect_after_s >= 0, "redetect_after_s", "must be >= 0 (0 = never)")
         need(self.redetect_rgb_distance == 0 or self.redetect_rgb_distance > 1, "redetect_rgb_distance",
              "must be > 1 (a factor) or 0 (never without depth)")
+        need(self.reinit_period_s_rgb >= 0, "reinit_period_s_rgb", "must be >= 0 (0 = at every lost frame)")
         need(0 <= self.lost_overlap <= self.uncertain_overlap <= 1, "lost_overlap",
              "must satisfy 0 <= lost_overlap <= uncertain_overlap <= 1")
         need(self.solver in TRACK_SOLVERS, "solver", f"must be one of {', '.join(TRACK_SOLVERS)}")
@@ -1017,6 +1022,13 @@ def _redetected(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.n
     return result
 
 
+def _period_passed(state: TrackState, gap: float, period: float) -> bool:
+    """Whether a multiple of ``period`` seconds since the track's last estimate fell between the previous
+    frame and this one (``gap`` seconds after that estimate): a lost track's retries on a schedule that
+    needs no state beyond the frames' times."""
+    return gap // period > (state.time - state.anchor_time) // period
+
+
 def _step(
     model: NarfModel, camera: Pinhole, frame: TrackFrame, state: TrackState, opts: TrackOptions
 ) -> tuple[TrackResult, TrackState]:
@@ -1084,7 +1096,6 @@ def _step(
         why = "the track was lost" if state.lost_frames else "first frame: multi-start initialisation"
         if gap > opts.max_gap_s:
             why = f"{gap:.3f} s since the last estimate"
-    T0 = _recentred(model, camera, state.T_cam_obj, state.joints, mask, depth)
     # Long gone, or lost from an estimate that did not hold well: the object may be anywhere, and the
     # last pose may be wrong (narf_core/detect.py; the last pose is one of the detector's candidates).
     # Without depth the silhouette cannot tell a flat tool's turns apart: the detector only after
@@ -1094,8 +1105,14 @@ def _step(
         redetect = opts.redetect_after_s > 0 and (gap > opts.redetect_after_s
                                                   or state.status in ("uncertain", "reinitialised"))
     else:
-        before, period = state.time - state.anchor_time, opts.redetect_after_s
-        redetect = period > 0 and gap > period and (before <= period or gap // period > before // period)
+        period = opts.redetect_after_s
+        redetect = period > 0 and gap > period and (state.time - state.anchor_time <= period
+                                                     or _period_passed(state, gap, period))
+    retry = opts.reinit_period_s_rgb
+    if (depth is None and not redetect and state.lost_frames and retry > 0
+            and state.time - state.anchor_time >= retry and not _period_passed(state, gap, retry)):
+        return lost(f"{why}; the next re-initialisation within {retry:g} s")
+    T0 = _recentred(model, camera, state.T_cam_obj, state.joints, mask, depth)
     score = None  # the re-initialisation's overlap with the mask, once measured
     if redetect and depth is not None:
         result = _redetected(model, camera, frame.image, mask, depth, T0, state.joints, opts, checks)

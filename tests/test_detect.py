@@ -245,6 +245,38 @@ def test_tracker_redetects_without_depth_where_the_silhouette_holds(clamp, camer
             TrackOptions(redetect_rgb_distance=bad)
 
 
+def test_a_lost_track_without_depth_retries_its_reinitialisation_on_a_period(clamp, camera: Pinhole, monkeypatch) -> None:
+    """``reinit_period_s_rgb``: without depth, a track lost for longer than the period runs the multi-start
+    refiner from its last pose only on frames past a multiple of the period since its last estimate (the
+    frames between are ``lost`` at once, saying when the next try is); its first lost frame, the frames
+    within the period, a frame with depth and a period of 0 run it at every frame."""
+    import narf_core.track as track_module
+    from narf_core.estimate import refine
+    from narf_core.track import TrackFrame, TrackOptions, TrackState, step
+
+    T, joints, image, mask, depth = view(clamp, camera, TURNS["edge-on"], 0.05)
+    calls = []
+    monkeypatch.setattr(track_module, "refine", lambda *a, **k: calls.append(k) or refine(*a, **k))
+    options = TrackOptions(reinit_iterations=1, reinit_theta_starts=1, reinit_period_s_rgb=0.1)
+
+    def lost_at(before: float, now: float, lost_frames: int = 3, with_depth: bool = False, opts=options):
+        state = TrackState(T, joints, before, 9.0, status="lost", lost_frames=lost_frames)
+        return step(clamp, camera, TrackFrame(image, mask, now, depth if with_depth else None), state, opts)[0]
+
+    waited = lost_at(9.21, 9.24)  # 0.21 and 0.24 s after the last estimate: no multiple of 0.1 s between
+    assert calls == [] and waited.status == "lost" and "next re-initialisation within 0.1 s" in waited.reason
+    assert waited.iterations == 0 and np.allclose(waited.T_cam_obj, T)
+    lost_at(9.28, 9.31)  # 0.3 s after it passed between the frames: it runs
+    assert len(calls) == 1
+    lost_at(9.21, 9.24, lost_frames=0)  # the first lost frame
+    lost_at(9.04, 9.07)  # lost for less than the period
+    lost_at(9.21, 9.24, with_depth=True)
+    lost_at(9.21, 9.24, opts=replace(options, reinit_period_s_rgb=0.0))
+    assert len(calls) == 5
+    with pytest.raises(ValueError, match="options.reinit_period_s_rgb"):
+        TrackOptions(reinit_period_s_rgb=-0.1)
+
+
 def test_narf_track_init_pose_detect(tmp_path: Path, capsys) -> None:
     """``narf track --init-pose detect``: the first frame's pose found without one; a first frame with
     an empty mask is one error line."""
