@@ -41,7 +41,7 @@ NOISE_PRESETS = ("none", "paper")  # generate.NOISE_PRESETS, named here so that 
 MODES = ("auto", "narf", "parts")  # narf_core.modes.MODES, named here so that --help imports no numpy
 PRESET_NAMES = ("auto", "paper", "robust", "gauss-newton")  # narf_core.estimate.PRESET_NAMES, likewise
 TRACK_SOLVER_CHOICES = ("auto", "adam", "gauss-newton")  # narf_core.track.TRACK_SOLVERS, likewise
-TRACK_ITERATIONS = "2 gauss-newton, 6 adam"  # narf_core.track.budget_text(), likewise
+TRACK_ITERATIONS = "2 gauss-newton (3 without depth), 6 adam"  # narf_core.track.budget_text(), likewise
 TRACK_AUTO_SOLVER = "gauss-newton, with depth and without"  # narf_core.track.auto_solver_text(), likewise
 MODE_HELP = ("render mode: narf (the configuration field), parts (the composed part fields) or auto (default: "
              "the better one by the measurement training recorded in the bundle)")

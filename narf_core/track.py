@@ -73,8 +73,9 @@ _DEPTH_HIDDEN_CELLS = 2
 # A warm-started frame's σ over the refiner's (TrackOptions.sigma_scale), per solver, with depth and
 # without, for a model whose bundle carries no factor of its own for that solver, at a camera as fine as
 # the training views: fitted on four tools' seed-1 sequences pooled (Adam without depth: on the clamp's;
-# Gauss-Newton with depth: at 160x120; docs/benchmarks.md).
-SIGMA_SCALE = {"gauss-newton": {"rgbd": 0.3, "rgb": 1.6}, "adam": {"rgbd": 3.0, "rgb": 0.9}}
+# Gauss-Newton with depth: at 160x120; Gauss-Newton without depth: at 160x120 with RGB_ITERATIONS'
+# iterations, session 36; docs/benchmarks.md).
+SIGMA_SCALE = {"gauss-newton": {"rgbd": 0.3, "rgb": 1.16}, "adam": {"rgbd": 3.0, "rgb": 0.9}}
 # At a camera r times finer than the training views (fx over theirs, r > 1) SIGMA_SCALE's factor times
 # r ** this: the frame's error grows there (the model renders at a resolution it was not trained at),
 # and its Σ, whose model error is counted in training pixels with depth, does not (fitted as SIGMA_SCALE
@@ -89,6 +90,11 @@ RETRY_SIGMA_SCALE = {"gauss-newton": 0.4, "adam": 3.0}
 AUTO_SOLVER = {"rgbd": "gauss-newton", "rgb": "gauss-newton"}
 # A frame's iterations and rays per iteration per solver, where TrackOptions leaves them at 0.
 BUDGETS = {"adam": (6, 768), "gauss-newton": (2, 768)}
+# A frame's iterations without depth, per solver, where TrackOptions leaves them at 0 (else BUDGETS'): there
+# a frame's steps along the directions the silhouette barely sees (the distance, a flat tool's roll) are
+# short and noisy, and one more iteration each frame keeps a thin tool's track from drifting off
+# (docs/benchmarks.md, session 36).
+RGB_ITERATIONS = {"gauss-newton": 3}
 # Rays per Gauss-Newton iteration on a CUDA device, where TrackOptions leaves them at 0: there a frame's time is
 # its kernel launches', about the same for 768 rays as for 6144, and 4x the rays halve the track's error
 # (docs/benchmarks.md, session 29).
@@ -96,9 +102,13 @@ GPU_RAYS = {"gauss-newton": 3072}
 
 
 def budget_text(which: int = 0) -> str:
-    """:data:`BUDGETS`' iterations (``which`` 0) or rays per iteration (1) per solver, for help texts:
-    "2 gauss-newton, 6 adam"."""
-    return ", ".join(f"{budget[which]} {solver}" for solver, budget in sorted(BUDGETS.items(), reverse=True))
+    """:data:`BUDGETS`' iterations (``which`` 0, with :data:`RGB_ITERATIONS`') or rays per iteration (1)
+    per solver, for help texts: "2 gauss-newton (3 without depth), 6 adam"."""
+    def text(solver: str, budget: tuple[int, int]) -> str:
+        rgb = RGB_ITERATIONS.get(solver, budget[0]) if which == 0 else budget[which]
+        return f"{budget[which]} {solver}" + (f" ({rgb} without depth)" if rgb != budget[which] else "")
+
+    return ", ".join(text(solver, budget) for solver, budget in sorted(BUDGETS.items(), reverse=True))
 
 
 def auto_solver_text() -> str:
@@ -122,7 +132,7 @@ class TrackOptions:
     ``solver``: a warm-started frame's solver, "adam" (the robust preset with one start),
     "gauss-newton", or "auto" (:data:`AUTO_SOLVER`: by whether the frame has depth).
     ``iterations``/``rays_per_iteration``: its budget per frame from the prediction, 0 for the
-    solver's own (:data:`BUDGETS`, on a GPU :data:`GPU_RAYS`; few iterations on many rays: an
+    solver's own (:data:`BUDGETS`, without depth :data:`RGB_ITERATIONS`, on a GPU :data:`GPU_RAYS`; few iterations on many rays: an
     iteration's cost is mostly per render call, little per ray); ``reinit_iterations``/
     ``reinit_theta_starts``: that of a re-initialisation (multi-start, coarse-to-fine).
     """
@@ -267,6 +277,8 @@ class TrackOptions:
         alone: a frame that misses is the re-initialisation's to find, so no pose starts)."""
         solver = self.solver_for(depth)
         iterations, rays = BUDGETS[solver]
+        if not depth:
+            iterations = RGB_ITERATIONS.get(solver, iterations)
         if torch.device(device).type == "cuda":
             rays = GPU_RAYS.get(solver, rays)
         common = {"iterations": self.iterations or iterations, "rays_per_iteration": self.rays_per_iteration or rays,

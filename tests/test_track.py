@@ -1174,19 +1174,19 @@ def test_gauss_newton_frame_reaches_the_label_from_an_offset_without_marching(cl
 
 def test_without_depth_the_gauss_newton_frame_polishes_its_distance_held_to_the_prediction(clamp, clamp_sequence: Path) -> None:
     """Without depth a frame's Levenberg-Marquardt iterations polish (exact along-ray derivatives, longer
-    trial steps): from the label moved 1 cm along the line of sight, the default budget (two iterations)
-    comes back within 5 mm, with the tracker's prior towards the prediction as without, where the plain
-    iteration, whose Jacobian has the silhouette's scale too steep, stays 8 mm or more away (the drift of
+    trial steps): from the label moved 1 cm along the line of sight, the default budget without depth
+    (three iterations) comes back within 5 mm, with the tracker's prior towards the prediction as without,
+    where the plain iteration, whose Jacobian has the silhouette's scale too steep, stays 8 mm or more away (the drift of
     an RGB-only track along the line of sight); a prior of 0.1 mm and 1e-4 rad holds it where it started."""
     from dataclasses import replace
 
     from narf_core.data.dataset import Dataset
-    from narf_core.track import TrackOptions, _centre, refine_frame
+    from narf_core.track import RGB_ITERATIONS, TrackOptions, _centre, refine_frame
 
     dataset = Dataset.open(clamp_sequence)
     centre = _centre(clamp)
     options = replace(TrackOptions().step_options(False), uncertainty=False)
-    assert options.solver == "gauss-newton" and options.iterations == 2
+    assert options.solver == "gauss-newton" and options.iterations == RGB_ITERATIONS["gauss-newton"]
     default = (TrackOptions().frame_prior_position_m_rgb, np.radians(TrackOptions().frame_prior_rotation_deg_rgb))
     for frame in (dataset.frames()[0], dataset.frames()[4]):
         images = dataset.load(frame)
@@ -1281,26 +1281,32 @@ def test_cli_track_solver_choices_are_the_trackers() -> None:
 
 def test_cli_track_iterations_help_names_the_trackers_budgets() -> None:
     from narf_core import cli
-    from narf_core.track import AUTO_SOLVER, BUDGETS, auto_solver_text, budget_text
+    from narf_core.track import AUTO_SOLVER, BUDGETS, RGB_ITERATIONS, auto_solver_text, budget_text
 
     assert cli.TRACK_AUTO_SOLVER == auto_solver_text()
     assert all(solver in auto_solver_text() for solver in AUTO_SOLVER.values())
 
-    assert cli.TRACK_ITERATIONS == budget_text(0) == f"{BUDGETS['gauss-newton'][0]} gauss-newton, {BUDGETS['adam'][0]} adam"
+    assert cli.TRACK_ITERATIONS == budget_text(0) == (f"{BUDGETS['gauss-newton'][0]} gauss-newton "
+                                                      f"({RGB_ITERATIONS['gauss-newton']} without depth), "
+                                                      f"{BUDGETS['adam'][0]} adam")
     assert budget_text(1) == f"{BUDGETS['gauss-newton'][1]} gauss-newton, {BUDGETS['adam'][1]} adam"
 
 
 def test_a_gpu_frame_takes_more_rays_unless_the_options_name_them() -> None:
     import torch
 
-    from narf_core.track import BUDGETS, GPU_RAYS, TrackOptions
+    from narf_core.track import BUDGETS, GPU_RAYS, RGB_ITERATIONS, TrackOptions
 
     gauss_newton, adam = TrackOptions(solver="gauss-newton"), TrackOptions(solver="adam")
     assert gauss_newton.step_options(True).rays_per_iteration == BUDGETS["gauss-newton"][1]
     assert gauss_newton.step_options(True, torch.device("cpu")).rays_per_iteration == BUDGETS["gauss-newton"][1]
     on_gpu = gauss_newton.step_options(False, "cuda:0")
     assert on_gpu.rays_per_iteration == GPU_RAYS["gauss-newton"] > BUDGETS["gauss-newton"][1]
-    assert on_gpu.iterations == BUDGETS["gauss-newton"][0]  # only the rays change
+    assert on_gpu.iterations == RGB_ITERATIONS["gauss-newton"]  # only the rays change (a frame without depth)
+    assert gauss_newton.step_options(True, "cuda").iterations == BUDGETS["gauss-newton"][0]
+    assert gauss_newton.step_options(False).iterations == RGB_ITERATIONS["gauss-newton"] != BUDGETS["gauss-newton"][0]
+    assert adam.step_options(False).iterations == BUDGETS["adam"][0]  # Adam's frames: one budget
+    assert TrackOptions(solver="gauss-newton", iterations=5).step_options(False).iterations == 5
     assert adam.step_options(True, "cuda").rays_per_iteration == BUDGETS["adam"][1]  # not measured: as on the CPU
     named = TrackOptions(solver="gauss-newton", rays_per_iteration=512)
     assert named.step_options(True, "cuda").rays_per_iteration == 512
