@@ -132,8 +132,8 @@ class TrackOptions:
     ``solver``: a warm-started frame's solver, "adam" (the robust preset with one start),
     "gauss-newton", or "auto" (:data:`AUTO_SOLVER`: by whether the frame has depth).
     ``iterations``/``rays_per_iteration``: its budget per frame from the prediction, 0 for the
-    solver's own (:data:`BUDGETS`, without depth :data:`RGB_ITERATIONS`, on a GPU :data:`GPU_RAYS`; few iterations on many rays: an
-    iteration's cost is mostly per render call, little per ray); ``reinit_iterations``/
+    solver's own (:data:`BUDGETS`, without depth :data:`RGB_ITERATIONS`, on a GPU :data:`GPU_RAYS`; few
+    iterations on many rays: an iteration's cost is mostly per render call, little per ray); ``reinit_iterations``/
     ``reinit_theta_starts``: that of a re-initialisation (multi-start, coarse-to-fine).
     """
 
