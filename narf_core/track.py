@@ -1034,11 +1034,11 @@ def _redetected(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.n
     return result
 
 
-def _period_passed(state: TrackState, gap: float, period: float) -> bool:
+def _period_passed(before: float, gap: float, period: float) -> bool:
     """Whether a multiple of ``period`` seconds since the track's last estimate fell between the previous
-    frame and this one (``gap`` seconds after that estimate): a lost track's retries on a schedule that
-    needs no state beyond the frames' times."""
-    return gap // period > (state.time - state.anchor_time) // period
+    frame (``before`` seconds after that estimate) and this one (``gap``): a lost track's retries on a
+    schedule that needs no state beyond the frames' times."""
+    return gap // period > before // period
 
 
 def _step(
@@ -1113,16 +1113,16 @@ def _step(
     # Without depth the silhouette cannot tell a flat tool's turns apart: the detector only after
     # redetect_after_s away and where the multi-start refiner from the last pose does not explain the mask,
     # and once per such period while lost (judged from the previous frame's time: the state needs nothing more).
+    before = state.time - state.anchor_time  # the previous frame's time since the last estimate
     if depth is not None:
         redetect = opts.redetect_after_s > 0 and (gap > opts.redetect_after_s
                                                   or state.status in ("uncertain", "reinitialised"))
     else:
         period = opts.redetect_after_s
-        redetect = period > 0 and gap > period and (state.time - state.anchor_time <= period
-                                                     or _period_passed(state, gap, period))
+        redetect = period > 0 and gap > period and (before <= period or _period_passed(before, gap, period))
     retry = opts.reinit_period_s_rgb
     if (depth is None and not redetect and state.lost_frames and retry > 0
-            and state.time - state.anchor_time >= retry and not _period_passed(state, gap, retry)):
+            and before >= retry and not _period_passed(before, gap, retry)):
         return lost(f"{why}; the next re-initialisation within {retry:g} s")
     T0 = _recentred(model, camera, state.T_cam_obj, state.joints, mask, depth)
     score = None  # the re-initialisation's overlap with the mask, once measured
