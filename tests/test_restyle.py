@@ -113,6 +113,30 @@ def test_restyle_writes_each_condition_deterministically(clamp: Path, tmp_path: 
         rs.restyle(clamp, tmp_path / "a", conditions=("all",), size=(64, 48), spp=2, seed=3, frame_ids=ids)
 
 
+def test_a_restyled_sequence_keeps_its_times_and_one_scene(clamp: Path, tmp_path: Path) -> None:
+    """A sequence (frames with times) restyled: the times kept, one scene and one exposure / white balance
+    error for all its frames (a camera moving through one room), the samples and the other faults per
+    frame; a set of single views keeps a scene per frame."""
+    from narf_core.data.synth.sequence import synthesize_sequence
+
+    seq = synthesize_sequence("clamp", tmp_path / "seq", 3, size=(48, 36), events=False, supersample=1)
+    out = rs.restyle(seq, tmp_path / "r", conditions=("noise",), spp=2, seed=5)
+    source, restyled = Dataset.open(seq), Dataset.open(out["noise"])
+    assert [f.time for f in restyled.frames()] == [f.time for f in source.frames()] != [None] * 3
+    assert restyled.generator["restyle"]["scene_per"] == "sequence"
+    records = restyled.generator["frames"]
+    assert all(r["scene"] == records[0]["scene"] for r in records) and records[0]["scene"]["lights"]
+    assert len({r["faults"]["exposure_ev"] for r in records}) == 1
+    assert len({r["faults"]["white_balance"][0] for r in records}) == 1
+    assert len({r["faults"]["blur_px"] for r in records}) == 3
+    single = Dataset.open(rs.restyle(clamp, tmp_path / "s", conditions=("noise",), size=(48, 36), spp=2, seed=5,
+                                     frame_ids=[0, 1])["noise"])
+    assert single.generator["restyle"]["scene_per"] == "frame" and single.frames()[0].time is None
+    first, second = (f["scene"] for f in single.generator["frames"])
+    assert first != second
+    assert len({f["faults"]["exposure_ev"] for f in single.generator["frames"]}) == 2
+
+
 def test_cli_restyle_and_its_errors(clamp: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["restyle", str(clamp), "--out", str(tmp_path / "o"), "--size", "32", "24", "--spp", "1",
                  "--splits", "test", "--limit", "1", "--json"]) == 0

@@ -310,9 +310,18 @@ class Faulted:
 
 
 def apply_faults(
-    linear: np.ndarray, depth: np.ndarray, labels: np.ndarray, options: FaultOptions, seed: tuple[int, ...], fx: float
+    linear: np.ndarray,
+    depth: np.ndarray,
+    labels: np.ndarray,
+    options: FaultOptions,
+    seed: tuple[int, ...],
+    fx: float,
+    camera_seed: tuple[int, ...] | None = None,
 ) -> Faulted:
     """The observation a camera (``fx`` pixels) and segmenter would give of a clean render.
+
+    Each effect draws from its own stream of ``seed``; the exposure and white-balance error from
+    ``camera_seed`` where given (a camera's own error, the same in every frame of a sequence).
 
     Order: occluder (into the scene: it is lit, exposed and seen by the depth sensor), auto-exposure,
     exposure/white balance error, blur, shot + read noise, tone curve to sRGB, JPEG; depth noise,
@@ -338,7 +347,7 @@ def apply_faults(
         visible = mask
     linear = auto_exposure(linear)
     if o.sensor:
-        r = rng("exposure")
+        r = rng("exposure") if camera_seed is None else np.random.default_rng([*camera_seed, _STREAMS["exposure"]])
         ev = float(r.uniform(*o.exposure_ev))
         gains = tuple(float(g) for g in 1 + r.uniform(-o.white_balance, o.white_balance, 3))
         linear = exposure_white_balance(linear, ev, gains)

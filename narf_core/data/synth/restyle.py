@@ -269,8 +269,10 @@ def scene_dict(
     from ``rng``: a coloured constant environment, 1-2 of area/point/sun lights of 2700-7500 K,
     glossy plastic on the tool (roughness 0.05-0.4), a textured ground plane and 2-6 boxes,
     cylinders and spheres on it, 1-3.5 object radii from the tool's centre, none of them between
-    the camera at ``eye`` (object frame) and the tool (occlusion is the faults' business).
+    the tool and the camera at ``eye`` (object frame; ``[3]``, or ``[n, 3]`` for every camera of a
+    sequence): occlusion is the faults' business.
     """
+    eyes = None if eye is None else np.atleast_2d(np.asarray(eye, dtype=np.float64))
     mi = mitsuba()
     T = mi.ScalarTransform4f
     scene: dict[str, Any] = {"type": "scene"}
@@ -306,7 +308,7 @@ def scene_dict(
             angle = float(rng.uniform(0, 2 * np.pi))
             x, y = centre[0] + distance * np.cos(angle), centre[1] + distance * np.sin(angle)
             blocker = np.array([x, y, floor_z + size])
-            if eye is None or not _hides(eye, centre, radius, blocker, 1.5 * size):
+            if eyes is None or not any(_hides(e, centre, radius, blocker, 1.5 * size) for e in eyes):
                 break
         else:
             continue
@@ -364,6 +366,17 @@ def scene_dict(
 # rendering a frame
 
 
+@dataclass
+class Shared:
+    """One scene for every frame of a sequence: drawn from ``seed``, the ground at ``floor`` (object
+    frame, under the object in every frame's configuration), no clutter between the tool and any camera
+    position in ``eyes [n, 3]`` (object frame)."""
+
+    seed: tuple[int, ...]
+    floor: float
+    eyes: np.ndarray
+
+
 class Restyler:
     """Renders frames of one object with Mitsuba; see the module docstring for the conventions.
 
@@ -396,18 +409,37 @@ class Restyler:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def render(self, camera: Pinhole, T_cam_obj: np.ndarray, joints: dict[str, float], seed: tuple[int, ...]) -> Render:
-        """One frame: the RGB pass (path tracing, ``spp`` samples) and the AOV pass (pixel centres)."""
+    def floor(self, joints: dict[str, float]) -> float:
+        """The ground plane's height (object frame): just under the object in configuration ``joints``."""
+        poses = self.tree.link_poses(self.tree.joint_vector(joints)).numpy()
+        return _lowest_point(self.tree, {name: poses[i] for i, name in enumerate(self.tree.links)}) - _PLANE_GAP
+
+    def render(
+        self,
+        camera: Pinhole,
+        T_cam_obj: np.ndarray,
+        joints: dict[str, float],
+        seed: tuple[int, ...],
+        shared: Shared | None = None,
+    ) -> Render:
+        """One frame: the RGB pass (path tracing, ``spp`` samples) and the AOV pass (pixel centres).
+
+        Without ``shared`` the scene (lights, materials, ground, clutter) and the path tracer's samples
+        are drawn from ``seed``; with it, the scene from ``shared.seed`` on ``shared.floor``, clear of
+        every camera in ``shared.eyes`` (one scene for all frames of a sequence), the samples from ``seed``."""
         mi = mitsuba()
         rng = np.random.default_rng(list(seed))
         theta = self.tree.joint_vector(joints)
         poses = self.tree.link_poses(theta).numpy()
         link_poses = {name: poses[i] for i, name in enumerate(self.tree.links)}
-        floor = _lowest_point(self.tree, link_poses) - _PLANE_GAP
         with tempfile.TemporaryDirectory(dir=self._scratch.name) as scratch:
-            eye = np.linalg.inv(np.asarray(T_cam_obj, dtype=np.float64))[:3, 3]
-            shapes, record = scene_dict(self.visuals, link_poses, floor, self.centre, self.radius, rng, Path(scratch),
-                                        eye)
+            if shared is None:
+                eye = np.linalg.inv(np.asarray(T_cam_obj, dtype=np.float64))[:3, 3]
+                shapes, record = scene_dict(self.visuals, link_poses, _lowest_point(self.tree, link_poses) - _PLANE_GAP,
+                                            self.centre, self.radius, rng, Path(scratch), eye)
+            else:
+                shapes, record = scene_dict(self.visuals, link_poses, shared.floor, self.centre, self.radius,
+                                            np.random.default_rng(list(shared.seed)), Path(scratch), shared.eyes)
             rgb_scene = mi.load_dict({**shapes, "sensor": sensor(camera, T_cam_obj, spp=self.spp, centres=False),
                                       "integrator": {"type": "path", "max_depth": 6}})
             linear = np.array(mi.render(rgb_scene, seed=int(rng.integers(2**31))), dtype=np.float32)[..., :3]
@@ -444,14 +476,15 @@ def depth_and_labels(
 # a dataset, restyled
 
 
-def _cached_render(restyler: Restyler, cache: Path, key: dict, camera: Pinhole, frame, seed: int) -> Render:
+def _cached_render(restyler: Restyler, cache: Path, key: dict, camera: Pinhole, frame, seed: int,
+                   shared: Shared | None) -> Render:
     path = cache / f"{frame.id:06d}.npz"
     stamp = json.dumps(key, sort_keys=True)
     if path.is_file():
         with np.load(path, allow_pickle=False) as z:
             if str(z["key"]) == stamp:
                 return Render(z["linear"], z["depth"], z["labels"], json.loads(str(z["scene"])))
-    render = restyler.render(camera, frame.T_cam_obj, frame.joints, (seed, frame.id))
+    render = restyler.render(camera, frame.T_cam_obj, frame.joints, (seed, frame.id), shared)
     tmp = path.with_suffix(".tmp.npz")
     np.savez_compressed(tmp, linear=render.linear.astype(np.float16), depth=render.depth, labels=render.labels,
                         scene=json.dumps(render.scene), key=stamp)
@@ -478,7 +511,10 @@ def restyle(
 
     ``size`` ``(W, H)`` scales the camera (default: the source's); ``splits`` and ``frame_ids``
     choose frames (default: all). Deterministic from ``seed``: the scene of a frame depends only on
-    ``(seed, frame id)``, its faults on ``(seed, frame id, effect)``. Path-traced frames are cached
+    ``(seed, frame id)``, its faults on ``(seed, frame id, effect)``. A sequence (every frame with a
+    ``time``, as ``narf synth --sequence`` writes) stays one: one scene for all its frames (a camera
+    moving through one room) and one exposure and white-balance error (one camera's), the time stamps
+    kept; the path tracer's samples and the other faults are drawn per frame. Path-traced frames are cached
     in ``out/renders/`` and reused by later calls with the same size, spp and seed. A condition's
     folder that already holds a dataset is replaced only with ``overwrite``.
     """
@@ -511,11 +547,15 @@ def restyle(
     cache.mkdir(parents=True, exist_ok=True)
     key = {"source": str(dataset.root.resolve()), "size": [camera.width, camera.height], "spp": spp, "seed": seed,
            "variant": VARIANT}
+    is_sequence = all(f.time is not None for f in frames)
+    if is_sequence:
+        key["scene"] = "sequence"
     urdf = read_urdf(dataset.urdf_path)
     fx = float(camera.K[0, 0])
     generator = {"restyle": {"source": str(dataset.root), "renderer": f"mitsuba {_mitsuba_version()} ({VARIANT})",
                              "spp": spp, "seed": seed, "size": [camera.width, camera.height],
-                             "source_frames": [f.id for f in frames], "faults_version": faults.VERSION}}
+                             "source_frames": [f.id for f in frames], "faults_version": faults.VERSION,
+                             "scene_per": "sequence" if is_sequence else "frame"}}
     writers = {}
     for name, root in targets.items():
         source_generator = {k: v for k, v in dataset.generator.items() if k != "clean_frames"}
@@ -525,14 +565,18 @@ def restyle(
     from tqdm import tqdm
 
     with Restyler(dataset.urdf_path, dataset.links, spp) as restyler:
+        shared = None
+        if is_sequence:
+            eyes = np.stack([np.linalg.inv(np.asarray(f.T_cam_obj, dtype=np.float64))[:3, 3] for f in frames])
+            shared = Shared((seed,), min(restyler.floor(f.joints) for f in frames), eyes)
         for frame in tqdm(frames, desc="restyle", unit="frame", disable=not progress):
-            render = _cached_render(restyler, cache, key, camera, frame, seed)
+            render = _cached_render(restyler, cache, key, camera, frame, seed, shared)
             for name, writer in writers.items():
                 f = faults.apply_faults(render.linear, render.depth, render.labels, faults.condition(name),
-                                        (seed, frame.id), fx)
+                                        (seed, frame.id), fx, camera_seed=(seed,) if is_sequence else None)
                 clean = (FrameImages(f.rgb, f.clean_depth, f.clean_labels), frame.T_cam_obj, frame.joints)
                 added = writer.add(frame.split, FrameImages(f.rgb, f.depth, f.labels), frame.T_cam_obj, frame.joints,
-                                   clean=clean)
+                                   clean=clean, time=frame.time)
                 writer.generator["frames"].append({"id": added.id, "source_id": frame.id, "scene": render.scene,
                                                    "faults": f.info})
     for writer in writers.values():
