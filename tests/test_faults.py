@@ -172,3 +172,26 @@ def test_conditions_are_deterministic_and_share_their_draws() -> None:
     assert set(np.unique(out["mask"].labels)) <= {0, 1, 2}
     with pytest.raises(ValueError, match="unknown condition 'fog'"):
         faults.condition("fog")
+
+
+def test_pixel_sized_faults_scale_with_the_camera() -> None:
+    """The mask's growth and soft edge, the blur and the depth holes' widths are the native camera's pixels:
+    at a quarter of its fx a thin tool's mask keeps its pixels (a 2-pixel erosion at 640x480 is half a pixel
+    at 160x120) and its thin parts keep their depth, while at the native fx the same draws erode and drop
+    them; the drawn values say so."""
+    mask = np.zeros((60, 80), bool)
+    mask[20:22, 10:70] = True  # a handle two pixels wide
+    mask[30:40, 30:50] = True
+    labels = mask.astype(np.uint8)
+    depth = np.where(mask, 0.6, 0.0).astype(np.float32)
+    linear = np.full((60, 80, 3), 0.3, np.float32)
+    options = faults.FaultOptions(mask=True, depth=True, mask_grow_px=(-2, -2), blob_radius=0.0, speckle=0.0,
+                                   edge_drop=0.0)
+    native = faults.apply_faults(linear, depth, labels, options, (0, 1), options.native_fx)
+    quarter = faults.apply_faults(linear, depth, labels, options, (0, 1), options.native_fx / 4)
+    assert native.info["mask_grow_px"] == -1 and quarter.info["mask_grow_px"] == 0
+    kept = lambda f: ((f.labels > 0) & mask).sum() / mask.sum()  # noqa: E731
+    assert kept(quarter) > 0.9 > kept(native)
+    handle = np.zeros_like(mask)
+    handle[20:22, 15:65] = True
+    assert (native.depth[handle] == 0).all() and (quarter.depth[handle] > 0).mean() > 0.9

@@ -250,7 +250,8 @@ def composite_occluder(
 @dataclass(frozen=True)
 class FaultOptions:
     """Which faults to apply and how strong (the defaults are a mid-range consumer RGB-D camera
-    with a learnt segmenter). Each group is off unless its flag is set."""
+    with a learnt segmenter). Each group is off unless its flag is set. Sizes in pixels are the native
+    camera's (``native_fx``, 640x480) and scale with a view's own ``fx`` (:func:`apply_faults`)."""
 
     sensor: bool = False  # exposure/white balance off, blur, shot + read noise, JPEG
     exposure_ev: tuple[float, float] = (-0.7, 0.7)  # drawn uniformly
@@ -290,8 +291,9 @@ CONDITIONS: dict[str, FaultOptions] = {
 }
 
 # Bumped when a condition's faults change for the same seed, so that cached sets are remade
-# (2: the occluder lies in front of every part it hides, not only of the tool's median depth).
-VERSION = 2
+# (2: the occluder lies in front of every part it hides, not only of the tool's median depth;
+# 3: pixel sizes scale with the camera's resolution: unchanged at the native 640x480).
+VERSION = 3
 
 # independent random streams per effect, so that conditions share the draws of the effects they share
 _STREAMS = {"exposure": 1, "blur": 2, "noise": 3, "jpeg": 4, "depth": 5, "holes": 6, "mask": 7, "occluder": 8}
@@ -320,6 +322,12 @@ def apply_faults(
 ) -> Faulted:
     """The observation a camera (``fx`` pixels) and segmenter would give of a clean render.
 
+    The options' sizes in pixels (blur, mask growth and soft edge, depth holes' widths, disparity noise)
+    are those of the native camera (``options.native_fx``) and scale with ``fx``: a view drawn at a
+    quarter of its resolution gets the faults of the native image seen at that resolution (a 2-pixel
+    segmenter error at 640x480 is half a pixel at 160x120, not two pixels of a thin tool four times
+    coarser).
+
     Each effect draws from its own stream of ``seed``; the exposure and white-balance error from
     ``camera_seed`` where given (a camera's own error, the same in every frame of a sequence).
 
@@ -332,6 +340,7 @@ def apply_faults(
         return np.random.default_rng([*seed, _STREAMS[name]])
 
     o, info = options, {}
+    px = fx / o.native_fx  # this camera's pixels per native pixel
     mask = labels > 0
     linear, z = linear.astype(np.float32), depth.astype(np.float32)
     if o.occlusion > 0:
@@ -351,7 +360,7 @@ def apply_faults(
         ev = float(r.uniform(*o.exposure_ev))
         gains = tuple(float(g) for g in 1 + r.uniform(-o.white_balance, o.white_balance, 3))
         linear = exposure_white_balance(linear, ev, gains)
-        sigma = float(rng("blur").uniform(*o.blur_px))
+        sigma = float(rng("blur").uniform(*o.blur_px)) * px
         linear = lens_blur(linear, sigma)
         linear = shot_read_noise(linear, rng("noise"), o.full_well, o.read_std)
         quality = int(rng("jpeg").integers(o.jpeg_quality[0], o.jpeg_quality[1] + 1))
@@ -360,15 +369,16 @@ def apply_faults(
     else:
         rgb = to_srgb(linear)
     if o.depth:
-        disparity_std = o.disparity_std_px * fx / o.native_fx
+        disparity_std = o.disparity_std_px * px
         z = stereo_depth_noise(z, rng("depth"), fx, o.baseline_m, disparity_std)
-        z = depth_holes(z, visible, rng("holes"), edge_px=o.edge_px, edge_drop=o.edge_drop, thin_px=o.thin_px,
+        z = depth_holes(z, visible, rng("holes"), edge_px=max(1, round(o.edge_px * px)), edge_drop=o.edge_drop,
+                        thin_px=round(o.thin_px * px),
                         speckle=o.speckle)
         z = quantise_depth(z, o.depth_step_m)
     out_mask = visible
     if o.mask:
         r = rng("mask")
-        grow = int(r.integers(o.mask_grow_px[0], o.mask_grow_px[1] + 1))
+        grow = round(int(r.integers(o.mask_grow_px[0], o.mask_grow_px[1] + 1)) * px)
         thickest = float(ndimage.distance_transform_edt(visible).max()) if visible.any() else 0.0
         grow = max(grow, -int(thickest // 3))  # erosion never wipes out a small (far, low-resolution) tool
         out_mask = grow_mask(out_mask, grow)
@@ -376,7 +386,7 @@ def apply_faults(
         diagonal = float(np.hypot(np.ptp(ys), np.ptp(xs))) if len(ys) else 0.0
         extra = bool(r.random() < 0.5)
         out_mask = mask_blob(out_mask, r, o.blob_radius * diagonal, extra)
-        out_mask = soft_edge_mask(out_mask, r, o.soft_sigma_px, o.soft_wobble)
+        out_mask = soft_edge_mask(out_mask, r, o.soft_sigma_px * px, o.soft_wobble)
         info.update(mask_grow_px=grow, blob="extra" if extra else "missing")
     out_labels = _labels_for(np.where(visible, labels, 0).astype(np.uint8), out_mask)
     return Faulted(rgb, z, out_labels, depth.astype(np.float32), labels.copy(), info)
