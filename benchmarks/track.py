@@ -15,7 +15,11 @@ per-frame settings head the table; ``--band-m`` marches only a band around the m
 every iteration instead of sampling the band found once per frame (``TrackOptions.march``);
 ``--no-depth-align`` leaves the prediction where the motion model puts it (``TrackOptions.depth_align``). With
 ``--events`` the sequence with a glance away and an occluding bar is tracked as well. ``--seed`` picks the
-sequences' seed (default 0), so that other motions of the same tools can be tracked; the result names it. The error
+sequences' seed (default 0), so that other motions of the same tools can be tracked; the result names it.
+``--images`` picks what is tracked of each sequence: ``pybullet`` (the frames as synthesised, the renderer that drew
+the training views) and any of ``narf restyle``'s conditions (the same frames path-traced with Mitsuba in one scene
+for the whole sequence, then that condition's sensor, depth and mask faults; written once beside the sequence,
+``<sequence>-restyled/<condition>``; the events sequences' occluding bar is not in the path-traced scene). The error
 against time is plotted per run (``<work>/track/<tool>-<size>-<modality>.png``) and every per-frame row is kept in
 ``<work>/track/result.json``. With ``--service-clients N``, N clients track the 160x120 sequence at
 once through ``POST /v1/track`` on a loopback server, and each one's frames per second is reported.
@@ -125,23 +129,39 @@ def plot(rows: list[dict], title: str, path: Path) -> Path:
     return path
 
 
+def images_of(source: Path, images: str, spp: int = 32, seed: int = 0) -> Dataset:
+    """The sequence at ``source`` as ``images`` gives it: ``pybullet`` (as synthesised) or path-traced under one
+    of :data:`narf_core.data.synth.faults.CONDITIONS` (scene and faults from ``seed``; made once,
+    ``<source>-restyled/<condition>``)."""
+    dataset = Dataset.open(source)
+    if images == "pybullet":
+        return dataset
+    from narf_benchmarks.shift import shifted_sets
+
+    size = (dataset.camera.width, dataset.camera.height)
+    return shifted_sets(dataset, source.parent / f"{source.name}-restyled", [f.id for f in dataset.frames()],
+                        conditions=(images,), size=size, spp=spp, seed=seed)[images]
+
+
 def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, modalities=MODALITIES,
-        events: bool = False, options: TrackOptions | None = None, seed: int = 0) -> dict:
-    """Every tool x size x modality (x smooth/events) on the sequences synthesised with ``seed``;
-    returns the summary (rows saved beside it)."""
+        events: bool = False, options: TrackOptions | None = None, seed: int = 0,
+        images: tuple[str, ...] = ("pybullet",), spp: int = 32) -> dict:
+    """Every tool x size x modality (x smooth/events) x ``images`` (:func:`images_of`) on the sequences
+    synthesised with ``seed``; returns the summary (rows saved beside it)."""
     options = options or TrackOptions(first_frame="warm")
     out_dir = work / "track"
     runs = []
     for tool, model in models.items():
         for size in sizes:
-            for with_events in (False, True) if events else (False,):
-                dataset = Dataset.open(sequence(work, tool, size, frames, with_events, seed=seed))
+            for with_events, kind in ((e, k) for e in ((False, True) if events else (False,)) for k in images):
+                dataset = images_of(sequence(work, tool, size, frames, with_events, seed=seed), kind, spp, seed)
                 for modality in modalities:
                     start = time.perf_counter()
                     one = run_one(model, dataset, modality == "rgb", options)
-                    name = f"{tool}-{size[0]}x{size[1]}-{modality}{'-events' if with_events else ''}"
+                    name = (f"{tool}-{size[0]}x{size[1]}-{modality}{'-events' if with_events else ''}"
+                            + ("" if kind == "pybullet" else f"-{kind}"))
                     one.update({"tool": tool, "size": list(size), "modality": modality, "events": with_events,
-                                "wall_seconds": time.perf_counter() - start,
+                                "images": kind, "wall_seconds": time.perf_counter() - start,
                                 "plot": str(plot(one["rows"], name, out_dir / f"{name}.png"))})
                     runs.append(one)
                     print(f"narf bench track: {name}: {one['frames_per_second']:.1f} frames/s, ADD mean "
@@ -176,15 +196,16 @@ def markdown(result: dict) -> str:
         + ("" if o.get("depth_align", True) else ", the prediction not aligned to the depth")
         + "." + describe_machine(result.get("machine")),
         "",
-        "| tool | size | input | events | frames/s (all / after the 1st) | frames per CPU second (after the 1st) "
+        "| tool | size | images | input | events | frames/s (all / after the 1st) | frames per CPU second (after the 1st) "
         "| ADD mean / p95 / max (cm) | joint error mean / p95 / max | lost | re-init. | NEES 95% coverage (σ factor) |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in result["runs"]:
         add = r["add_m"]
         after = r["frames_per_second_tracking"]
         lines.append(
-            f"| {r['tool']} | {r['size'][0]}x{r['size'][1]} | {r['modality']} | {'yes' if r['events'] else 'no'} | "
+            f"| {r['tool']} | {r['size'][0]}x{r['size'][1]} | {_images_cell(r.get('images', 'pybullet'))} "
+            f"| {r['modality']} | {'yes' if r['events'] else 'no'} | "
             f"{r['frames_per_second']:.1f} / {after:.1f} | {r['frames_per_cpu_second_tracking']:.1f} | "
             + (f"{add['mean'] * 100:.2f} / {add['p95'] * 100:.2f} / {add['max'] * 100:.2f}" if add else "-") + " | "
             + _joint_cell(r)
@@ -205,6 +226,10 @@ def markdown(result: dict) -> str:
     return "\n".join(lines)
 
 
+def _images_cell(images: str) -> str:
+    return "pybullet" if images == "pybullet" else f"path-traced, {images}"
+
+
 def _joint_cell(run: dict) -> str:
     """The first joint's error mean / p95 / max in mm (prismatic) or degrees (revolute); ``-`` without one."""
     name, joint = next(((k.split("/", 1)[1], v) for k, v in run.items() if k.startswith("joint_error/") and v),
@@ -218,8 +243,8 @@ def _joint_cell(run: dict) -> str:
 
 def main(args: argparse.Namespace) -> int:
     """``narf bench track``: ``args`` has ``work``, ``models``, ``tools``, ``frames``, ``sizes``,
-    ``modalities``, ``events``, ``seed``, ``iterations``, ``rays``, ``solver``, ``band_m``, ``march``, ``depth_align``,
-    ``service_clients``, ``json``."""
+    ``modalities``, ``events``, ``seed``, ``images``, ``spp``, ``iterations``, ``rays``, ``solver``, ``band_m``,
+    ``march``, ``depth_align``, ``service_clients``, ``json``."""
     tools = args.tools or sorted(p.stem for p in args.models.glob("*.narf"))
     models, missing = {}, []
     for tool in tools:
@@ -238,7 +263,8 @@ def main(args: argparse.Namespace) -> int:
                  "march": getattr(args, "march", None), "depth_align": getattr(args, "depth_align", None)}
     options = TrackOptions(first_frame="warm", **{k: v for k, v in overrides.items() if v is not None})
     result = run(models, args.work, frames=args.frames, sizes=sizes, modalities=tuple(args.modalities),
-                 events=args.events, options=options, seed=getattr(args, "seed", 0))
+                 events=args.events, options=options, seed=getattr(args, "seed", 0),
+                 images=tuple(getattr(args, "images", None) or ("pybullet",)), spp=getattr(args, "spp", 32))
     if args.service_clients:
         tool = next(iter(models))
         dataset = Dataset.open(sequence(args.work, tool, (160, 120), args.frames, False, seed=result["seed"]))

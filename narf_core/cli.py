@@ -968,6 +968,12 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--events", action="store_true", help="also sequences with a glance away and an occluder")
     sub.add_argument("--seed", type=_non_negative_int, default=0, metavar="S",
                      help="seed of the synthesised sequences (default: %(default)s)")
+    sub.add_argument("--images", nargs="+", choices=("pybullet", *CONDITIONS), default=["pybullet"],
+                     metavar="KIND", help="what is tracked of each sequence: pybullet (as synthesised) and/or the "
+                     "same frames path-traced under a narf restyle condition (one scene per sequence; made once, "
+                     "needs the realism extra): " + ", ".join(CONDITIONS) + " (default: pybullet)")
+    sub.add_argument("--spp", type=_positive_int, default=32, help="path-tracing samples per pixel for --images "
+                     "(default: %(default)s)")
     sub.add_argument("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame "
                      f"(default: the solver's, {TRACK_ITERATIONS})")
     sub.add_argument("--rays", type=_positive_int, metavar="N", help="rays per iteration (default: the solver's)")

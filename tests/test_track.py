@@ -1336,3 +1336,37 @@ def test_without_depth_the_limit_along_the_line_of_sight_is_the_model_errors_str
     assert _too_uncertain(info(0.01, 0.03), options, sight)  # across: the limit itself
     assert _too_uncertain(info(0.09, 0.01), options)  # with depth: 5.4 cm on the z axis
     assert not _too_uncertain(info(0.015, 0.015), options)
+
+
+def test_bench_track_tracks_path_traced_images_of_its_sequences(tmp_path: Path, capfd) -> None:
+    """``narf bench track --images pybullet depth`` tracks each sequence as synthesised and path-traced with
+    the depth faults (one restyled set beside the sequence, reused by a second run), and the table names the
+    images; an unknown kind is one error line."""
+    pytest.importorskip("pybullet")
+    pytest.importorskip("mitsuba")
+    from narf_benchmarks.track import markdown
+    from narf_core.data.dataset import Dataset
+
+    args = ["--threads", "1", "bench", "track", "--work", str(tmp_path), "--models", str(CLAMP.parent), "--tools",
+            "clamp", "--frames", "2", "--size", "32", "24", "--modalities", "rgbd", "--images", "pybullet", "depth",
+            "--spp", "2", "--json"]
+    code = narf(args)
+    out, err = capfd.readouterr()
+    assert code == 0, err
+    result = json.loads(out)
+    assert [(r["images"], r["frames"]) for r in result["runs"]] == [("pybullet", 2), ("depth", 2)]
+    restyled = tmp_path / "sequences" / "clamp-32x24-2-restyled" / "depth"
+    source, faulty = Dataset.open(tmp_path / "sequences" / "clamp-32x24-2"), Dataset.open(restyled)
+    assert [f.time for f in faulty.frames()] == [f.time for f in source.frames()]
+    assert faulty.generator["condition"] == "depth" and faulty.generator["restyle"]["spp"] == 2
+    assert not np.array_equal(faulty.load(faulty.frames()[0]).depth, source.load(source.frames()[0]).depth)
+    table = markdown(result)
+    assert "| clamp | 32x24 | pybullet | rgbd |" in table and "| clamp | 32x24 | path-traced, depth | rgbd |" in table
+    written = (restyled / "scene.json").stat().st_mtime_ns
+    assert narf(args) == 0 and (restyled / "scene.json").stat().st_mtime_ns == written
+    capfd.readouterr()
+    with pytest.raises(SystemExit) as exited:
+        narf(["bench", "track", "--images", "sunny"])
+    _, err = capfd.readouterr()
+    assert exited.value.code == 2 and "Traceback" not in err
+    assert err.strip().splitlines()[-1].startswith("narf bench track: error: argument --images: invalid choice: 'sunny'")
