@@ -113,7 +113,7 @@ def test_restyle_writes_each_condition_deterministically(clamp: Path, tmp_path: 
         rs.restyle(clamp, tmp_path / "a", conditions=("all",), size=(64, 48), spp=2, seed=3, frame_ids=ids)
 
 
-def test_a_restyled_sequence_keeps_its_times_and_one_scene(clamp: Path, tmp_path: Path) -> None:
+def test_a_restyled_sequence_keeps_its_times_and_one_scene(clamp: Path, tmp_path: Path, monkeypatch) -> None:
     """A sequence (frames with times) restyled: the times kept, one scene and one exposure / white balance
     error for all its frames (a camera moving through one room), the samples and the other faults per
     frame; a set of single views keeps a scene per frame."""
@@ -129,6 +129,12 @@ def test_a_restyled_sequence_keeps_its_times_and_one_scene(clamp: Path, tmp_path
     assert len({r["faults"]["exposure_ev"] for r in records}) == 1
     assert len({r["faults"]["white_balance"][0] for r in records}) == 1
     assert len({r["faults"]["blur_px"] for r in records}) == 3
+    shared = []  # a part of the sequence is drawn in the whole sequence's scene (so its cached renders fit it)
+    monkeypatch.setattr(rs, "Shared", lambda *a, real=rs.Shared: shared.append(real(*a)) or shared[-1])
+    one = Dataset.open(rs.restyle(seq, tmp_path / "one", conditions=("noise",), spp=2, seed=5, frame_ids=[1])["noise"])
+    assert len(shared) == 1 and len(shared[0].eyes) == 3
+    assert one.generator["frames"][0]["scene"] == records[0]["scene"]  # the sequence's scene, not the frame's own
+    assert (one.load(one.frames()[0]).rgb == restyled.load(restyled.frames()[1]).rgb).all()
     single = Dataset.open(rs.restyle(clamp, tmp_path / "s", conditions=("noise",), size=(48, 36), spp=2, seed=5,
                                      frame_ids=[0, 1])["noise"])
     assert single.generator["restyle"]["scene_per"] == "frame" and single.frames()[0].time is None

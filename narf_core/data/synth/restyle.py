@@ -547,7 +547,8 @@ def restyle(
     cache.mkdir(parents=True, exist_ok=True)
     key = {"source": str(dataset.root.resolve()), "size": [camera.width, camera.height], "spp": spp, "seed": seed,
            "variant": VARIANT}
-    is_sequence = all(f.time is not None for f in frames)
+    every = dataset.frames()  # a sequence's scene is the whole sequence's, whichever frames are drawn now
+    is_sequence = all(f.time is not None for f in every)
     if is_sequence:
         key["scene"] = "sequence"
     urdf = read_urdf(dataset.urdf_path)
@@ -567,8 +568,8 @@ def restyle(
     with Restyler(dataset.urdf_path, dataset.links, spp) as restyler:
         shared = None
         if is_sequence:
-            eyes = np.stack([np.linalg.inv(np.asarray(f.T_cam_obj, dtype=np.float64))[:3, 3] for f in frames])
-            shared = Shared((seed,), min(restyler.floor(f.joints) for f in frames), eyes)
+            eyes = np.stack([np.linalg.inv(np.asarray(f.T_cam_obj, dtype=np.float64))[:3, 3] for f in every])
+            shared = Shared((seed,), min(restyler.floor(f.joints) for f in every), eyes)
         for frame in tqdm(frames, desc="restyle", unit="frame", disable=not progress):
             render = _cached_render(restyler, cache, key, camera, frame, seed, shared)
             for name, writer in writers.items():
