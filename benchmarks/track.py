@@ -28,6 +28,7 @@ once through ``POST /v1/track`` on a loopback server, and each one's frames per 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import shutil
@@ -153,7 +154,7 @@ def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, m
     runs = []
     for tool, model in models.items():
         for size in sizes:
-            for with_events, kind in ((e, k) for e in ((False, True) if events else (False,)) for k in images):
+            for with_events, kind in itertools.product((False, True) if events else (False,), images):
                 dataset = images_of(sequence(work, tool, size, frames, with_events, seed=seed), kind, spp, seed)
                 for modality in modalities:
                     start = time.perf_counter()

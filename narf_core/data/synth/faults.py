@@ -336,8 +336,8 @@ def apply_faults(
     holes, quantisation; labels lose the occluded pixels, then mask errors (the wrong pixels take
     the nearest link's label). ``info`` records the drawn values.
     """
-    def rng(name: str) -> np.random.Generator:
-        return np.random.default_rng([*seed, _STREAMS[name]])
+    def rng(name: str, base: tuple[int, ...] = seed) -> np.random.Generator:
+        return np.random.default_rng([*base, _STREAMS[name]])
 
     o, info = options, {}
     px = fx / o.native_fx  # this camera's pixels per native pixel
@@ -356,7 +356,7 @@ def apply_faults(
         visible = mask
     linear = auto_exposure(linear)
     if o.sensor:
-        r = rng("exposure") if camera_seed is None else np.random.default_rng([*camera_seed, _STREAMS["exposure"]])
+        r = rng("exposure", seed if camera_seed is None else camera_seed)
         ev = float(r.uniform(*o.exposure_ev))
         gains = tuple(float(g) for g in 1 + r.uniform(-o.white_balance, o.white_balance, 3))
         linear = exposure_white_balance(linear, ev, gains)
