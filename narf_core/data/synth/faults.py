@@ -371,7 +371,7 @@ def apply_faults(
     if o.depth:
         disparity_std = o.disparity_std_px * px
         z = stereo_depth_noise(z, rng("depth"), fx, o.baseline_m, disparity_std)
-        z = depth_holes(z, visible, rng("holes"), edge_px=max(1, round(o.edge_px * px)), edge_drop=o.edge_drop,
+        z = depth_holes(z, visible, rng("holes"), edge_px=round(o.edge_px * px), edge_drop=o.edge_drop,
                         thin_px=round(o.thin_px * px),
                         speckle=o.speckle)
         z = quantise_depth(z, o.depth_step_m)

@@ -527,7 +527,8 @@ def restyle(
     dataset = Dataset.open(source)
     camera = dataset.camera if size is None else dataset.camera.scaled(int(size[0]), int(size[1]))
     check_camera(camera)
-    frames = dataset.frames()
+    every = dataset.frames()  # a sequence's scene is the whole sequence's, whichever frames are drawn now
+    frames = every
     if splits is not None:
         frames = [f for f in frames if f.split in splits]
     if frame_ids is not None:
@@ -547,7 +548,6 @@ def restyle(
     cache.mkdir(parents=True, exist_ok=True)
     key = {"source": str(dataset.root.resolve()), "size": [camera.width, camera.height], "spp": spp, "seed": seed,
            "variant": VARIANT}
-    every = dataset.frames()  # a sequence's scene is the whole sequence's, whichever frames are drawn now
     is_sequence = all(f.time is not None for f in every)
     if is_sequence:
         key["scene"] = "sequence"
