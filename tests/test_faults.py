@@ -87,6 +87,32 @@ def test_occluder_is_in_front_of_every_part_it_hides_on_an_oblique_tool() -> Non
         assert (f.depth[hidden] < depth[hidden] - 0.005).all(), f"seed {seed}: the occluder lies behind a part it hides"
 
 
+def test_a_sequences_occluder_is_one_object_moving_round_the_tool() -> None:
+    """With a sequence's seed the occluder hides the asked share in every frame and moves a little from one
+    frame to the next (30 frames/s) while the tool slides; drawn per frame, it jumps round the tool."""
+    linear = np.full((60, 80, 3), 0.3, np.float32)
+
+    def centres(sequence: bool) -> tuple[np.ndarray, list[float]]:
+        out, directions = [], []
+        for k in range(30):
+            mask = np.roll(_disc_mask(), k // 2, axis=1)  # the tool slides half a pixel per frame
+            depth = np.where(mask, 0.8, 1.2).astype(np.float32)
+            f = faults.apply_faults(linear, depth, mask.astype(np.uint8), faults.condition("occlusion-20"), (7, k),
+                                    fx=60.0, sequence_seed=(7,) if sequence else None, time=k / 30)
+            assert (mask & (f.labels == 0)).sum() / mask.sum() == pytest.approx(0.2, abs=0.02)
+            region = f.depth != depth
+            out.append(np.argwhere(region).mean(0))
+            directions.append(f.info.get("occluder_direction_deg"))
+        return np.diff(np.array(out), axis=0), directions
+
+    moved, directions = centres(sequence=True)
+    assert np.hypot(*moved.T).max() < 3.0
+    turned = np.diff(np.unwrap(np.radians(directions)))
+    assert np.allclose(turned, turned[0]) and 10 <= abs(np.degrees(turned[0])) * 30 <= 40  # degrees per second
+    jumped, none = centres(sequence=False)
+    assert np.hypot(*jumped.T).mean() > 5 * np.hypot(*moved.T).mean() and none == [None] * 30
+
+
 def test_mask_erosion_and_dilation_by_the_asked_pixels() -> None:
     mask = np.zeros((40, 40), bool)
     mask[10:30, 10:30] = True

@@ -120,8 +120,10 @@ def test_a_restyled_sequence_keeps_its_times_and_one_scene(clamp: Path, tmp_path
     from narf_core.data.synth.sequence import synthesize_sequence
 
     seq = synthesize_sequence("clamp", tmp_path / "seq", 3, size=(48, 36), events=False, supersample=1)
-    out = rs.restyle(seq, tmp_path / "r", conditions=("noise",), spp=2, seed=5)
+    out = rs.restyle(seq, tmp_path / "r", conditions=("noise", "occlusion-20"), spp=2, seed=5)
     source, restyled = Dataset.open(seq), Dataset.open(out["noise"])
+    turns = np.diff([r["faults"]["occluder_direction_deg"] for r in Dataset.open(out["occlusion-20"]).generator["frames"]])
+    assert turns[0] == pytest.approx(turns[1]) and 10 / 30 <= abs(turns[0]) <= 40 / 30  # one occluder, turning
     assert [f.time for f in restyled.frames()] == [f.time for f in source.frames()] != [None] * 3
     assert restyled.generator["restyle"]["scene_per"] == "sequence"
     records = restyled.generator["frames"]

@@ -191,20 +191,26 @@ def soft_edge_mask(mask: np.ndarray, rng: np.random.Generator, sigma_px: float, 
 # occluders
 
 
-def occluder_region(mask: np.ndarray, rng: np.random.Generator, fraction: float) -> np.ndarray:
+def occluder_region(mask: np.ndarray, rng: np.random.Generator, fraction: float,
+                    direction: float | None = None) -> np.ndarray:
     """A lumpy blob ``[H, W]`` bool (a hand, another tool) that covers ``fraction`` of ``mask``'s pixels.
 
-    The blob is star-shaped about a centre near the mask's edge with a random smooth radius
-    profile; it is scaled so that exactly the asked share of mask pixels falls inside (the
-    ``fraction`` quantile of the mask pixels' normalised distances), so the hidden share matches up
-    to pixel rounding.
+    The blob is star-shaped about a centre on the mask's edge with a random smooth radius profile;
+    it is scaled so that exactly the asked share of mask pixels falls inside (the ``fraction``
+    quantile of the mask pixels' normalised distances), so the hidden share matches up to pixel
+    rounding. The centre is a random edge pixel, or with ``direction`` (radians, image axes) the edge
+    pixel in that direction from the mask's centroid: the same draws and a direction that turns
+    slowly give one occluder moving round the tool (a sequence's, :func:`apply_faults`).
     """
     if fraction <= 0 or not mask.any():
         return np.zeros_like(mask, dtype=bool)
     ys, xs = np.nonzero(mask)
     edge = mask & ~ndimage.binary_erosion(mask)
     eys, exs = np.nonzero(edge if edge.any() else mask)
-    i = rng.integers(len(eys))
+    i = rng.integers(len(eys))  # drawn in either case: the shape's draws below stay the same
+    if direction is not None:
+        bearing = np.arctan2(eys - ys.mean(), exs - xs.mean())
+        i = int(np.argmin(np.abs(np.angle(np.exp(1j * (bearing - direction))))))
     cy, cx = float(eys[i]), float(exs[i])
     h, w = mask.shape
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
@@ -292,11 +298,17 @@ CONDITIONS: dict[str, FaultOptions] = {
 
 # Bumped when a condition's faults change for the same seed, so that cached sets are remade
 # (2: the occluder lies in front of every part it hides, not only of the tool's median depth;
-# 3: pixel sizes scale with the camera's resolution: unchanged at the native 640x480).
-VERSION = 3
+# 3: pixel sizes scale with the camera's resolution: unchanged at the native 640x480;
+# 4: a sequence's occluder is one object moving round the tool, not one drawn anew in every frame).
+VERSION = 4
 
 # independent random streams per effect, so that conditions share the draws of the effects they share
-_STREAMS = {"exposure": 1, "blur": 2, "noise": 3, "jpeg": 4, "depth": 5, "holes": 6, "mask": 7, "occluder": 8}
+_STREAMS = {"exposure": 1, "blur": 2, "noise": 3, "jpeg": 4, "depth": 5, "holes": 6, "mask": 7, "occluder": 8,
+            "occluder_path": 9}
+
+# A sequence's occluder turns round the tool's silhouette at a speed drawn from this range (degrees per
+# second, either way): a hand or another object that moves, not one that jumps from frame to frame.
+OCCLUDER_TURN_DEG_S = (10.0, 40.0)
 
 
 @dataclass
@@ -318,7 +330,8 @@ def apply_faults(
     options: FaultOptions,
     seed: tuple[int, ...],
     fx: float,
-    camera_seed: tuple[int, ...] | None = None,
+    sequence_seed: tuple[int, ...] | None = None,
+    time: float = 0.0,
 ) -> Faulted:
     """The observation a camera (``fx`` pixels) and segmenter would give of a clean render.
 
@@ -328,8 +341,10 @@ def apply_faults(
     segmenter error at 640x480 is half a pixel at 160x120, not two pixels of a thin tool four times
     coarser).
 
-    Each effect draws from its own stream of ``seed``; the exposure and white-balance error from
-    ``camera_seed`` where given (a camera's own error, the same in every frame of a sequence).
+    Each effect draws from its own stream of ``seed``. A frame of a sequence (``sequence_seed`` given, the
+    frame at ``time`` seconds) draws what stays through the sequence from that seed instead: the camera's
+    exposure and white-balance error, and the occluder (its shape, colour and place in depth), which
+    turns round the tool at a speed of :data:`OCCLUDER_TURN_DEG_S`.
 
     Order: occluder (into the scene: it is lit, exposed and seen by the depth sensor), auto-exposure,
     exposure/white balance error, blur, shot + read noise, tone curve to sRGB, JPEG; depth noise,
@@ -344,19 +359,25 @@ def apply_faults(
     mask = labels > 0
     linear, z = linear.astype(np.float32), depth.astype(np.float32)
     if o.occlusion > 0:
-        region = occluder_region(mask, rng("occluder"), o.occlusion)
+        direction, occluder_seed = None, seed
+        if sequence_seed is not None:
+            path, occluder_seed = rng("occluder_path", sequence_seed), sequence_seed
+            speed = np.radians(path.uniform(*OCCLUDER_TURN_DEG_S)) * path.choice((-1.0, 1.0))
+            direction = float(path.uniform(0, 2 * np.pi) + speed * time)
+            info["occluder_direction_deg"] = float(np.degrees(direction) % 360)
+        region = occluder_region(mask, rng("occluder", occluder_seed), o.occlusion, direction)
         tool_z = float(np.median(depth[mask & (depth > 0)])) if (mask & (depth > 0)).any() else 1.0
         hidden = region & mask & (depth > 0)
         if hidden.any():  # in front of every part it hides, also of a tool seen obliquely (nearer than its median)
             tool_z = min(tool_z, float(depth[hidden].min()))
-        linear, z = composite_occluder(linear, z, region, rng("occluder"), tool_z)
+        linear, z = composite_occluder(linear, z, region, rng("occluder", occluder_seed), tool_z)
         info["occluded"] = float((region & mask).sum() / max(mask.sum(), 1))
         visible = mask & ~region
     else:
         visible = mask
     linear = auto_exposure(linear)
     if o.sensor:
-        r = rng("exposure", seed if camera_seed is None else camera_seed)
+        r = rng("exposure", seed if sequence_seed is None else sequence_seed)
         ev = float(r.uniform(*o.exposure_ev))
         gains = tuple(float(g) for g in 1 + r.uniform(-o.white_balance, o.white_balance, 3))
         linear = exposure_white_balance(linear, ev, gains)

@@ -513,8 +513,9 @@ def restyle(
     choose frames (default: all). Deterministic from ``seed``: the scene of a frame depends only on
     ``(seed, frame id)``, its faults on ``(seed, frame id, effect)``. A sequence (every frame with a
     ``time``, as ``narf synth --sequence`` writes) stays one: one scene for all its frames (a camera
-    moving through one room) and one exposure and white-balance error (one camera's), the time stamps
-    kept; the path tracer's samples and the other faults are drawn per frame. Path-traced frames are cached
+    moving through one room), one exposure and white-balance error (one camera's) and one occluder that
+    moves round the tool with time (:func:`faults.apply_faults`), the time stamps kept; the path tracer's
+    samples and the other faults are drawn per frame. Path-traced frames are cached
     in ``out/renders/`` and reused by later calls with the same size, spp and seed. A condition's
     folder that already holds a dataset is replaced only with ``overwrite``.
     """
@@ -574,7 +575,8 @@ def restyle(
             render = _cached_render(restyler, cache, key, camera, frame, seed, shared)
             for name, writer in writers.items():
                 f = faults.apply_faults(render.linear, render.depth, render.labels, faults.condition(name),
-                                        (seed, frame.id), fx, camera_seed=(seed,) if is_sequence else None)
+                                        (seed, frame.id), fx, sequence_seed=(seed,) if is_sequence else None,
+                                        time=frame.time or 0.0)
                 clean = (FrameImages(f.rgb, f.clean_depth, f.clean_labels), frame.T_cam_obj, frame.joints)
                 added = writer.add(frame.split, FrameImages(f.rgb, f.depth, f.labels), frame.T_cam_obj, frame.joints,
                                    clean=clean, time=frame.time)
