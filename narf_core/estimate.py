@@ -172,6 +172,7 @@ GN_POSE_OVERLAP = 0.8  # ... this overlap of the first estimate's silhouette wit
 # The robust preset's reference_box_px: the largest mask box (grown by box_margin) of the bundled
 # clamp's test and novel views at 160x120, its training size; boxes up to it keep the plain sampling.
 ROBUST_BOX_PX = 144
+GAIN_RANGE = (0.5, 2.0)  # a colour gain per channel, fitted (photometric_compensation, colour_gain()) or given
 # Both robust presets trust a mask the depth image contradicts only partially: a 2-pixel edge band (a
 # segmenter's edge is off by about that much) and 8 configuration starts (EstimateOptions.robust).
 PARTIAL_MASK = {"mask_trust": "auto", "partial_theta_starts": 8, "mask_band_px": 2}
@@ -212,6 +213,9 @@ class EstimateOptions:
     robust_scale: float = 0.1  # where the robust loss bends, in residual units (colour in [0, 1])
     damping: float = 1e-3  # first Levenberg-Marquardt λ (relative to diag JᵀWJ)
     photometric_compensation: bool = False  # per-channel gain and bias, closed form each iteration
+    # Otherwise the render's colour times this gain per channel before it is compared: a known change of the
+    # camera's exposure, white balance or light from the training views' (the tracker carries one; in GAIN_RANGE).
+    colour_gain: tuple[float, float, float] = (1.0, 1.0, 1.0)
     occlusion_margin: float = 0.0  # metres; observed depth this far in front of the render = occluder (0 = off)
     depth_sigma: float = 0.0  # sensor depth noise at 1 m (σ = depth_sigma z²); 0: depth residuals in object radii
     # How far the given mask is trusted (Adam's loss; a segmenter's mask is not the truth): "full",
@@ -330,6 +334,11 @@ class EstimateOptions:
         need(1 <= self.uncertainty_patch <= 64, "uncertainty_patch", "must be in [1, 64]")
         for name in ("sigma_floor_position", "sigma_floor_rotation", "sigma_floor_joint", "uncertainty_usual_residual"):
             need(getattr(self, name) >= 0, name, "must be >= 0")
+        gain = self.colour_gain
+        need(isinstance(gain, (tuple, list)) and len(gain) == 3
+             and all(isinstance(g, (int, float)) and not isinstance(g, bool) and GAIN_RANGE[0] <= g <= GAIN_RANGE[1]
+                     for g in gain), "colour_gain", f"must be 3 numbers in [{GAIN_RANGE[0]}, {GAIN_RANGE[1]}]")
+        self.colour_gain = tuple(float(g) for g in gain)  # (a JSON list compares equal once read)
 
     @classmethod
     def robust(cls, **overrides) -> EstimateOptions:
@@ -1274,6 +1283,8 @@ class _Loss:
         if opts.photometric_compensation:
             gain, bias = _gain_bias(rgb.detach(), opacity.detach(), observed, mask, keep)
             rgb = gain[:, None] * rgb + bias[:, None] * opacity[..., None]
+        elif opts.colour_gain != (1.0, 1.0, 1.0):
+            rgb = rgb * rgb.new_tensor(opts.colour_gain)
         used = keep.to(rgb.dtype)
         edge = None if target.band is None or target.image is None else target.band[index]
         if edge is not None:  # the render against the unmasked image where it draws the object; no mask there
@@ -1372,24 +1383,40 @@ def _outside_weight(
     return w
 
 
+def _colour_pairs(rgb: Tensor, opacity: Tensor, observed: Tensor, mask: Tensor, keep: Tensor
+                  ) -> tuple[Tensor, Tensor, Tensor]:
+    """The render's colour ``x [S, n, 3]`` (``rgb [S, n, 3]`` over its ``opacity [S, n]``), the observed
+    ``a [1, n, 3]`` (``observed [n, 3]`` over ``mask [n]``) and the weights ``w [S, n]`` of the rays inside
+    both (and ``keep [S, n]``): the pairs a colour fit compares."""
+    w = ((mask > 0.5)[None] & (opacity > 0.5) & keep).to(rgb.dtype)
+    return rgb / opacity[..., None].clamp_min(1e-6), (observed / mask[:, None].clamp_min(1e-6))[None], w
+
+
 def _gain_bias(rgb: Tensor, opacity: Tensor, observed: Tensor, mask: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
-    """Per-start gain and bias ``[S, 3]`` that fit ``gain * colour + bias`` of the render (``rgb [S, n, 3]``
-    premultiplied by ``opacity [S, n]``) to the observed colour (``observed [n, 3]`` premultiplied by
-    ``mask [n]``) on the rays inside both (and ``keep [S, n]``): least squares per channel, bounded
-    (gain in [0.5, 2], bias in [-0.3, 0.3]); ones and zeros where fewer than 16 rays qualify.
+    """Per-start gain and bias ``[S, 3]`` that fit ``gain * colour + bias`` of the render to the observed
+    colour (:func:`_colour_pairs`): least squares per channel, bounded (gain in ``GAIN_RANGE``, bias in
+    [-0.3, 0.3]); ones and zeros where fewer than 16 rays qualify.
     Another light or exposure changes the object's colour, not its shape."""
-    w = ((mask > 0.5)[None] & (opacity > 0.5) & keep).to(rgb.dtype)  # [S, n]
+    x, a, w = _colour_pairs(rgb, opacity, observed, mask, keep)
     count = w.sum(-1)
-    x = rgb / opacity[..., None].clamp_min(1e-6)
-    a = (observed / mask[:, None].clamp_min(1e-6))[None]
     n = count.clamp_min(1)[:, None]
     mx, ma = (w[..., None] * x).sum(1) / n, (w[..., None] * a).sum(1) / n
     cov = (w[..., None] * (x - mx[:, None]) * (a - ma[:, None])).sum(1)
     var = (w[..., None] * (x - mx[:, None]) ** 2).sum(1)
-    gain = torch.where(var > 1e-8, cov / var.clamp_min(1e-8), torch.ones_like(var)).clamp(0.5, 2.0)
+    gain = torch.where(var > 1e-8, cov / var.clamp_min(1e-8), torch.ones_like(var)).clamp(*GAIN_RANGE)
     bias = (ma - gain * mx).clamp(-0.3, 0.3)
     enough = (count >= 16)[:, None]
     return torch.where(enough, gain, torch.ones_like(gain)), torch.where(enough, bias, torch.zeros_like(bias))
+
+
+def colour_gain(rgb: Tensor, opacity: Tensor, observed: Tensor, mask: Tensor, keep: Tensor) -> Tensor:
+    """Per-start gain ``[S, 3]`` that fits ``gain * colour`` of the render to the observed colour
+    (:func:`_colour_pairs`): least squares per channel through zero, in ``GAIN_RANGE``; ones where fewer than
+    16 rays qualify. One number per channel, unlike :func:`_gain_bias`'s two, which a tool of nearly one
+    colour leaves ill-determined (a gain of 0.5 and a bias of 0.3 fit as well as 1 and 0)."""
+    x, a, w = _colour_pairs(rgb, opacity, observed, mask, keep)
+    gain = ((w[..., None] * x * a).sum(1) / (w[..., None] * x * x).sum(1).clamp_min(1e-8)).clamp(*GAIN_RANGE)
+    return torch.where((w.sum(-1) >= 16)[:, None], gain, torch.ones_like(gain))
 
 
 # --------------------------------------------------------------------------------------------

@@ -5,7 +5,7 @@ premultiplied by opacity, over black) and is compared with the box pixel it goes
 residuals are linear in the prediction, ``r_i = M_i P_i - y_i`` with ``M_i [5, 5]`` fixed for an
 iteration:
 
-  - colour ``a_c rgb_c + b_c opacity - image_c * mask`` (``a = 1, b = 0`` unless
+  - colour ``a_c rgb_c + b_c opacity - image_c * mask`` (``a = colour_gain, b = 0`` unless
     ``photometric_compensation``: gain and bias per channel, solved in closed form on the mask's
     rays at every iteration and held fixed in the Jacobian),
   - silhouette ``sqrt(silhouette_weight) (opacity - mask)``,
@@ -399,10 +399,10 @@ class Problem:
 
     def _compensation(self, P: Tensor, rgb_t: Tensor, mask_t: Tensor, keep: Tensor) -> tuple[Tensor, Tensor]:
         """Per-start gain and bias ``[S, 3]`` fitting ``gain * rgb + bias * opacity`` of ``P [S, n, 5]`` to
-        the observed colour (:func:`narf_core.estimate._gain_bias`); ones and zeros when off."""
+        the observed colour (:func:`narf_core.estimate._gain_bias`); when off, ``options.colour_gain`` and zeros."""
         if not self.options.photometric_compensation:
             S = P.shape[0]
-            return P.new_ones(S, 3), P.new_zeros(S, 3)
+            return P.new_tensor(self.options.colour_gain).expand(S, 3), P.new_zeros(S, 3)
         from narf_core.estimate import _gain_bias
 
         return _gain_bias(P[..., :3], P[..., 3], rgb_t, mask_t, keep)

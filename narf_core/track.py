@@ -7,6 +7,10 @@ prediction of the previous estimate. The state carried from frame to frame is a
 centre and its angular velocity (both in camera axes, so that the prediction turns the object
 about itself), the joint velocities and, where the solver gives one, the covariance Σ.
 
+Without depth the state also carries a colour gain per channel: each tracked frame's own fit at its
+estimate moves it a step (``options.colour_rate_rgb``), and once it is far from one
+(``options.colour_gate_rgb``) the render's colour is compared times it.
+
 A frame's status (:data:`STATUSES`):
   - ``tracking``: the estimate explains the mask (overlap at least ``options.uncertain_overlap``)
     and Σ, if known, is within ``options.max_position_sigma_m`` / ``max_rotation_sigma_deg``;
@@ -43,8 +47,8 @@ from torch import Tensor
 
 from narf_core.checks import check_number, check_option_types, check_pose, option_rule
 from narf_core.estimate import (
-    MIN_MASK_PIXELS, SOLVERS, UNOBSERVED_CODE, EstimateInputError, EstimateOptions, EstimateResult, Uncertainty,
-    line_of_sight, refine, training_fx, unobserved_joints,
+    GAIN_RANGE, MIN_MASK_PIXELS, SOLVERS, UNOBSERVED_CODE, EstimateInputError, EstimateOptions, EstimateResult,
+    Uncertainty, _object_rays, colour_gain, line_of_sight, refine, training_fx, unobserved_joints,
 )
 from narf_core.gauss_newton import Problem
 from narf_core.geometry import Pinhole, Rays, so3_exp, so3_log
@@ -59,6 +63,7 @@ STATUSES = ("tracking", "uncertain", "lost", "reinitialised")
 MARCHES = ("frame", "iteration")
 FIRST_FRAMES = ("multi-start", "warm")
 _MIN_VELOCITY_GAP_S = 1e-3  # velocities are measured over at least this long
+COLOUR_RAYS = 256  # mask pixels on which a tracked frame's colour gain is fitted (colour_gain_at)
 # A frame's band reaches this far beyond the model's surface points at the prediction (refine_frame):
 # the prediction's error is a few millimetres.
 _FRAME_MARGIN_M = 0.006
@@ -204,6 +209,15 @@ class TrackOptions:
     # few pixels' width barely sees, and unheld it now and then ran off by tens of degrees (docs/benchmarks.md).
     frame_prior_position_m: float = 0.01
     frame_prior_rotation_deg: float = 5.0
+    # Without depth, the track carries a colour gain per channel: each tracked frame's fit at its estimate
+    # (colour_gain_at) moves it by this share (its first frames by 1/n). 0 = off.
+    colour_rate_rgb: float = 0.2
+    # ... and once a channel's is this far from one, the render's colour is compared times it. A light, exposure
+    # or white balance other than the training views' (gains of 0.7-1.7 on path-traced views) otherwise pulls a
+    # thin tool's track towards poses that hide the mismatch; the models' own colour is within 5 % of their
+    # training renderer's, and a correction that small sets as many tracks off as it saves (docs/benchmarks.md,
+    # session 38).
+    colour_gate_rgb: float = 0.1
     max_gap_s: float = 0.25  # longer since the last estimate: no prediction, re-initialise
     # Longer since the last estimate (or lost after an `uncertain` or `reinitialised` frame): re-initialise
     # by detection (every orientation scored, the best refined; narf_core/detect.py) instead of the
@@ -243,6 +257,8 @@ class TrackOptions:
         need(self.frame_prior_rotation_deg_rgb >= 0, "frame_prior_rotation_deg_rgb", "must be >= 0 (0 = off)")
         need(self.frame_prior_position_m >= 0, "frame_prior_position_m", "must be >= 0 (0 = off)")
         need(self.frame_prior_rotation_deg >= 0, "frame_prior_rotation_deg", "must be >= 0 (0 = off)")
+        need(0 <= self.colour_rate_rgb <= 1, "colour_rate_rgb", "must be in [0, 1] (0 = off)")
+        need(0 <= self.colour_gate_rgb < 1, "colour_gate_rgb", "must be in [0, 1)")
         need(self.max_gap_s > 0, "max_gap_s", "must be > 0")
         need(self.redetect_after_s >= 0, "redetect_after_s", "must be >= 0 (0 = never)")
         need(self.redetect_rgb_distance == 0 or self.redetect_rgb_distance > 1, "redetect_rgb_distance",
@@ -326,7 +342,8 @@ class TrackState:
     last frame seen; ``velocity [6]``: the box centre's velocity (m/s) and the angular velocity
     (rad/s), camera axes; ``joint_velocity``: per joint, units per second; ``covariance``
     ``[6+k, 6+k]`` or None; ``status``: the last frame's; ``lost_frames``: frames since the last
-    estimate that stood.
+    estimate that stood; ``colour_gain [3]``: the colour gain the track carries without depth, fitted on
+    ``colour_frames`` frames so far (``TrackOptions.colour_rate_rgb``, ``colour_gate_rgb``).
     """
 
     T_cam_obj: np.ndarray
@@ -338,6 +355,8 @@ class TrackState:
     covariance: np.ndarray | None = None
     status: str = "tracking"
     lost_frames: int = 0
+    colour_gain: np.ndarray = field(default_factory=lambda: np.ones(3))
+    colour_frames: int = 0
 
     @classmethod
     def initial(cls, model: NarfModel, T_cam_obj: np.ndarray, joints: Mapping[str, float] | None, time: float,
@@ -366,6 +385,12 @@ class TrackState:
             raise TrackInputError("state.covariance must be finite")
         if self.status not in STATUSES:
             raise TrackInputError(f"state.status must be one of {', '.join(STATUSES)}, got {self.status!r}")
+        gain = np.asarray(self.colour_gain, dtype=np.float64)
+        if gain.shape != (3,) or not (np.isfinite(gain).all() and (gain >= GAIN_RANGE[0]).all()
+                                      and (gain <= GAIN_RANGE[1]).all()):
+            raise TrackInputError(f"state.colour_gain must be 3 numbers in [{GAIN_RANGE[0]}, {GAIN_RANGE[1]}]")
+        if not isinstance(self.colour_frames, int) or self.colour_frames < 0:
+            raise TrackInputError("state.colour_frames must be an integer >= 0")
 
 
 @dataclass
@@ -519,6 +544,31 @@ def overlap(model: NarfModel, camera: Pinhole, mask: np.ndarray, T_cam_obj: np.n
     splat[px[:, 1], px[:, 0]] = True
     covered = float((dilate(splat, spacing) & mask).sum()) / n_mask
     return min(inside, covered)
+
+
+def colour_gain_at(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, T_cam_obj: np.ndarray,
+                   joints: Mapping[str, float], *, mode: str = "narf", rays: int = COLOUR_RAYS,
+                   seed: int = 0) -> np.ndarray | None:
+    """The gain per channel ``[3]`` that maps the model's colour at an estimate (``T_cam_obj``, ``joints``)
+    onto ``image``'s (uint8 ``[H, W, 3]``), fitted on up to ``rays`` pixels of ``mask`` drawn with ``seed``
+    (:func:`narf_core.estimate.colour_gain`); None where fewer than 16 pixels qualify."""
+    v, u = np.nonzero(np.asarray(mask) != 0)
+    if len(u) < 16:
+        return None
+    pick = np.sort(np.random.default_rng(seed).choice(len(u), min(rays, len(u)), replace=False))
+    device = model.aabb.device
+    cam = Pinhole(camera.K.detach().to(device, torch.float32), camera.width, camera.height)
+    rays_cam = cam.rays(torch.from_numpy(np.stack([u[pick], v[pick]], -1)).to(device))
+    T = torch.as_tensor(np.asarray(T_cam_obj), dtype=torch.float32, device=device)
+    with torch.no_grad():
+        out = model.render_rays(_object_rays(rays_cam, T[None]), model.joint_vector(joints).to(device, torch.float32),
+                                mode=mode, outputs=("rgb", "opacity"))
+    observed = torch.as_tensor(np.asarray(image)[v[pick], u[pick]], dtype=torch.float64) / 255
+    rgb, opacity = out.rgb.detach().double().cpu()[None], out.opacity.detach().double().cpu()[None]
+    ones = torch.ones(len(pick), dtype=torch.float64)
+    if int((opacity > 0.5).sum()) < 16:
+        return None
+    return colour_gain(rgb, opacity, observed, ones, ones[None].bool())[0].numpy()
 
 
 # --------------------------------------------------------------------------------------------
@@ -935,11 +985,13 @@ def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool, camera: Pi
 
 def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None,
                  T: np.ndarray, joints: Mapping[str, float], opts: TrackOptions,
-                 checks: list[str] | None = None) -> EstimateResult:
+                 checks: list[str] | None = None, colour: tuple[float, float, float] | None = None) -> EstimateResult:
     """A warm-started frame's iterations from ``T`` and ``joints``: :func:`refine_frame` (narf mode,
     ``march = "frame"``, no band; given the frame's input ``checks``) or :func:`refine` (any other mode or
-    march)."""
+    march); the render's colour compared times ``colour`` where given."""
     step_options = opts.step_options(depth is not None, model.aabb.device)
+    if colour is not None:
+        step_options = replace(step_options, colour_gain=colour)
     if (opts.march == "frame" and opts.band_m == 0
             and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf"):
         position, rotation = ((opts.frame_prior_position_m, opts.frame_prior_rotation_deg) if depth is not None
@@ -1014,24 +1066,42 @@ def step(
 
 
 def _redetected(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, depth: np.ndarray | None,
-                T0: np.ndarray, joints: Mapping[str, float], opts: TrackOptions, checks: list[str]) -> EstimateResult | None:
+                T0: np.ndarray, joints: Mapping[str, float], opts: TrackOptions, checks: list[str],
+                colour: tuple[float, float, float] | None = None) -> EstimateResult | None:
     """A re-initialisation by detection (:func:`narf_core.detect.detect`, ``T0`` and ``joints`` its hint); with
     depth always, without it None where it cannot be trusted: a mask cut by the image's border (``checks``' warning) or
     a detected distance more than ``opts.redetect_rgb_distance`` times ``T0``'s or less than its inverse
-    (both from the silhouette's size, which a partial mask makes small)."""
+    (both from the silhouette's size, which a partial mask makes small). Its refinement compares the render's
+    colour times ``colour`` where given."""
     from narf_core.detect import DetectOptions, detect
 
     if depth is None and (opts.redetect_rgb_distance == 0 or any(w.startswith(f"{BORDER_CODE}:") for w in checks)):
         return None
     detector = DetectOptions(preset=opts.reinit_solver, seed=opts.seed)
+    refine_options = replace(opts.reinit_options(), iterations=detector.iterations,
+                             theta_starts=detector.refine_theta_starts)
+    if colour is not None:
+        refine_options = replace(refine_options, colour_gain=colour)
     result = detect(model, camera, image, mask, depth, joints=joints, options=detector, hints=[(T0, joints)],
-                    refine_options=replace(opts.reinit_options(), iterations=detector.iterations,
-                                           theta_starts=detector.refine_theta_starts))
+                    refine_options=refine_options)
     if depth is None:
         ratio = np.linalg.norm(result.T_cam_obj[:3, 3]) / np.linalg.norm(np.asarray(T0)[:3, 3])
         if not 1 / opts.redetect_rgb_distance <= ratio <= opts.redetect_rgb_distance:
             return None
     return result
+
+
+def _carried_colour(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, result: EstimateResult,
+                    state: TrackState, opts: TrackOptions) -> tuple[np.ndarray, int]:
+    """The track's colour gain and its count of fitted frames after a tracked frame without depth: moved
+    towards the frame's own fit at its estimate (:func:`colour_gain_at`) by ``opts.colour_rate_rgb``, over
+    its first frames by 1/n (they have nothing better: the mean of their fits); kept where the fit fails."""
+    fit = colour_gain_at(model, camera, image, mask, result.T_cam_obj, result.joints, mode=opts.mode, seed=opts.seed)
+    if fit is None:
+        return state.colour_gain, state.colour_frames
+    fitted = state.colour_frames + 1
+    gain = np.asarray(state.colour_gain, dtype=np.float64)
+    return np.clip(gain + max(opts.colour_rate_rgb, 1.0 / fitted) * (fit - gain), *GAIN_RANGE), fitted
 
 
 def _period_passed(before: float, gap: float, period: float) -> bool:
@@ -1056,7 +1126,8 @@ def _step(
 
     def lost(reason: str, loss: float | None = None, iterations: int = 0, score: float | None = None):
         nxt = TrackState(state.T_cam_obj, dict(state.joints), t, state.anchor_time, np.asarray(state.velocity),
-                         dict(state.joint_velocity), state.covariance, "lost", state.lost_frames + 1)
+                         dict(state.joint_velocity), state.covariance, "lost", state.lost_frames + 1,
+                         state.colour_gain, state.colour_frames)
         return TrackResult(t, "lost", state.T_cam_obj.copy(), dict(state.joints), score, loss, iterations,
                            _time.perf_counter() - start, reason, warnings=list(checks)), nxt
 
@@ -1069,13 +1140,17 @@ def _step(
     checks = check_observation(np.asarray(frame.image), mask, depth, camera,
                                expected_depth_m=float(np.asarray(state.T_cam_obj)[2, 3]))
     depth = usable_depth(depth, checks)
+    fits_colour = depth is None and opts.colour_rate_rgb > 0
+    colour = None  # the gain the render's colour is compared at, where the carried one passed the gate
+    if fits_colour and np.abs(np.asarray(state.colour_gain) - 1).max() >= opts.colour_gate_rgb:
+        colour = tuple(float(g) for g in state.colour_gain)
     gap = t - state.anchor_time
     iterations = 0
     if state.status != "lost" and gap <= opts.max_gap_s:
         T_pred, joints_pred = predict(model, state, t)
         if depth is not None and opts.depth_align:
             T_pred = depth_aligned(model, camera, T_pred, joints_pred, mask, depth)
-        result = _warm_refine(model, camera, frame.image, mask, depth, T_pred, joints_pred, opts, checks)
+        result = _warm_refine(model, camera, frame.image, mask, depth, T_pred, joints_pred, opts, checks, colour)
         iterations += result.iterations
         retry_scale = opts.sigma_scale or RETRY_SIGMA_SCALE[opts.solver_for(True)]
         if depth is not None and opts.retry_uncertain and _too_uncertain(_uncertainty(result, retry_scale)[0], opts):
@@ -1099,7 +1174,11 @@ def _step(
                 velocity = _blended_velocity(model, state, result.T_cam_obj, gap, a, along)
                 joint_velocity = {name: a * (value - state.joints[name]) / gap + (1 - a) * joint_velocity.get(name, 0.0)
                                   for name, value in result.joints.items()}
-            nxt = TrackState(result.T_cam_obj, dict(result.joints), t, t, velocity, joint_velocity, cov, status, 0)
+            gain, fitted = state.colour_gain, state.colour_frames
+            if fits_colour:
+                gain, fitted = _carried_colour(model, camera, frame.image, mask, result, state, opts)
+            nxt = TrackState(result.T_cam_obj, dict(result.joints), t, t, velocity, joint_velocity, cov, status, 0,
+                             gain, fitted)
             return TrackResult(t, status, result.T_cam_obj, dict(result.joints), score, result.loss, iterations,
                                _time.perf_counter() - start, reason, info, cov,
                                warnings=_warnings(model, result, checks)), nxt
@@ -1129,12 +1208,12 @@ def _step(
     if redetect and depth is not None:
         result = _redetected(model, camera, frame.image, mask, depth, T0, state.joints, opts, checks)
     else:
-        result = refine(model, frame.image, mask, camera, T0, joints_init=state.joints, depth=depth,
-                        options=opts.reinit_options())
+        reinit = opts.reinit_options() if colour is None else replace(opts.reinit_options(), colour_gain=colour)
+        result = refine(model, frame.image, mask, camera, T0, joints_init=state.joints, depth=depth, options=reinit)
         failed = result.status in ("no_overlap", "non_finite")
         score = None if failed else overlap(model, camera, mask, result.T_cam_obj, result.joints)
         if redetect and (failed or score < opts.uncertain_overlap):  # (here without depth)
-            found = _redetected(model, camera, frame.image, mask, depth, T0, state.joints, opts, checks)
+            found = _redetected(model, camera, frame.image, mask, depth, T0, state.joints, opts, checks, colour)
             if found is not None:
                 iterations, result, score = iterations + result.iterations, found, None
     iterations += result.iterations
@@ -1145,7 +1224,8 @@ def _step(
     if score < opts.uncertain_overlap:
         return lost(f"{why}; re-initialisation explains only {score:.0%} of the mask", result.loss, iterations, score)
     info, cov = _uncertainty(result)
-    nxt = TrackState(result.T_cam_obj, dict(result.joints), t, t, np.zeros(6), {}, cov, "reinitialised", 0)
+    nxt = TrackState(result.T_cam_obj, dict(result.joints), t, t, np.zeros(6), {}, cov, "reinitialised", 0,
+                     state.colour_gain, state.colour_frames)
     return TrackResult(t, "reinitialised", result.T_cam_obj, dict(result.joints), score, result.loss, iterations,
                        _time.perf_counter() - start, why, info, cov, warnings=_warnings(model, result, checks)), nxt
 

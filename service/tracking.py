@@ -1,6 +1,6 @@
 """``POST /v1/track``: tracking that keeps the replicas stateless.
 
-The tracker's state (pose, θ, velocities, Σ, frame times, status) travels with the client as an
+The tracker's state (pose, θ, velocities, Σ, frame times, status, colour gain) travels with the client as an
 opaque token: ``v1.<payload>.<signature>``, where the payload is compact JSON (base64url) naming
 the model and a fingerprint of its bundle, and the signature is HMAC-SHA256 over the version and
 payload with the server's state key (``NARF_STATE_KEY`` / ``--state-key-file``; every replica
@@ -88,6 +88,7 @@ def encode_state(key: bytes, name: str, model: NarfModel, state: TrackState) -> 
         "T": np.asarray(state.T_cam_obj)[:3].ravel().tolist(), "j": state.joints, "v": np.asarray(state.velocity).tolist(),
         "jv": state.joint_velocity, "s": state.status, "l": state.lost_frames,
         "c": None if state.covariance is None else np.asarray(state.covariance).tolist(),
+        "g": np.asarray(state.colour_gain).tolist(), "n": state.colour_frames,
     }
     body = f"{TOKEN_VERSION}.{_b64(json.dumps(payload, separators=(',', ':'), allow_nan=False).encode())}"
     return f"{body}.{_sign(key, body)}"
@@ -119,6 +120,7 @@ def decode_state(key: bytes, token: str, name: str, model: NarfModel) -> TrackSt
             T, {k: float(v) for k, v in data["j"].items()}, float(data["t"]), float(data["a"]),
             np.asarray(data["v"], dtype=np.float64), {k: float(v) for k, v in data["jv"].items()},
             None if data["c"] is None else np.asarray(data["c"], dtype=np.float64), str(data["s"]), int(data["l"]),
+            np.asarray(data.get("g", [1.0, 1.0, 1.0]), dtype=np.float64), int(data.get("n", 0)),
         )
         state.check(model)
     except TrackInputError as e:

@@ -1370,3 +1370,99 @@ def test_bench_track_tracks_path_traced_images_of_its_sequences(tmp_path: Path, 
     _, err = capfd.readouterr()
     assert exited.value.code == 2 and "Traceback" not in err
     assert err.strip().splitlines()[-1].startswith("narf bench track: error: argument --images: invalid choice: 'sunny'")
+
+
+def test_colour_gain_at_measures_a_change_of_light_and_a_frame_compares_at_it(clamp, clamp_sequence: Path) -> None:
+    """At the label the model's colour fits the image's with a gain of about one per channel, and the same
+    image darkened per channel by that much more; a frame without depth refined on the darkened image from
+    the label moved 5 mm sideways ends with a lower loss where its render is compared times that gain."""
+    from dataclasses import replace
+
+    from narf_core.data.dataset import Dataset
+    from narf_core.track import TrackOptions, colour_gain_at, refine_frame
+
+    dataset = Dataset.open(clamp_sequence)
+    frame = dataset.frames()[3]
+    images = dataset.load(frame)
+    mask = images.labels > 0
+    own = colour_gain_at(clamp, dataset.camera, images.rgb, mask, frame.T_cam_obj, frame.joints)
+    np.testing.assert_allclose(own, 1.0, atol=0.08)
+    scale = np.array([0.6, 0.8, 0.95])
+    dark = np.round(images.rgb * scale).astype(np.uint8)
+    gain = colour_gain_at(clamp, dataset.camera, dark, mask, frame.T_cam_obj, frame.joints)
+    np.testing.assert_allclose(gain / own, scale, rtol=0.02)
+    assert colour_gain_at(clamp, dataset.camera, dark, np.zeros_like(mask), frame.T_cam_obj, frame.joints) is None
+
+    T0 = frame.T_cam_obj.copy()
+    T0[0, 3] += 0.005
+    options = replace(TrackOptions().step_options(False), uncertainty=False)
+    plain = refine_frame(clamp, dataset.camera, dark, mask, None, T0, frame.joints, options, polish=True)
+    lit = refine_frame(clamp, dataset.camera, dark, mask, None, T0, frame.joints,
+                       replace(options, colour_gain=tuple(gain)), polish=True)
+    assert lit.loss < 0.7 * plain.loss, (lit.loss, plain.loss)
+
+
+def test_a_track_without_depth_carries_the_colour_gain_of_its_frames(clamp, clamp_sequence: Path, monkeypatch) -> None:
+    """Frames without depth darkened per channel: the carried gain moves from ones to the frames' own (the
+    mean of the fits over the first frames, then a step of colour_rate_rgb), every tracked frame counted, and
+    the frames after the first compare the render times it; below the gate (colour_gate_rgb) it is fitted but
+    not applied; off (colour_rate_rgb 0) and with depth it stays at ones."""
+    import narf_core.track as track_module
+    from narf_core.data.dataset import Dataset
+    from narf_core.track import TrackFrame, TrackOptions, TrackState, step
+    from narf_core.track_io import sequence_frames
+
+    dataset = Dataset.open(clamp_sequence)
+    frames = sequence_frames(dataset)[:5]
+    scale = np.array([0.6, 0.8, 0.95])
+    observed = [dataset.load(f) for f in frames]
+    compared = []  # the colour gain of every frame's refinement
+    refine_frame = track_module.refine_frame
+    monkeypatch.setattr(track_module, "refine_frame",
+                        lambda *a, **k: compared.append(a[7].colour_gain) or refine_frame(*a, **k))
+
+    def carried(depth: bool, **options) -> TrackState:
+        compared.clear()
+        state = TrackState.initial(clamp, frames[0].T_cam_obj, frames[0].joints, frames[0].time, status="tracking")
+        for f, images in zip(frames, observed):
+            frame = TrackFrame(np.round(images.rgb * scale).astype(np.uint8), images.labels > 0, f.time,
+                               images.depth if depth else None)
+            result, state = step(clamp, dataset.camera, frame, state, TrackOptions(uncertainty_rays=0, **options))
+            assert result.status == "tracking", (f.id, result.reason)
+        return state
+
+    on = carried(depth=False)
+    assert on.colour_frames == len(frames)
+    np.testing.assert_allclose(on.colour_gain, scale, atol=0.08)
+    assert compared[0] == (1.0, 1.0, 1.0) and all(np.abs(np.array(g) - scale).max() < 0.1 for g in compared[1:])
+    gated = carried(depth=False, colour_gate_rgb=0.5)
+    np.testing.assert_allclose(gated.colour_gain, scale, atol=0.08)
+    assert compared == [(1.0, 1.0, 1.0)] * len(frames)
+    for off in (carried(depth=False, colour_rate_rgb=0.0), carried(depth=True)):
+        assert off.colour_gain.tolist() == [1.0, 1.0, 1.0] and off.colour_frames == 0
+
+
+def test_colour_gain_and_rate_are_validated() -> None:
+    from narf_core.estimate import EstimateInputError, EstimateOptions
+    from narf_core.track import TrackInputError, TrackOptions, TrackState
+
+    assert EstimateOptions(colour_gain=[0.9, 1, 1.1]) == EstimateOptions(colour_gain=(0.9, 1.0, 1.1))
+    for bad in ((0.4, 1.0, 1.0), (1.0, 1.0), ("a", 1.0, 1.0), (True, 1.0, 1.0), 1.0):
+        with pytest.raises(EstimateInputError, match="colour_gain"):
+            EstimateOptions(colour_gain=bad)
+    for bad in (-0.1, 1.5):
+        with pytest.raises(TrackInputError, match="colour_rate_rgb"):
+            TrackOptions(colour_rate_rgb=bad)
+        with pytest.raises(TrackInputError, match="colour_gate_rgb"):
+            TrackOptions(colour_gate_rgb=bad)
+    from narf_core.bundle import load_bundle
+
+    clamp = load_bundle(CLAMP)
+    T = np.eye(4)
+    T[2, 3] = 0.5
+    state = TrackState.initial(clamp, T, None, 1.0)
+    state.check(clamp)
+    for gain, frames in ((np.array([1.0, np.nan, 1.0]), 0), (np.array([3.0, 1.0, 1.0]), 0), (np.ones(3), -1)):
+        state.colour_gain, state.colour_frames = gain, frames
+        with pytest.raises(TrackInputError, match="state.colour"):
+            state.check(clamp)

@@ -65,6 +65,7 @@ def _state(clamp):
     state = TrackState.initial(clamp, T, {"jaw_opening": 0.1}, 1.0, status="tracking")
     state.velocity = np.array([0.01, 0.0, -0.02, 0.1, 0.0, 0.0])
     state.covariance = np.eye(7) * 1e-6
+    state.colour_gain, state.colour_frames = np.array([0.8, 1.0, 1.25]), 5
     return state
 
 
@@ -74,7 +75,9 @@ def test_token_round_trip(clamp) -> None:
     np.testing.assert_allclose(back.T_cam_obj, state.T_cam_obj)
     np.testing.assert_allclose(back.velocity, state.velocity)
     np.testing.assert_allclose(back.covariance, state.covariance)
+    np.testing.assert_allclose(back.colour_gain, state.colour_gain)
     assert back.joints == state.joints and back.time == state.time and back.status == "tracking"
+    assert back.colour_frames == 5
 
 
 def _refused(token: str, clamp, name: str = "clamp", model=None, key: bytes = KEY) -> str:
@@ -103,21 +106,28 @@ def test_tampered_foreign_and_old_tokens_are_refused(clamp) -> None:
     assert "another bundle" in _refused(token, clamp, model=other)
 
 
-def test_a_signed_token_with_a_nan_is_still_refused(clamp) -> None:
-    """Defence in depth: even a correctly signed payload must hold a usable state."""
+def _signed(payload: dict) -> str:
     import base64
     import hashlib
     import hmac
     import json
 
+    body = "v1." + base64.urlsafe_b64encode(json.dumps(payload).encode()).rstrip(b"=").decode()
+    signature = base64.urlsafe_b64encode(hmac.new(KEY, body.encode(), hashlib.sha256).digest()).rstrip(b"=").decode()
+    return f"{body}.{signature}"
+
+
+def test_a_signed_token_with_a_nan_or_a_wild_gain_is_still_refused(clamp) -> None:
+    """Defence in depth: even a correctly signed payload must hold a usable state. A v1 payload written before
+    the colour gain was carried reads with none (ones)."""
     from narf_service.tracking import fingerprint
 
     payload = {"m": "clamp", "f": fingerprint(clamp), "t": 1.0, "a": 1.0, "T": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0.5],
-               "j": {"jaw_opening": 0.1}, "v": [0, 0, 0, 0, 0, float("nan")], "jv": {}, "s": "tracking", "l": 0,
-               "c": None}
-    body = "v1." + base64.urlsafe_b64encode(json.dumps(payload).encode()).rstrip(b"=").decode()
-    sig = base64.urlsafe_b64encode(hmac.new(KEY, body.encode(), hashlib.sha256).digest()).rstrip(b"=").decode()
-    assert "unusable state" in _refused(f"{body}.{sig}", clamp)
+               "j": {"jaw_opening": 0.1}, "v": [0, 0, 0, 0, 0, 0], "jv": {}, "s": "tracking", "l": 0, "c": None}
+    older = decode_state(KEY, _signed(payload), "clamp", clamp)
+    assert older.colour_gain.tolist() == [1.0, 1.0, 1.0] and older.colour_frames == 0
+    assert "unusable state" in _refused(_signed({**payload, "v": [0, 0, 0, 0, 0, float("nan")]}), clamp)
+    assert "colour_gain" in _refused(_signed({**payload, "g": [0.1, 1.0, 1.0], "n": 3}), clamp)
 
 
 # --------------------------------------------------------------------------------------------
