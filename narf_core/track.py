@@ -218,6 +218,12 @@ class TrackOptions:
     # training renderer's, and a correction that small sets as many tracks off as it saves (docs/benchmarks.md,
     # session 38).
     colour_gate_rgb: float = 0.1
+    # Without depth, a warm-started frame weighs its rays outside the mask this much (EstimateOptions.mask_trust
+    # "partial", no edge band): there an occluder may hide the tool, and without depth nothing tells it from the
+    # background. 0.3 holds the pliers' tracks under an occluder that stays over one end (160x120, 2.7-4.3 cm ->
+    # 1.1-2.3), but costs the clamp and a segmenter's faulty masks (docs/benchmarks.md, session 38): for a view
+    # where a hand or a fixture stays in front of the tool. 1 (the default) = the mask trusted in full.
+    outside_weight_rgb: float = 1.0
     max_gap_s: float = 0.25  # longer since the last estimate: no prediction, re-initialise
     # Longer since the last estimate (or lost after an `uncertain` or `reinitialised` frame): re-initialise
     # by detection (every orientation scored, the best refined; narf_core/detect.py) instead of the
@@ -259,6 +265,7 @@ class TrackOptions:
         need(self.frame_prior_rotation_deg >= 0, "frame_prior_rotation_deg", "must be >= 0 (0 = off)")
         need(0 <= self.colour_rate_rgb <= 1, "colour_rate_rgb", "must be in [0, 1] (0 = off)")
         need(0 <= self.colour_gate_rgb < 1, "colour_gate_rgb", "must be in [0, 1)")
+        need(0 <= self.outside_weight_rgb <= 1, "outside_weight_rgb", "must be in [0, 1] (1 = the mask trusted in full)")
         need(self.max_gap_s > 0, "max_gap_s", "must be > 0")
         need(self.redetect_after_s >= 0, "redetect_after_s", "must be >= 0 (0 = never)")
         need(self.redetect_rgb_distance == 0 or self.redetect_rgb_distance > 1, "redetect_rgb_distance",
@@ -306,6 +313,9 @@ class TrackOptions:
                   "uncertainty_usual_residual": self.usual_residual if depth else 0.0,
                   "uncertainty_trained_footprint": depth,
                   "occlusion_margin": self.occlusion_margin, "refinements": 0, "rgb_refinements": 0, "pose_starts": 1}
+        if not depth and self.outside_weight_rgb < 1:
+            common.update(mask_trust="partial", mask_band_px=0, outside_weight=self.outside_weight_rgb,
+                          partial_theta_starts=0)
         if solver != "adam":
             return EstimateOptions.preset(solver, **common)
         return EstimateOptions.preset("robust", lr_pose=self.lr_pose, lr_theta=self.lr_theta, lr_decay=self.lr_decay,

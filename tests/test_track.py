@@ -1466,3 +1466,21 @@ def test_colour_gain_and_rate_are_validated() -> None:
         state.colour_gain, state.colour_frames = gain, frames
         with pytest.raises(TrackInputError, match="state.colour"):
             state.check(clamp)
+
+
+def test_without_depth_a_frame_may_trust_the_mask_outside_itself_less() -> None:
+    """``outside_weight_rgb`` below one: a frame without depth trusts the mask partially (its rays outside the
+    mask weigh that much, no edge band, no extra configuration starts); at the default, and with depth, the
+    preset's own trust."""
+    from narf_core.estimate import EstimateOptions
+    from narf_core.track import TrackInputError, TrackOptions
+
+    partial = TrackOptions(outside_weight_rgb=0.3).step_options(False)
+    assert (partial.mask_trust, partial.outside_weight, partial.mask_band_px, partial.partial_theta_starts) == (
+        "partial", 0.3, 0, 0)
+    preset = EstimateOptions.gauss_newton()
+    for options in (TrackOptions().step_options(False), TrackOptions(outside_weight_rgb=0.3).step_options(True)):
+        assert (options.mask_trust, options.outside_weight, options.mask_band_px) == (
+            preset.mask_trust, preset.outside_weight, preset.mask_band_px)
+    with pytest.raises(TrackInputError, match="outside_weight_rgb"):
+        TrackOptions(outside_weight_rgb=1.5)
