@@ -999,9 +999,7 @@ def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.
     """A warm-started frame's iterations from ``T`` and ``joints``: :func:`refine_frame` (narf mode,
     ``march = "frame"``, no band; given the frame's input ``checks``) or :func:`refine` (any other mode or
     march); the render's colour compared times ``colour`` where given."""
-    step_options = opts.step_options(depth is not None, model.aabb.device)
-    if colour is not None:
-        step_options = replace(step_options, colour_gain=colour)
+    step_options = _coloured(opts.step_options(depth is not None, model.aabb.device), colour)
     if (opts.march == "frame" and opts.band_m == 0
             and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf"):
         position, rotation = ((opts.frame_prior_position_m, opts.frame_prior_rotation_deg) if depth is not None
@@ -1090,15 +1088,18 @@ def _redetected(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.n
     detector = DetectOptions(preset=opts.reinit_solver, seed=opts.seed)
     refine_options = replace(opts.reinit_options(), iterations=detector.iterations,
                              theta_starts=detector.refine_theta_starts)
-    if colour is not None:
-        refine_options = replace(refine_options, colour_gain=colour)
     result = detect(model, camera, image, mask, depth, joints=joints, options=detector, hints=[(T0, joints)],
-                    refine_options=refine_options)
+                    refine_options=_coloured(refine_options, colour))
     if depth is None:
         ratio = np.linalg.norm(result.T_cam_obj[:3, 3]) / np.linalg.norm(np.asarray(T0)[:3, 3])
         if not 1 / opts.redetect_rgb_distance <= ratio <= opts.redetect_rgb_distance:
             return None
     return result
+
+
+def _coloured(options: EstimateOptions, colour: tuple[float, float, float] | None) -> EstimateOptions:
+    """``options`` comparing the render's colour times ``colour``, where given."""
+    return options if colour is None else replace(options, colour_gain=colour)
 
 
 def _carried_colour(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, result: EstimateResult,
@@ -1218,8 +1219,8 @@ def _step(
     if redetect and depth is not None:
         result = _redetected(model, camera, frame.image, mask, depth, T0, state.joints, opts, checks)
     else:
-        reinit = opts.reinit_options() if colour is None else replace(opts.reinit_options(), colour_gain=colour)
-        result = refine(model, frame.image, mask, camera, T0, joints_init=state.joints, depth=depth, options=reinit)
+        result = refine(model, frame.image, mask, camera, T0, joints_init=state.joints, depth=depth,
+                        options=_coloured(opts.reinit_options(), colour))
         failed = result.status in ("no_overlap", "non_finite")
         score = None if failed else overlap(model, camera, mask, result.T_cam_obj, result.joints)
         if redetect and (failed or score < opts.uncertain_overlap):  # (here without depth)
