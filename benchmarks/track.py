@@ -195,6 +195,8 @@ def markdown(result: dict) -> str:
                     f"{p['rays_per_iteration']} rays" for m, p in result.get("per_frame", {}).items())
         + f", {band}"
         + ("" if o.get("depth_align", True) else ", the prediction not aligned to the depth")
+        + ("" if o.get("outside_weight_rgb", 1.0) >= 1 else
+           f", without depth the rays outside the mask weighing {o['outside_weight_rgb']:g}")
         + "." + describe_machine(result.get("machine")),
         "",
         "| tool | size | images | input | events | frames/s (all / after the 1st) | frames per CPU second (after the 1st) "
@@ -261,7 +263,8 @@ def main(args: argparse.Namespace) -> int:
     sizes = tuple(tuple(s) for s in args.sizes) if args.sizes else SIZES
     overrides = {"iterations": args.iterations, "rays_per_iteration": getattr(args, "rays", None),
                  "solver": getattr(args, "solver", None), "band_m": getattr(args, "band_m", None),
-                 "march": getattr(args, "march", None), "depth_align": getattr(args, "depth_align", None)}
+                 "march": getattr(args, "march", None), "depth_align": getattr(args, "depth_align", None),
+                 "outside_weight_rgb": getattr(args, "outside_weight_rgb", None)}
     options = TrackOptions(first_frame="warm", **{k: v for k, v in overrides.items() if v is not None})
     result = run(models, args.work, frames=args.frames, sizes=sizes, modalities=tuple(args.modalities),
                  events=args.events, options=options, seed=getattr(args, "seed", 0),

@@ -775,6 +775,10 @@ def _run_estimate(args: argparse.Namespace) -> int:
 # narf track
 
 
+OUTSIDE_WEIGHT_HELP = ("without depth, weigh the rays outside the mask this much (TrackOptions.outside_weight_rgb; "
+                       "default 1, the mask trusted in full; 0.3 where a hand or a fixture stays in front of the tool)")
+
+
 def _add_track(commands: argparse._SubParsersAction) -> None:
     parser = commands.add_parser(
         "track", help="track pose and joints over a sequence (narf synth --sequence), one row per frame",
@@ -800,6 +804,7 @@ def _add_track(commands: argparse._SubParsersAction) -> None:
     arg("--solver", choices=TRACK_SOLVER_CHOICES, default="auto",
         help=f"refiner per frame (default: %(default)s, {TRACK_AUTO_SOLVER})")
     arg("--mode", choices=MODES, default="auto", help=MODE_HELP)
+    arg("--outside-weight-rgb", type=_non_negative_float, metavar="W", help=OUTSIDE_WEIGHT_HELP)
     arg("--video", type=Path, metavar="OUT.gif", help="write the frames with the model's silhouette over them")
     _add_json_flag(parser)
     parser.set_defaults(run=_run_track)
@@ -810,7 +815,7 @@ def _run_track(args: argparse.Namespace) -> int:
 
     from narf_core.bundle import load_bundle
     from narf_core.data.dataset import Dataset
-    from narf_core.track import TrackOptions, track
+    from narf_core.track import TrackInputError, TrackOptions, track
     from narf_core.track_io import load_frames, overlay, score, sequence_frames, write_video
 
     if args.video is not None and args.video.suffix.lower() != ".gif":
@@ -830,8 +835,12 @@ def _run_track(args: argparse.Namespace) -> int:
         T_first, joints_first = _pose_arg(args.init_pose, "--init-pose"), None
     if args.init_joints:
         joints_first = _joints_arg(args.init_joints, "--init-joints")
-    options = TrackOptions(solver=args.solver, mode=args.mode,
-                           **({"iterations": args.iterations} if args.iterations else {}))
+    try:
+        options = TrackOptions(solver=args.solver, mode=args.mode,
+                               **({"iterations": args.iterations} if args.iterations else {}),
+                               **({} if args.outside_weight_rgb is None else {"outside_weight_rgb": args.outside_weight_rgb}))
+    except TrackInputError as e:  # the core names the option; the user typed its flag
+        raise ValueError(f"--{(e.field or 'options').rsplit('.', 1)[-1].replace('_', '-')}: {e.reason}") from None
     mode, reason = _mode_arg(model, args.mode)
     if not args.json:
         print(f"render mode {mode}" + ("" if reason == "requested" else f" (auto): {reason}"), flush=True)
@@ -984,6 +993,8 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--march", choices=("frame", "iteration"), default=None,
                      help="find each ray's samples once per frame (no marching) or march at every iteration "
                           "(default: the tracker's, frame)")
+    sub.add_argument("--outside-weight-rgb", type=_non_negative_float, metavar="W",
+                     help=OUTSIDE_WEIGHT_HELP)
     sub.add_argument("--no-depth-align", dest="depth_align", action="store_false",
                      help="with depth, do not first move the prediction along the line of sight onto the observed "
                           "depth (TrackOptions.depth_align; to compare)")

@@ -796,6 +796,9 @@ def test_narf_track_cli_errors(tmp_path: Path, clamp_sequence: Path, capsys) -> 
     assert "narf track: error: --init-pose" in capsys.readouterr().err
     assert narf(["track", str(CLAMP), str(clamp_sequence), "--init-pose", "label", "--video", str(tmp_path / "a.mp4")]) == 2
     assert "only .gif" in capsys.readouterr().err
+    assert narf(["track", str(CLAMP), str(clamp_sequence), "--init-pose", "label", "--outside-weight-rgb", "1.5"]) == 2
+    err = capsys.readouterr().err
+    assert "narf track: error: --outside-weight-rgb: must be in [0, 1]" in err and len(err.strip().splitlines()) == 1
     # frames out of order in the sequence itself
     import shutil
 
@@ -875,7 +878,8 @@ def test_concurrent_tracking_steps_with_covariance(clamp, clamp_sequence: Path) 
 
 
 def test_bench_track_can_leave_the_depth_alignment_off() -> None:
-    """``narf bench track --no-depth-align`` runs the tracker without it (to compare), and its table says so."""
+    """``narf bench track --no-depth-align`` runs the tracker without it (to compare), and its table says so; the
+    same for ``--outside-weight-rgb``."""
     from narf_benchmarks.track import markdown
     from narf_core.cli import build_parser
     from narf_core.track import TrackOptions
@@ -885,6 +889,11 @@ def test_bench_track_can_leave_the_depth_alignment_off() -> None:
     for align in (True, False):
         table = markdown({"frames": 3, "runs": [], "options": TrackOptions(first_frame="warm", depth_align=align).__dict__})
         assert ("not aligned to the depth" in table) is not align
+    # and --outside-weight-rgb: the frames without depth trusting the mask partially, said in the table
+    assert build_parser().parse_args(["bench", "track", "--outside-weight-rgb", "0.3"]).outside_weight_rgb == 0.3
+    for weight in (1.0, 0.3):
+        table = markdown({"frames": 3, "runs": [], "options": TrackOptions(outside_weight_rgb=weight).__dict__})
+        assert ("outside the mask weighing 0.3" in table) is (weight < 1)
 
 
 def _bench_sequence(work: str) -> str:
