@@ -20,7 +20,7 @@ import os
 import shlex
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -30,6 +30,7 @@ from narf_core.threads import AUTO, choose_threads, parse_threads, prefer_passiv
 
 if TYPE_CHECKING:
     from narf_core.bundle import NarfModel
+    from narf_core.checks import InputError
 
 EXIT_ERROR = 2  # bad input, as argparse uses for bad arguments
 EXIT_INTERRUPTED = 130
@@ -531,9 +532,8 @@ def _run_train(args: argparse.Namespace) -> int:
     try:
         config = TrainConfig(arch=args.arch, field=args.field, budget_s=args.budget, seed=args.seed, keep_parts=not args.no_parts)
         config = replace(config.for_arch(), **{k: v for k, v in overrides.items() if v is not None})
-    except TrainInputError as e:  # the core names options.<name>; the user typed its flag
-        name = e.field.removeprefix("options.")
-        raise ValueError(f"--{'budget' if name == 'budget_s' else name.replace('_', '-')} {e.reason}") from None
+    except TrainInputError as e:
+        raise _flag_error(e, {"budget_s": "budget"}) from None
     start = time.perf_counter()
     out = train(args.dataset, args.out, config, command=shlex.join(["narf", *args.argv]), progress=True)
     print(f"wrote {out} ({out.stat().st_size / 1e6:.1f} MB) in {time.perf_counter() - start:.0f} s")
@@ -775,6 +775,13 @@ def _run_estimate(args: argparse.Namespace) -> int:
 # narf track
 
 
+def _flag_error(error: InputError, renamed: Mapping[str, str] | None = None) -> ValueError:
+    """The core's error on ``options.<name>`` as one about the flag the user typed: ``--<name> <reason>``,
+    the name with dashes (or as ``renamed`` maps it)."""
+    name = (error.field or "options").removeprefix("options.")
+    return ValueError(f"--{(renamed or {}).get(name, name.replace('_', '-'))} {error.reason}")
+
+
 OUTSIDE_WEIGHT_HELP = ("without depth, weigh the rays outside the mask this much (TrackOptions.outside_weight_rgb; "
                        "default 1, the mask trusted in full; 0.3 where a hand or a fixture stays in front of the tool)")
 
@@ -839,8 +846,8 @@ def _run_track(args: argparse.Namespace) -> int:
         options = TrackOptions(solver=args.solver, mode=args.mode,
                                **({"iterations": args.iterations} if args.iterations else {}),
                                **({} if args.outside_weight_rgb is None else {"outside_weight_rgb": args.outside_weight_rgb}))
-    except TrackInputError as e:  # the core names the option; the user typed its flag
-        raise ValueError(f"--{(e.field or 'options').rsplit('.', 1)[-1].replace('_', '-')}: {e.reason}") from None
+    except TrackInputError as e:
+        raise _flag_error(e) from None
     mode, reason = _mode_arg(model, args.mode)
     if not args.json:
         print(f"render mode {mode}" + ("" if reason == "requested" else f" (auto): {reason}"), flush=True)
@@ -1112,8 +1119,15 @@ def _run_bench_track(args: argparse.Namespace) -> int:
     from narf_benchmarks.checkpoint import sole_run
     from narf_benchmarks.track import main as bench_main
 
+    from narf_core.track import TrackInputError
+
     with sole_run(args.work):  # one run per --work: its sequences and result.json
-        return bench_main(args)
+        try:
+            return bench_main(args)
+        except TrackInputError as e:
+            if not (e.field or "").startswith("options."):
+                raise
+            raise _flag_error(e, {"rays_per_iteration": "rays"}) from None
 
 
 def _run_bench_service(args: argparse.Namespace) -> int:

@@ -798,7 +798,11 @@ def test_narf_track_cli_errors(tmp_path: Path, clamp_sequence: Path, capsys) -> 
     assert "only .gif" in capsys.readouterr().err
     assert narf(["track", str(CLAMP), str(clamp_sequence), "--init-pose", "label", "--outside-weight-rgb", "1.5"]) == 2
     err = capsys.readouterr().err
-    assert "narf track: error: --outside-weight-rgb: must be in [0, 1]" in err and len(err.strip().splitlines()) == 1
+    assert "narf track: error: --outside-weight-rgb must be in [0, 1]" in err and len(err.strip().splitlines()) == 1
+    bench = ["bench", "track", "--work", str(tmp_path / "bench"), "--models", str(CLAMP.parent), "--tools", "clamp"]
+    assert narf([*bench, "--outside-weight-rgb", "2"]) == 2  # the bench's flag too, not the core's option name
+    assert capsys.readouterr().err.strip() == ("narf bench: error: --outside-weight-rgb must be in [0, 1] "
+                                               "(1 = the mask trusted in full), got 2.0")
     # frames out of order in the sequence itself
     import shutil
 
