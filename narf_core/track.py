@@ -238,6 +238,12 @@ class TrackOptions:
     # distance (a lost track's distance may be tens of per cent off). 0 = never without depth
     # (docs/benchmarks.md).
     redetect_rgb_distance: float = 2.0
+    # With depth, a re-detection turned more than this (degrees) from the last estimate is checked against the
+    # multi-start refiner from that estimate, and the lower loss is kept: a flat tool turned over about its long
+    # axis looks much the same, and under an occluder and a segmenter's faults the turned-over pose can score best
+    # among the detector's orientations where the track was a centimetre or two off (docs/benchmarks.md, session
+    # 39). 180 = never.
+    redetect_turn_deg: float = 90.0
     # Without depth, a track lost for longer than this since its last estimate runs the multi-start
     # refiner from its last pose (a second or two per frame on 2 cores) once per this many seconds and
     # not at every frame between (a frame of redetect_after_s's schedule still runs it). 0 = at every lost frame.
@@ -270,6 +276,7 @@ class TrackOptions:
         need(self.redetect_after_s >= 0, "redetect_after_s", "must be >= 0 (0 = never)")
         need(self.redetect_rgb_distance == 0 or self.redetect_rgb_distance > 1, "redetect_rgb_distance",
              "must be > 1 (a factor) or 0 (never without depth)")
+        need(0 <= self.redetect_turn_deg <= 180, "redetect_turn_deg", "must be in [0, 180] degrees (180 = never)")
         need(self.reinit_period_s_rgb >= 0, "reinit_period_s_rgb", "must be >= 0 (0 = at every lost frame)")
         need(0 <= self.lost_overlap <= self.uncertain_overlap <= 1, "lost_overlap",
              "must satisfy 0 <= lost_overlap <= uncertain_overlap <= 1")
@@ -1097,6 +1104,25 @@ def _redetected(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.n
     return result
 
 
+def _unless_turned_over(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, depth: np.ndarray,
+                        T0: np.ndarray, joints: Mapping[str, float], detected: EstimateResult,
+                        opts: TrackOptions) -> tuple[EstimateResult, int]:
+    """``detected`` (a re-detection from the hint ``T0``, ``joints``), or where it turned the object more than
+    ``opts.redetect_turn_deg`` from ``T0``, the multi-start refiner's estimate from ``T0`` if its loss is lower
+    (both refined with the same preset on the same frame). Returns the estimate kept and the refiner's
+    iterations (0 where it did not run)."""
+    from narf_core.detect import rotation_angle
+
+    R0 = np.asarray(T0, dtype=np.float64)[:3, :3]
+    turn = math.degrees(float(rotation_angle(np.asarray(detected.T_cam_obj, dtype=np.float64)[:3, :3], R0)))
+    if opts.redetect_turn_deg >= 180 or turn <= opts.redetect_turn_deg:
+        return detected, 0
+    local = refine(model, image, mask, camera, T0, joints_init=joints, depth=depth, options=opts.reinit_options())
+    failed = local.status in ("no_overlap", "non_finite") or local.loss is None
+    keep_local = not failed and (detected.loss is None or local.loss < detected.loss)
+    return (local if keep_local else detected), local.iterations
+
+
 def _coloured(options: EstimateOptions, colour: tuple[float, float, float] | None) -> EstimateOptions:
     """``options`` comparing the render's colour times ``colour``, where given."""
     return options if colour is None else replace(options, colour_gain=colour)
@@ -1218,6 +1244,8 @@ def _step(
     score = None  # the re-initialisation's overlap with the mask, once measured
     if redetect and depth is not None:
         result = _redetected(model, camera, frame.image, mask, depth, T0, state.joints, opts, checks)
+        result, more = _unless_turned_over(model, camera, frame.image, mask, depth, T0, state.joints, result, opts)
+        iterations += more
     else:
         result = refine(model, frame.image, mask, camera, T0, joints_init=state.joints, depth=depth,
                         options=_coloured(opts.reinit_options(), colour))

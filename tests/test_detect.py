@@ -182,6 +182,49 @@ def test_tracker_redetects_after_a_long_absence(clamp, camera: Pinhole, monkeypa
         TrackOptions(redetect_after_s=-1.0)
 
 
+def test_a_redetection_turned_over_gives_way_to_the_refiner_from_the_last_pose(clamp, camera: Pinhole,
+                                                                              monkeypatch) -> None:
+    """With depth, a re-detection turned more than ``redetect_turn_deg`` from the last estimate is kept only
+    where its loss is below that of the multi-start refiner from the last estimate. Here the detector's answer
+    is turned half a turn about the box's x axis and refined again from there (a real estimate with its own
+    loss, as the detector may give under faults); the last estimate is the true pose: the refiner's wins. At
+    ``redetect_turn_deg`` 180 (never) the turned-over detection is kept."""
+    import narf_core.detect as detect_module
+    import narf_core.track as track_module
+    from narf_core.estimate import refine
+    from narf_core.track import TrackFrame, TrackOptions, TrackState, step
+
+    T, joints, image, mask, depth = view(clamp, camera, TURNS["edge-on"], 0.05)
+    options = TrackOptions(reinit_iterations=30)
+    flipped = []
+
+    def turned_over(*args, **kwargs):
+        found = detect(*args, **kwargs)
+        start = found.T_cam_obj.copy()
+        start[:3, :3] = start[:3, :3] @ np.diag([1.0, -1.0, -1.0])
+        again = refine(clamp, image, mask, camera, start, joints_init=found.joints, depth=depth,
+                       options=replace(options.reinit_options(), iterations=20))
+        flipped.append(again)
+        return again
+
+    monkeypatch.setattr(detect_module, "detect", turned_over)
+    local = []  # the tracker's own multi-start refinements
+    monkeypatch.setattr(track_module, "refine", lambda *a, **k: local.append(1) or refine(*a, **k))
+    lost = TrackState(T, joints, 9.99, 9.0, status="lost", lost_frames=30)  # a second away: re-detection
+    result, _ = step(clamp, camera, TrackFrame(image, mask, 10.0, depth), lost, options)
+    assert len(flipped) == 1 and result.status == "reinitialised"
+    assert math.degrees(float(rotation_angle(flipped[0].T_cam_obj[:3, :3], T[:3, :3]))) > 90
+    assert add_of(clamp, T, joints, flipped[0].T_cam_obj, flipped[0].joints) > 0.03
+    assert add_of(clamp, T, joints, result.T_cam_obj, result.joints) < 0.01 and len(local) == 1
+    # Never checked: the turned-over detection stands alone (here it explains too little of the mask: lost).
+    result, _ = step(clamp, camera, TrackFrame(image, mask, 10.0, depth), lost, replace(options, redetect_turn_deg=180.0))
+    assert len(flipped) == 2 and len(local) == 1
+    assert add_of(clamp, T, joints, result.T_cam_obj, result.joints) > 0.03 or result.status == "lost"
+    for bad in (-1.0, 181.0):
+        with pytest.raises(ValueError, match="options.redetect_turn_deg"):
+            TrackOptions(redetect_turn_deg=bad)
+
+
 def test_tracker_redetects_without_depth_where_the_silhouette_holds(clamp, camera: Pinhole, monkeypatch) -> None:
     """Without depth, a track lost for longer than ``redetect_after_s`` whose multi-start re-initialisation
     from the last pose does not explain the mask is found again by detection from the silhouette alone; not
