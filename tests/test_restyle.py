@@ -145,6 +145,35 @@ def test_a_restyled_sequence_keeps_its_times_and_one_scene(clamp: Path, tmp_path
     assert len({f["faults"]["exposure_ev"] for f in single.generator["frames"]}) == 2
 
 
+def test_a_restyled_sequence_keeps_its_occluding_bar(tmp_path: Path) -> None:
+    """A sequence synthesised with events: its restyled frames hide the tool behind the same bar as pybullet's
+    (background in the labels, the bar's depth) before any fault; a sequence with events that does not record
+    its bar is refused with an error naming what to do."""
+    from narf_core.data.synth.bar import bar_columns
+    from narf_core.data.synth.sequence import synthesize_sequence
+
+    seq = synthesize_sequence("clamp", tmp_path / "seq", 4, size=(48, 36), events=True, supersample=1)
+    source = Dataset.open(seq)
+    per_frame = source.generator["sequence"]["per_frame"]
+    assert all(p["occluder"] is not None for p in per_frame) and max(p["occluded"] for p in per_frame) > 0
+    restyled = Dataset.open(rs.restyle(seq, tmp_path / "r", conditions=("lighting",), spp=2, seed=5)["lighting"])
+    hidden = 0  # the tool's pixels the path tracer drew in the bar's columns (its cached render, before the bar)
+    for ours, theirs, p in zip(source.frames(), restyled.frames(), per_frame):
+        cols = bar_columns(48, p["occluder"]["x"])
+        a, b = source.load(ours), restyled.load(theirs)
+        assert (a.labels[:, cols] == 0).all() and (b.labels[:, cols] == 0).all()
+        assert np.allclose(b.depth[:, cols], p["occluder"]["z"], atol=2e-3)
+        with np.load(tmp_path / "r" / "renders" / f"{ours.id:06d}.npz") as render:
+            hidden += int(np.count_nonzero(render["labels"][:, cols]))
+    assert hidden > 0
+    scene = json.loads((seq / "scene.json").read_text())
+    for p in scene["generator"]["sequence"]["per_frame"]:
+        del p["occluder"]
+    (seq / "scene.json").write_text(json.dumps(scene))
+    with pytest.raises(rs.RestyleError, match="does not record its occluder"):
+        rs.restyle(seq, tmp_path / "r2", conditions=("lighting",), spp=2, seed=5)
+
+
 def test_cli_restyle_and_its_errors(clamp: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["restyle", str(clamp), "--out", str(tmp_path / "o"), "--size", "32", "24", "--spp", "1",
                  "--splits", "test", "--limit", "1", "--json"]) == 0

@@ -299,8 +299,9 @@ CONDITIONS: dict[str, FaultOptions] = {
 # Bumped when a condition's faults change for the same seed, so that cached sets are remade
 # (2: the occluder lies in front of every part it hides, not only of the tool's median depth;
 # 3: pixel sizes scale with the camera's resolution: unchanged at the native 640x480;
-# 4: a sequence's occluder is one object moving round the tool, not one drawn anew in every frame).
-VERSION = 4
+# 4: a sequence's occluder is one object moving round the tool, not one drawn anew in every frame;
+# 5: a sequence synthesised with events keeps its own occluding bar in its restyled frames).
+VERSION = 5
 
 # independent random streams per effect, so that conditions share the draws of the effects they share
 _STREAMS = {"exposure": 1, "blur": 2, "noise": 3, "jpeg": 4, "depth": 5, "holes": 6, "mask": 7, "occluder": 8,

@@ -39,6 +39,7 @@ from PIL import Image
 
 from narf_core.data.dataset import Dataset, DatasetWriter, FrameImages, read_urdf
 from narf_core.data.synth import faults
+from narf_core.data.synth.bar import occlude_linear
 from narf_core.geometry import Pinhole
 from narf_core.kinematics import KinematicTree
 
@@ -515,7 +516,8 @@ def restyle(
     ``time``, as ``narf synth --sequence`` writes) stays one: one scene for all its frames (a camera
     moving through one room), one exposure and white-balance error (one camera's) and one occluder that
     moves round the tool with time (:func:`faults.apply_faults`), the time stamps kept; the path tracer's
-    samples and the other faults are drawn per frame. Path-traced frames are cached
+    samples and the other faults are drawn per frame. A sequence synthesised with events keeps its own
+    occluding bar where pybullet drew it (:func:`sequence_bars`), before the faults. Path-traced frames are cached
     in ``out/renders/`` and reused by later calls with the same size, spp and seed. A condition's
     folder that already holds a dataset is replaced only with ``overwrite``.
     """
@@ -552,6 +554,7 @@ def restyle(
     is_sequence = all(f.time is not None for f in every)
     if is_sequence:
         key["scene"] = "sequence"
+    bars = sequence_bars(dataset)
     urdf = read_urdf(dataset.urdf_path)
     fx = float(camera.K[0, 0])
     generator = {"restyle": {"source": str(dataset.root), "renderer": f"mitsuba {_mitsuba_version()} ({VARIANT})",
@@ -573,8 +576,11 @@ def restyle(
             shared = Shared((seed,), min(restyler.floor(f.joints) for f in every), eyes)
         for frame in tqdm(frames, desc="restyle", unit="frame", disable=not progress):
             render = _cached_render(restyler, cache, key, camera, frame, seed, shared)
+            linear, depth, labels = render.linear, render.depth, render.labels
+            if frame.id in bars:
+                linear, depth, labels = occlude_linear(linear, depth, labels, *bars[frame.id])
             for name, writer in writers.items():
-                f = faults.apply_faults(render.linear, render.depth, render.labels, faults.condition(name),
+                f = faults.apply_faults(linear, depth, labels, faults.condition(name),
                                         (seed, frame.id), fx, sequence_seed=(seed,) if is_sequence else None,
                                         time=frame.time or 0.0)
                 clean = (FrameImages(f.rgb, f.clean_depth, f.clean_labels), frame.T_cam_obj, frame.joints)
@@ -585,6 +591,22 @@ def restyle(
     for writer in writers.values():
         writer.close()
     return targets
+
+
+def sequence_bars(dataset: Dataset) -> dict[int, tuple[float, float]]:
+    """``{frame id: (centre x as a fraction of the width, depth m)}``: the occluding bar that ``narf synth
+    --sequence`` drew into the frames of a sequence with events (:mod:`narf_core.data.synth.bar`); empty for any
+    other dataset. A sequence with events that does not record its bar (synthesised before it was recorded) is
+    refused: its restyled frames would lack the occluder its pybullet frames show."""
+    sequence = dataset.generator.get("sequence") or {}
+    if not sequence.get("events"):
+        return {}
+    per_frame, frames = sequence.get("per_frame") or [], dataset.frames()
+    if len(per_frame) != len(frames) or any("occluder" not in p for p in per_frame):
+        raise RestyleError(f"{dataset.root}: a sequence with events that does not record its occluder (made by an "
+                           "older narf); synthesise it again")
+    return {f.id: (float(p["occluder"]["x"]), float(p["occluder"]["z"]))
+            for f, p in zip(frames, per_frame) if p["occluder"] is not None}
 
 
 def _mitsuba_version() -> str:

@@ -33,13 +33,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from narf_core.data.dataset import DatasetWriter, FrameImages
+from narf_core.data.dataset import DatasetWriter
+from narf_core.data.synth.bar import bar_depth, occlude
 from narf_core.data.synth.generate import ViewSampling, _versions, default_sampling, resolve_tool
 from narf_core.data.synth.render import BulletScene
 from narf_core.geometry import Pinhole, invert_pose, look_at, so3_log
 
 DEFAULT_FPS = 30.0
-_BAR_GREY = 90  # the occluder's colour (uint8)
 
 
 @dataclass(frozen=True)
@@ -177,25 +177,6 @@ def plan_sequence(
     return _Plan(real_times, poses, joints, occluder, scale)
 
 
-def occlude(images: FrameImages, centre_x: float, T_cam_obj: np.ndarray, radius: float) -> tuple[FrameImages, float]:
-    """``images`` with a vertical grey bar (a fifth of the width) centred at ``centre_x`` (fraction of
-    the width) in front of the object, and the fraction of the object's pixels it hides."""
-    h, w = images.labels.shape
-    half = max(1, w // 10)
-    cx = int(round(centre_x * w))
-    cols = slice(max(0, cx - half), min(w, cx + half))
-    visible_before = int(np.count_nonzero(images.labels))
-    rgb, labels = images.rgb.copy(), images.labels.copy()
-    depth = None if images.depth is None else images.depth.copy()
-    rgb[:, cols] = _BAR_GREY
-    labels[:, cols] = 0
-    if depth is not None:
-        bar_z = max(0.05, float(np.linalg.norm(T_cam_obj[:3, 3])) - 2 * radius)
-        depth[:, cols] = bar_z
-    hidden = visible_before - int(np.count_nonzero(labels))
-    return FrameImages(rgb, depth, labels), hidden / visible_before if visible_before else 0.0
-
-
 def _joint_ranges(urdf, train, novel) -> dict[str, tuple[float, float]]:
     """Per joint, the range the motion covers: the tool's trained and novel values, else 10-90% of the limits."""
     if train is not None and novel is not None:
@@ -265,10 +246,13 @@ def synthesize_sequence(
                     scene.set_configuration(plan.joints[i])
                     images = scene.render(camera, plan.poses[i], supersample)
                     pixels = int(np.count_nonzero(images.labels))
-                    hidden = 0.0
+                    hidden, bar = 0.0, None
                     if plan.occluder[i] is not None:
-                        images, hidden = occlude(images, plan.occluder[i], plan.poses[i], radius)
-                    per_frame.append({"in_view": pixels > 0, "object_pixels": pixels, "occluded": round(hidden, 4)})
+                        bar = {"x": float(plan.occluder[i]), "z": bar_depth(plan.poses[i], radius)}
+                        images, hidden = occlude(images, bar["x"], bar["z"])
+                    # (the bar is recorded so that narf restyle draws it into its frames of the sequence)
+                    per_frame.append({"in_view": pixels > 0, "object_pixels": pixels, "occluded": round(hidden, 4),
+                                      "occluder": bar})
                     writer.add("test", images, plan.poses[i], plan.joints[i], time=float(plan.times[i]))
     return out
 
