@@ -72,6 +72,29 @@ def test_smooth_sequence_keeps_the_object_in_view(tmp_path: Path) -> None:
     assert all(dataset.load(f).labels.any() for f in dataset.frames())
 
 
+def test_a_cached_sequence_with_events_but_no_bar_record_is_drawn_again(tmp_path: Path) -> None:
+    """``sequence_once`` (the benchmarks' cache) keeps a whole sequence, but draws again one with events that
+    does not record its occluding bar (an older narf's: its restyled frames would lack the bar)."""
+    pytest.importorskip("pybullet")
+    import json
+
+    from narf_core.data.synth.sequence import sequence_once
+
+    for events in (True, False):
+        out = sequence_once("clamp", tmp_path / f"seq-{events}", 3, size=(32, 24), events=events)
+        scene = json.loads((out / "scene.json").read_text())
+        assert all(("occluder" in p) and (p["occluder"] is not None) == events
+                   for p in scene["generator"]["sequence"]["per_frame"])
+        for p in scene["generator"]["sequence"]["per_frame"]:
+            del p["occluder"]
+        scene["generator"]["marked"] = True  # to tell the kept file from one drawn again
+        (out / "scene.json").write_text(json.dumps(scene))
+        sequence_once("clamp", out, 3, size=(32, 24), events=events)
+        again = json.loads((out / "scene.json").read_text())["generator"]
+        assert ("marked" in again) == (not events)
+        assert events is False or all(p["occluder"] is not None for p in again["sequence"]["per_frame"])
+
+
 def test_a_large_object_is_framed_as_its_single_views_are(tmp_path: Path) -> None:
     """The cabinet, whose views have camera distances of their own (it overflows the rig's at 0.4 m), is
     seen from as much farther in a sequence: whole in every frame, where the tools' 0.55 m cut it off

@@ -22,6 +22,7 @@ frame, whether the object is in view and how much of it the bar hides.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import shutil
@@ -263,14 +264,14 @@ def sequence_once(tool: str | Path, out: str | Path, frames: int, size: tuple[in
     process's own, renamed into place when whole, so that processes started side by side on one folder (or
     one stopped halfway) never read or overwrite a sequence another is writing."""
     out = Path(out)
-    if (out / "scene.json").is_file():  # the generator (pybullet) only where the sequence is missing
+    if _current(out):  # the generator (pybullet) only where the sequence is missing or stale
         return out
     mine = out.with_name(f"{out.name}.part-{os.getpid()}")
     synthesize_sequence(tool, mine, frames, size=size, seed=seed, events=events, overwrite=True)
-    if (out / "scene.json").is_file():  # another process finished it first: the same sequence
+    if _current(out):  # another process finished it first: the same sequence
         shutil.rmtree(mine)
         return out
-    shutil.rmtree(out, ignore_errors=True)  # an older run's unfinished folder (no scene.json)
+    shutil.rmtree(out, ignore_errors=True)  # an older run's unfinished folder (no scene.json) or a stale sequence
     try:
         mine.rename(out)
     except OSError:  # another process renamed its own into place in between
@@ -278,3 +279,13 @@ def sequence_once(tool: str | Path, out: str | Path, frames: int, size: tuple[in
             raise
         shutil.rmtree(mine)
     return out
+
+
+def _current(out: Path) -> bool:
+    """Whether ``out`` holds a whole sequence as this version draws it: one with events records its occluding
+    bar per frame (``narf restyle`` draws it from there; an older narf's does not)."""
+    try:
+        sequence = json.loads((out / "scene.json").read_text())["generator"].get("sequence") or {}
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    return not sequence.get("events") or all("occluder" in p for p in sequence.get("per_frame") or [])
