@@ -72,6 +72,17 @@ def test_smooth_sequence_keeps_the_object_in_view(tmp_path: Path) -> None:
     assert all(dataset.load(f).labels.any() for f in dataset.frames())
 
 
+def test_the_bar_covers_its_columns_inside_the_image_only() -> None:
+    """The occluding bar, a fifth of the width, sweeps in from beyond the left edge and out beyond the right:
+    beside the image it covers nothing (a negative end once wrapped round and hid most of the image)."""
+    from narf_core.data.synth.bar import bar_columns
+
+    assert bar_columns(160, 0.5) == slice(64, 96)
+    assert bar_columns(160, -0.05) == slice(0, 8) and bar_columns(160, 1.05) == slice(152, 160)
+    for beside in (-0.3, -0.1, 1.1, 1.3):
+        assert len(range(160)[bar_columns(160, beside)]) == 0
+
+
 def test_a_cached_sequence_with_events_but_no_bar_record_is_drawn_again(tmp_path: Path) -> None:
     """``sequence_once`` (the benchmarks' cache) keeps a whole sequence, but draws again one with events that
     does not record its occluding bar (an older narf's: its restyled frames would lack the bar)."""

@@ -15,10 +15,12 @@ _ALBEDO = 0.35
 
 
 def bar_columns(width: int, centre_x: float) -> slice:
-    """The image columns of the bar (a fifth of the ``width``) centred at ``centre_x`` (a fraction of the width)."""
+    """The image columns of the bar (a fifth of the ``width``) centred at ``centre_x`` (a fraction of the width):
+    those inside the image, none where the bar lies beside it (it sweeps in from beyond one edge)."""
     half = max(1, width // 10)
     cx = int(round(centre_x * width))
-    return slice(max(0, cx - half), min(width, cx + half))
+    start = min(max(0, cx - half), width)
+    return slice(start, max(start, min(width, cx + half)))
 
 
 def bar_depth(T_cam_obj: np.ndarray, radius: float) -> float:
