@@ -225,6 +225,31 @@ def test_a_redetection_turned_over_gives_way_to_the_refiner_from_the_last_pose(c
             TrackOptions(redetect_turn_deg=bad)
 
 
+def test_a_reinitialisation_at_the_border_must_explain_more_of_the_mask(clamp, camera: Pinhole) -> None:
+    """A re-initialisation from a mask that touches the image's border is kept only where it explains
+    ``reinit_border_overlap`` of the mask (an object coming into view shows a part that fits many poses): here one
+    that explains 97-99 % of it is kept at the default 0.9 and lost at 0.999; away from the border the bar is
+    ``uncertain_overlap``'s."""
+    from narf_core.track import TrackFrame, TrackOptions, TrackState, step
+
+    out = {}
+    for where, centre in (("border", (0.34, -0.02, 0.55)), ("inside", (0.03, -0.02, 0.55))):
+        T, joints, image, mask, depth = view(clamp, camera, TURNS["tilted"], 0.05, centre=centre)
+        assert bool(mask[:, -1].any()) == (where == "border")
+        stale = T.copy()
+        stale[:3, 3] += [0.03, 0.01, 0.02]
+        lost_once = TrackState(stale, joints, 9.99, 9.98, status="lost", lost_frames=1)  # the local multi-start
+        for bar in (0.9, 0.999):
+            result, _ = step(clamp, camera, TrackFrame(image, mask, 10.0, depth), lost_once,
+                             TrackOptions(reinit_iterations=30, reinit_border_overlap=bar))
+            out[where, bar] = result
+    assert out["border", 0.9].status == "reinitialised" and 0.9 <= out["border", 0.9].overlap < 0.999
+    assert out["border", 0.999].status == "lost" and "border" in out["border", 0.999].reason
+    assert out["inside", 0.999].status == "reinitialised" and out["inside", 0.999].overlap < 0.999
+    with pytest.raises(ValueError, match="options.reinit_border_overlap"):
+        TrackOptions(reinit_border_overlap=1.5)
+
+
 def test_tracker_redetects_without_depth_where_the_silhouette_holds(clamp, camera: Pinhole, monkeypatch) -> None:
     """Without depth, a track lost for longer than ``redetect_after_s`` whose multi-start re-initialisation
     from the last pose does not explain the mask is found again by detection from the silhouette alone; not
