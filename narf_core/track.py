@@ -250,10 +250,11 @@ class TrackOptions:
     reinit_period_s_rgb: float = 0.1
     lost_overlap: float = 0.35
     uncertain_overlap: float = 0.6
-    # A re-initialisation from a mask that touches the image's border is kept only where it explains this share
-    # of the mask (else the frame is lost): an object coming into view shows a part that fits many poses, and
-    # one that explained 70 % of such a mask was 15-20 cm off (docs/benchmarks.md, session 39).
-    reinit_border_overlap: float = 0.9
+    # A re-initialisation from a view that may show only part of the object (a mask that touches the image's
+    # border, or the frame after an `uncertain` one: an occluder coming over it) is kept only where it explains
+    # this share of the mask, else the frame is lost: a part fits many poses, and re-initialisations that
+    # explained 67-71 % of such masks were 12-20 cm off (docs/benchmarks.md, session 39).
+    reinit_partial_overlap: float = 0.9
     # Σ includes the model's error (estimate.model_error): a good 160x120 frame at 0.6 m has σ 5-10 mm.
     max_position_sigma_m: float = 0.02
     max_rotation_sigma_deg: float = 10.0
@@ -284,7 +285,7 @@ class TrackOptions:
         need(self.reinit_period_s_rgb >= 0, "reinit_period_s_rgb", "must be >= 0 (0 = at every lost frame)")
         need(0 <= self.lost_overlap <= self.uncertain_overlap <= 1, "lost_overlap",
              "must satisfy 0 <= lost_overlap <= uncertain_overlap <= 1")
-        need(0 <= self.reinit_border_overlap <= 1, "reinit_border_overlap", "must be in [0, 1]")
+        need(0 <= self.reinit_partial_overlap <= 1, "reinit_partial_overlap", "must be in [0, 1]")
         need(self.solver in TRACK_SOLVERS, "solver", f"must be one of {', '.join(TRACK_SOLVERS)}")
         need(self.reinit_solver in ("robust", "gauss-newton"), "reinit_solver", "must be 'robust' or 'gauss-newton'")
         need(self.uncertainty_rays >= 0, "uncertainty_rays", "must be >= 0")
@@ -1267,9 +1268,11 @@ def _step(
         score = overlap(model, camera, mask, result.T_cam_obj, result.joints)
     if score < opts.uncertain_overlap:
         return lost(f"{why}; re-initialisation explains only {score:.0%} of the mask", result.loss, iterations, score)
-    if score < opts.reinit_border_overlap and any(w.startswith(f"{BORDER_CODE}:") for w in checks):
-        return lost(f"{why}; the mask touches the image's border and the re-initialisation explains only {score:.0%} "
-                    "of it", result.loss, iterations, score)
+    partial = ("the mask touches the image's border" if any(w.startswith(f"{BORDER_CODE}:") for w in checks)
+               else "after an uncertain frame" if state.status == "uncertain" else None)
+    if partial and score < opts.reinit_partial_overlap:
+        return lost(f"{why}; {partial}, and the re-initialisation explains only {score:.0%} of the mask", result.loss,
+                    iterations, score)
     info, cov = _uncertainty(result)
     nxt = TrackState(result.T_cam_obj, dict(result.joints), t, t, np.zeros(6), {}, cov, "reinitialised", 0,
                      state.colour_gain, state.colour_frames)

@@ -225,11 +225,11 @@ def test_a_redetection_turned_over_gives_way_to_the_refiner_from_the_last_pose(c
             TrackOptions(redetect_turn_deg=bad)
 
 
-def test_a_reinitialisation_at_the_border_must_explain_more_of_the_mask(clamp, camera: Pinhole) -> None:
-    """A re-initialisation from a mask that touches the image's border is kept only where it explains
-    ``reinit_border_overlap`` of the mask (an object coming into view shows a part that fits many poses): here one
-    that explains 97-99 % of it is kept at the default 0.9 and lost at 0.999; away from the border the bar is
-    ``uncertain_overlap``'s."""
+def test_a_reinitialisation_from_a_partial_view_must_explain_more_of_the_mask(clamp, camera: Pinhole) -> None:
+    """A re-initialisation from a view that may show only part of the object, a mask that touches the image's
+    border or the frame after an ``uncertain`` one, is kept only where it explains ``reinit_partial_overlap`` of
+    the mask (a part fits many poses): here ones that explain 97-99 % of it are kept at the default 0.9 and lost at
+    0.999; elsewhere the bar is ``uncertain_overlap``'s."""
     from narf_core.track import TrackFrame, TrackOptions, TrackState, step
 
     out = {}
@@ -241,13 +241,22 @@ def test_a_reinitialisation_at_the_border_must_explain_more_of_the_mask(clamp, c
         lost_once = TrackState(stale, joints, 9.99, 9.98, status="lost", lost_frames=1)  # the local multi-start
         for bar in (0.9, 0.999):
             result, _ = step(clamp, camera, TrackFrame(image, mask, 10.0, depth), lost_once,
-                             TrackOptions(reinit_iterations=30, reinit_border_overlap=bar))
+                             TrackOptions(reinit_iterations=30, reinit_partial_overlap=bar))
             out[where, bar] = result
     assert out["border", 0.9].status == "reinitialised" and 0.9 <= out["border", 0.9].overlap < 0.999
     assert out["border", 0.999].status == "lost" and "border" in out["border", 0.999].reason
     assert out["inside", 0.999].status == "reinitialised" and out["inside", 0.999].overlap < 0.999
-    with pytest.raises(ValueError, match="options.reinit_border_overlap"):
-        TrackOptions(reinit_border_overlap=1.5)
+    # The frame after an uncertain one (an occluder may be coming over the object): the same bar inside the image.
+    T, joints, image, mask, depth = view(clamp, camera, TURNS["tilted"], 0.05)
+    doubted = TrackState(T, joints, 9.7, 9.7, status="uncertain")  # 0.3 s ago: no prediction, a re-detection
+    for bar in (0.9, 0.999):
+        result, _ = step(clamp, camera, TrackFrame(image, mask, 10.0, depth), doubted,
+                         TrackOptions(reinit_iterations=30, reinit_partial_overlap=bar))
+        out["after uncertain", bar] = result
+    assert out["after uncertain", 0.9].status == "reinitialised" and out["after uncertain", 0.9].overlap < 0.999
+    assert out["after uncertain", 0.999].status == "lost" and "uncertain" in out["after uncertain", 0.999].reason
+    with pytest.raises(ValueError, match="options.reinit_partial_overlap"):
+        TrackOptions(reinit_partial_overlap=1.5)
 
 
 def test_tracker_redetects_without_depth_where_the_silhouette_holds(clamp, camera: Pinhole, monkeypatch) -> None:
@@ -287,9 +296,10 @@ def test_tracker_redetects_without_depth_where_the_silhouette_holds(clamp, camer
                                                                      status="lost", lost_frames=9), options)
     assert len(found) == 2 and found[1] is not found[0]
     found.pop()
-    # Where the refiner from the last pose explains the mask, no detection.
+    # Where the refiner from the last pose explains the mask, no detection (its one iteration explains less than
+    # reinit_partial_overlap asks after an uncertain frame: that bar lowered to uncertain_overlap's here).
     result, _ = step(clamp, camera, TrackFrame(image, mask, 10.0), TrackState(T, joints, 9.99, 9.0, status="uncertain"),
-                     options)
+                     replace(options, reinit_partial_overlap=0.6))
     assert len(found) == 1 and result.status == "reinitialised"
     # The same view with the mask cut by the image's border: no detection.
     cut = mask.copy()
