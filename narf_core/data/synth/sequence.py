@@ -11,13 +11,14 @@ like a hand-held camera or a robot's head around the object (which stays at the 
   - with ``events`` (the default), the camera once glances away so that the object leaves the
     view for a few frames, and a grey bar (a stand-in for an arm or a cable) sweeps across the
     object once, occluding part of it; its pixels are background in the labels and carry the
-    bar's depth.
+    bar's depth (:mod:`narf_core.data.synth.bar`).
 
 The path is smooth (sums of sines and raised-cosine ramps) and slowed down uniformly, if needed,
 so that the camera never moves faster than ``max_speed_m_s`` nor turns faster than
 ``max_turn_deg_s``. Per-frame ground truth is the frame's ``T_cam_obj`` and ``joints``; the
 generator block ``sequence`` records the fps, the limits, the measured peak speeds and, per
-frame, whether the object is in view and how much of it the bar hides.
+frame, whether the object is in view, how much of it the bar hides and where the bar is (``occluder``: its centre
+as a fraction of the width and its depth, or null; ``narf restyle`` draws it from there).
 """
 
 from __future__ import annotations
