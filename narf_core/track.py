@@ -1096,7 +1096,7 @@ def _redetected(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.n
     colour times ``colour`` where given."""
     from narf_core.detect import DetectOptions, detect
 
-    if depth is None and (opts.redetect_rgb_distance == 0 or any(w.startswith(f"{BORDER_CODE}:") for w in checks)):
+    if depth is None and (opts.redetect_rgb_distance == 0 or _cut_by_border(checks)):
         return None
     detector = DetectOptions(preset=opts.reinit_solver, seed=opts.seed)
     refine_options = replace(opts.reinit_options(), iterations=detector.iterations,
@@ -1110,6 +1110,11 @@ def _redetected(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.n
     return result
 
 
+def _cut_by_border(checks: list[str]) -> bool:
+    """Whether a frame's input checks found its mask touching the image's border."""
+    return any(w.startswith(f"{BORDER_CODE}:") for w in checks)
+
+
 def _unless_turned_over(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.ndarray, depth: np.ndarray,
                         T0: np.ndarray, joints: Mapping[str, float], detected: EstimateResult,
                         opts: TrackOptions) -> tuple[EstimateResult, int]:
@@ -1121,7 +1126,7 @@ def _unless_turned_over(model: NarfModel, camera: Pinhole, image: np.ndarray, ma
 
     R0 = np.asarray(T0, dtype=np.float64)[:3, :3]
     turn = math.degrees(float(rotation_angle(np.asarray(detected.T_cam_obj, dtype=np.float64)[:3, :3], R0)))
-    if opts.redetect_turn_deg >= 180 or turn <= opts.redetect_turn_deg:
+    if turn <= opts.redetect_turn_deg:  # (at most 180)
         return detected, 0
     local = refine(model, image, mask, camera, T0, joints_init=joints, depth=depth, options=opts.reinit_options())
     failed = local.status in ("no_overlap", "non_finite") or local.loss is None
@@ -1268,7 +1273,7 @@ def _step(
         score = overlap(model, camera, mask, result.T_cam_obj, result.joints)
     if score < opts.uncertain_overlap:
         return lost(f"{why}; re-initialisation explains only {score:.0%} of the mask", result.loss, iterations, score)
-    partial = ("the mask touches the image's border" if any(w.startswith(f"{BORDER_CODE}:") for w in checks)
+    partial = ("the mask touches the image's border" if _cut_by_border(checks)
                else "after an uncertain frame" if state.status == "uncertain" else None)
     if partial and score < opts.reinit_partial_overlap:
         return lost(f"{why}; {partial}, and the re-initialisation explains only {score:.0%} of the mask", result.loss,
