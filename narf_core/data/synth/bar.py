@@ -47,9 +47,11 @@ def occlude_linear(linear: np.ndarray, depth: np.ndarray, labels: np.ndarray, ce
                    bar_z: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A path-traced frame (linear RGB ``[H, W, 3]``, z-depth ``[H, W]``, labels ``[H, W]``) with the bar drawn as
     :func:`occlude` draws it, a matte grey lit like the rest of the image."""
+    from narf_core.data.synth.faults import light_level  # (the realism extra's: scipy; pybullet's frames need none)
+
     cols = bar_columns(labels.shape[1], centre_x)
     linear, depth, labels = linear.copy(), depth.copy(), labels.copy()
-    linear[:, cols] = _ALBEDO * float(np.percentile(linear.mean(-1), 75)) / 0.45
+    linear[:, cols] = _ALBEDO * light_level(linear)
     depth[:, cols] = bar_z
     labels[:, cols] = 0
     return linear, depth, labels

@@ -227,6 +227,12 @@ def occluder_region(mask: np.ndarray, rng: np.random.Generator, fraction: float,
     return distance <= scale
 
 
+def light_level(linear: np.ndarray) -> float:
+    """The brightness a matte surface of reflectance 1 takes in ``linear`` (RGB ``[H, W, 3]``) where it stands in
+    front of the scene: the same light falls on it, so it follows the image's (its 75th percentile over 0.45)."""
+    return float(np.percentile(linear.mean(-1), 75)) / 0.45
+
+
 def composite_occluder(
     linear: np.ndarray, depth: np.ndarray, region: np.ndarray, rng: np.random.Generator, tool_depth: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -241,8 +247,7 @@ def composite_occluder(
     slope = rng.uniform(-1, 1, 2) * np.pi / max(h, w)
     gradient = 0.75 + 0.25 * np.cos(rng.uniform(0, 2 * np.pi) + xx * slope[0] + yy * slope[1])
     texture = 1.0 + 0.08 * ndimage.gaussian_filter(rng.normal(size=(h, w)).astype(np.float32), 1.5) / 0.2
-    level = float(np.percentile(linear.mean(-1), 75))
-    paint = colour[None, None] * (gradient * texture)[..., None] * level / 0.45
+    paint = colour[None, None] * (gradient * texture)[..., None] * light_level(linear)
     out = np.where(region[..., None], paint.astype(np.float32), linear)
     z0 = max(tool_depth - rng.uniform(0.05, 0.15), 0.05)
     plane = z0 + 0.05 * ((xx - w / 2) * rng.uniform(-1, 1) + (yy - h / 2) * rng.uniform(-1, 1)) / max(h, w)
