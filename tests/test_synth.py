@@ -353,6 +353,27 @@ def test_view_sampling_ranges():
         assert np.abs(T[:3, :3].T @ T[:3, :3] - np.eye(3)).max() < 1e-12
 
 
+def test_view_sampling_keeps_to_its_azimuths_and_draws_the_whole_turn_as_before():
+    centre = np.zeros(3)
+    front = ViewSampling(target_jitter=0.0, azimuth_deg=(-75.0, 75.0), elevation_deg=(10.0, 50.0))
+    rng = np.random.default_rng(3)
+    azimuths = []
+    for _ in range(300):
+        T = front.sample(rng, centre, 0.1)
+        eye = -T[:3, :3].T @ T[:3, 3]
+        azimuths.append(math.degrees(math.atan2(eye[1], eye[0])))
+        assert 10.0 <= math.degrees(math.asin(eye[2] / np.linalg.norm(eye))) <= 50.0
+    assert -75.0 <= min(azimuths) < -65.0 and 65.0 < max(azimuths) <= 75.0  # the front, all of it, never the back
+    # the rig's whole turn: the same draws as a uniform azimuth over 2 pi (datasets made before stay the same)
+    first, second = np.random.default_rng(4), np.random.default_rng(4)
+    T = ViewSampling(target_jitter=0.0).sample(first, centre, 0.1)
+    second.uniform(0.4, 1.0)
+    elevation, azimuth = math.radians(second.uniform(15.0, 75.0)), second.uniform(0.0, 2 * math.pi)
+    eye = -T[:3, :3].T @ T[:3, 3]
+    assert math.atan2(eye[1], eye[0]) % (2 * math.pi) == pytest.approx(azimuth, abs=1e-12)
+    assert math.asin(eye[2] / np.linalg.norm(eye)) == pytest.approx(elevation, abs=1e-12)
+
+
 def test_jitter_mask_by_hand():
     labels = np.zeros((7, 7), dtype=np.uint8)
     labels[2:5, 2:5] = 1

@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import math
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -397,9 +398,10 @@ def test_multi_joint_splits_cover_the_joint_box(name):
     assert distance.min() >= 0.2 and np.all((novel > 0.1) & (novel < 0.9))
 
 
-def test_only_the_cabinet_is_seen_from_farther_than_the_rig():
-    assert {name: tool_spec(name).view_distance for name in TOOLS} == {
-        **{name: None for name in TOOLS}, "cabinet": (0.6, 1.3)
+def test_only_the_cabinet_is_seen_otherwise_than_the_rig_sees_the_tools():
+    assert {name: tool_spec(name).views for name in TOOLS} == {
+        **{name: {} for name in TOOLS},
+        "cabinet": {"distance": (0.6, 1.3), "azimuth_deg": (-75.0, 75.0), "elevation_deg": (10.0, 50.0)},
     }
 
 
@@ -527,13 +529,14 @@ def test_multi_joint_textures_vary_on_every_link(name, built):
 def test_small_synth_of_a_multi_joint_object_labels_every_link(name, tmp_path):
     pytest.importorskip("pybullet")
     from narf_core.data.dataset import Dataset
-    from narf_core.data.synth.generate import synthesize
+    from narf_core.data.synth.generate import ViewSampling, synthesize
 
     spec = tool_spec(name)
     ds = Dataset.open(synthesize(name, tmp_path / name, size=(64, 48), views=8, seed=0, supersample=1))
     assert ds.links == list(LINKS[name]) and [j["name"] for j in ds.joints] == [j[0] for j in MULTI_JOINTS[name]]
     assert [f.joints for f in ds.frames("train")] == spec.train_configurations
-    assert ds.generator["sampling"]["distance"] == list(spec.view_distance or (0.4, 1.0))  # the cabinet from farther
+    sampling = {**asdict(ViewSampling()), **spec.views}  # the cabinet from farther away and from its front
+    assert ds.generator["sampling"] == {key: list(v) if isinstance(v, tuple) else v for key, v in sampling.items()}
     assert {tuple(f.joints.values()) for f in ds.frames("novel")} == {tuple(c.values()) for c in spec.novel_configurations}
     for split in ("train", "test", "novel"):
         seen = set()

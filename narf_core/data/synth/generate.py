@@ -45,12 +45,14 @@ class ViewSampling:
     """Where cameras go: like a robot's head looking down at a table.
 
     The camera sits ``distance`` metres from the object's centre at an ``elevation`` above its
-    x-y plane (uniform in degrees) and any azimuth, looks at the centre moved by a Gaussian offset
-    (``target_jitter`` times the object's radius per axis), and rolls by a Gaussian angle.
+    x-y plane and an ``azimuth`` about its z axis from its +x axis (each uniform in degrees; by
+    default any azimuth), looks at the centre moved by a Gaussian offset (``target_jitter`` times
+    the object's radius per axis), and rolls by a Gaussian angle.
     """
 
     distance: tuple[float, float] = (0.4, 1.0)
     elevation_deg: tuple[float, float] = (15.0, 75.0)
+    azimuth_deg: tuple[float, float] = (0.0, 360.0)
     roll_deg: float = 4.0
     target_jitter: float = 0.15
 
@@ -58,7 +60,8 @@ class ViewSampling:
         """One camera pose ``T_cam_obj [4, 4]`` (float64) looking at ``centre [3]``."""
         distance = rng.uniform(*self.distance)
         elevation = math.radians(rng.uniform(*self.elevation_deg))
-        azimuth = rng.uniform(0.0, 2 * math.pi)
+        low, high = self.azimuth_deg  # one draw over the turn, scaled: the whole turn draws as it always has
+        azimuth = math.radians(low) + rng.uniform(0.0, 2 * math.pi) * (high - low) / 360.0
         ce, se = math.cos(elevation), math.sin(elevation)
         direction = np.array([ce * math.cos(azimuth), ce * math.sin(azimuth), se])
         target = centre + rng.normal(scale=self.target_jitter * radius, size=3)
@@ -206,10 +209,10 @@ def resolve_tool(
 
 
 def default_sampling(tool: str | Path) -> ViewSampling:
-    """The views of ``tool``: the rig's defaults, at the object's own camera distances if it has them."""
+    """The views of ``tool``: the rig's, with the object's own ranges where it has them
+    (:attr:`~narf_core.data.synth.tools.ToolSpec.views`)."""
     name = str(tool)
-    distance = tools.tool_spec(name).view_distance if name in tools.TOOLS else None
-    return ViewSampling() if distance is None else ViewSampling(distance=distance)
+    return ViewSampling(**tools.tool_spec(name).views) if name in tools.TOOLS else ViewSampling()
 
 
 def synthesize(
@@ -240,9 +243,9 @@ def synthesize(
         background: render a textured table under the object (labelled background).
         supersample: colour samples per pixel along each axis (odd; labels and depth stay exact),
             like a camera's integration over its pixel area.
-        sampling: where cameras go; by default :class:`ViewSampling`'s rig, with the camera
-            distance of the object's :attr:`~narf_core.data.synth.tools.ToolSpec.view_distance`
-            where it has one (a cabinet is seen from farther away than a pair of pliers).
+        sampling: where cameras go; by default :class:`ViewSampling`'s rig, with the object's own
+            ranges where it has them (:attr:`~narf_core.data.synth.tools.ToolSpec.views`: a cabinet is
+            seen from farther away than a pair of pliers, and from its front).
         progress: show a tqdm progress bar on stderr.
     """
     width, height = (int(v) for v in size)

@@ -100,14 +100,16 @@ class ToolSpec:
 
     ``train_configurations`` are the few configurations seen in training (also used by the ``test``
     split); ``novel_configurations`` are absent from training. Each is ``{joint_name: value}``.
-    ``view_distance`` is the range of camera distances (metres) for an object too large for the
-    default rig's (``None``: the rig's), so that it stays in view like the tools do.
+    ``views`` are the fields of :class:`~narf_core.data.synth.generate.ViewSampling` this object sets
+    apart from the rig's (each a ``(low, high)`` range): ``distance`` (metres) for an object too
+    large for the rig's, so that it stays in view like the tools do; ``azimuth_deg`` and
+    ``elevation_deg`` for one that stands against a wall and is seen from in front of it.
     """
 
     name: str
     train_configurations: list[dict[str, float]]
     novel_configurations: list[dict[str, float]]
-    view_distance: tuple[float, float] | None = None
+    views: dict[str, tuple[float, float]] = field(default_factory=dict)
 
 
 # joint name, train values, novel values (paper: 4 + 3 clamp, 1 + 3 lineman's, 1 + 1 longnose)
@@ -136,9 +138,13 @@ _SPLITS_BY_JOINTS: dict[int, tuple[tuple[tuple[float, ...], ...], tuple[tuple[fl
     ),
 }
 
-# Objects that overflow the frame at the rig's nearest distance (0.4 m): the cabinet is 0.32 m wide,
-# 0.45 m with its door open, and is seen from farther away.
-_VIEW_DISTANCES: dict[str, tuple[float, float]] = {"cabinet": (0.6, 1.3)}
+# Objects seen otherwise than the rig sees the tools. The cabinet overflows the frame at the rig's
+# nearest distance (0.4 m: it is 0.32 m wide, 0.45 m with its door open), so it is seen from farther
+# away; and it stands against a wall, its front (+x) to the room, so a robot sees its drawers and
+# door from in front of it and from about their height, never from behind or from straight above.
+_VIEWS: dict[str, dict[str, tuple[float, float]]] = {
+    "cabinet": {"distance": (0.6, 1.3), "azimuth_deg": (-75.0, 75.0), "elevation_deg": (10.0, 50.0)},
+}
 
 
 def tool_spec(name: str) -> ToolSpec:
@@ -155,7 +161,7 @@ def tool_spec(name: str) -> ToolSpec:
         return {j.name: round(j.lower + f * (j.upper - j.lower), 4) for j, f in zip(joints, fractions)}
 
     return ToolSpec(
-        name, [configuration(f) for f in train], [configuration(f) for f in novel], _VIEW_DISTANCES.get(name)
+        name, [configuration(f) for f in train], [configuration(f) for f in novel], dict(_VIEWS.get(name, {}))
     )
 
 
