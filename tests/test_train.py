@@ -117,6 +117,31 @@ def test_training_fits_the_trackers_own_factor_on_sequences_of_its_object(tiny_d
     assert sigma_scale(bare, TrackOptions(), True) == SIGMA_SCALE[TrackOptions().solver_for(True)]["rgbd"]
 
 
+def test_the_fits_sequences_drawn_ahead_in_their_own_process_are_the_ones_the_fit_draws(tmp_path, monkeypatch):
+    """Where a core is free beside the training's threads, the sequences the tracker's factor is fitted on
+    (the object's camera and the 4x finer one) are drawn in a process of their own, file for file as the fit
+    would draw them; where none is, nothing is started and the fit draws them itself."""
+    pytest.importorskip("pybullet")
+    from narf_core.train import track_sigma
+
+    monkeypatch.setattr("narf_core.threads.free_cores", lambda *a, **k: torch.get_num_threads() + 1)
+    drawing = track_sigma.draw_ahead("clamp", (32, 24), tmp_path / "ahead", [1, 2], frames=3)
+    assert drawing is not None and drawing.daemon
+    drawing.join(timeout=300)
+    assert drawing.exitcode == 0
+    here = [f for size in ((32, 24), (128, 96)) for f in track_sigma.sequence_folders("clamp", size, tmp_path / "here",
+                                                                                       [1, 2], frames=3)]
+    assert len(here) == 4
+    for folder in here:
+        files = sorted(p.relative_to(folder) for p in folder.rglob("*") if p.is_file())
+        assert len(files) > 3 * 3
+        for name in files:
+            assert (tmp_path / "ahead" / folder.name / name).read_bytes() == (folder / name).read_bytes(), name
+    monkeypatch.setattr("narf_core.threads.free_cores", lambda *a, **k: torch.get_num_threads())
+    assert track_sigma.draw_ahead("clamp", (32, 24), tmp_path / "none", [1], frames=3) is None
+    assert not (tmp_path / "none").exists()
+
+
 @pytest.mark.slow
 def test_the_articulated_field_is_trained_without_distillation_and_renders_like_the_parts(tiny_dataset, tmp_path):
     """``field="articulated"``: stage 2 copies the part fields into the configuration field (no

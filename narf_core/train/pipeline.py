@@ -31,7 +31,7 @@ from narf_core.occupancy import density_fn
 from narf_core.render import OccupancyGrid, render_rays
 from narf_core.train.distill import composite_rays
 from narf_core.train.loop import run_stage, save_atomic
-from narf_core.train.track_sigma import calibrate_tracker, dataset_tool
+from narf_core.train.track_sigma import calibrate_tracker, dataset_tool, draw_ahead
 from narf_core.train.parts import (
     FreeRays, RayTargets, concat_free, concat_targets as _concat_targets, part_boxes, part_rays, part_surface_points,
 )
@@ -63,8 +63,9 @@ class TrainConfig:
 
     ``track_sequences``: after both stages, the tracker's own factor on σ is fitted on this many smooth
     60-frame sequences of the dataset's object at its camera and at one 4x finer (:mod:`narf_core.train.track_sigma`;
-    about half a minute of CPU each) where the dataset names the object that drew it; 0: none (the tracker's
-    pooled factor applies).
+    half a minute to two minutes of CPU each) where the dataset names the object that drew it; 0: none (the
+    tracker's pooled factor applies). Where a core is free beside the training's threads, the sequences are
+    drawn on it while the fields train (:func:`~narf_core.train.track_sigma.draw_ahead`).
 
     Every field is checked when the configuration is made: :class:`TrainInputError` names the first
     bad one (``options.<name>``).
@@ -252,6 +253,10 @@ def train(
     dataset_hash = hashlib.sha256((Path(dataset_root) / "scene.json").read_bytes()).hexdigest()[:16]
     work = out.parent / f"{out.name}.work"
     _check_work_folder(work, config, dataset_hash)
+    tool = dataset_tool(dataset) if config.track_sequences else None
+    seeds = list(range(1, config.track_sequences + 1))
+    size = (dataset.camera.width, dataset.camera.height)
+    drawing = None if tool is None else draw_ahead(tool, size, work / "sequences", seeds)
     torch.manual_seed(config.seed)
     t_start = time.perf_counter()
     # without a distillation stage the part fields get (nearly) the whole budget
@@ -343,12 +348,13 @@ def train(
     save_bundle(out, model)
     if config.track_sequences:  # the tracker's own factor on σ (narf_core/train/track_sigma.py), fitted on
         started = time.perf_counter()  # the model as it loads (its stored surface points, fields and grids)
-        model, tool = load_bundle(out), dataset_tool(dataset)
-        size = (dataset.camera.width, dataset.camera.height)
+        model = load_bundle(out)
         why = f"{dataset_root} does not name an object to draw sequences of"
+        if drawing is not None:
+            drawing.join()  # what it left undrawn, the fit draws
         if tool is not None:
             try:
-                fitted = calibrate_tracker(model, tool, size, work / "sequences", list(range(1, config.track_sequences + 1)))
+                fitted = calibrate_tracker(model, tool, size, work / "sequences", seeds)
                 model.metadata["uncertainty"] = {**(model.metadata.get("uncertainty") or {}), "track": fitted}
                 model.metadata["provenance"]["timings_s"]["track_sigma_s"] = time.perf_counter() - started
                 save_bundle(out, model)

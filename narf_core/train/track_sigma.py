@@ -10,11 +10,16 @@ default tracker, RGB-D and RGB only, and keeps per modality the smallest factor 
 regions hold 95 % of the pooled frames' errors: ``metadata["uncertainty"]["track"]``; the same again at
 a camera's native 640x480 (four times finer than 160x120 views), where a model's σ need not follow the
 pooled factor's growth with the camera's fineness.
+
+Drawing the finer sequences costs as much as tracking them (pybullet's renderer, one core, holding
+Python's lock: a cabinet's three take three minutes). Where a core is free beside the training's threads,
+:func:`draw_ahead` draws them in a process of their own while the fields train.
 """
 
 from __future__ import annotations
 
 import math
+from multiprocessing.process import BaseProcess
 from pathlib import Path
 
 import numpy as np
@@ -93,6 +98,35 @@ def sequence_folders(tool: str, size: tuple[int, int], work: Path, seeds: list[i
 
     return [sequence_once(tool, Path(work) / f"sequence-{size[0]}x{size[1]}-{frames}-s{seed}", frames, size=size,
                           seed=seed, events=False) for seed in seeds]
+
+
+def draw_ahead(tool: str, size: tuple[int, int], work: Path, seeds: list[int],
+               frames: int = SEQUENCE_FRAMES) -> BaseProcess | None:
+    """Start drawing the sequences :func:`calibrate_tracker` tracks (``tool`` at ``size`` and at
+    :func:`fine_size`, ``seeds``, into ``work``) in a daemon process of its own, where the cores free now
+    (:func:`~narf_core.threads.free_cores`) outnumber this process's torch threads; None where none is.
+    The fit then finds them drawn, or draws what is missing itself (each sequence is whole or absent:
+    :func:`~narf_core.data.synth.sequence.sequence_once`); join the process before it does."""
+    import multiprocessing
+
+    import torch
+
+    from narf_core.threads import free_cores
+
+    if free_cores() <= torch.get_num_threads():
+        return None
+    fine = fine_size(size)
+    sizes = [size] if fine is None else [size, fine]
+    process = multiprocessing.get_context("spawn").Process(
+        target=_draw, args=(tool, sizes, str(work), list(seeds), frames), name="narf-draw-sequences", daemon=True)
+    process.start()
+    return process
+
+
+def _draw(tool: str, sizes: list[tuple[int, int]], work: str, seeds: list[int], frames: int) -> None:
+    with torch_threads(1):  # one core: the one that was free
+        for size in sizes:
+            sequence_folders(tool, size, Path(work), seeds, frames)
 
 
 def calibrate_tracker(model: NarfModel, tool: str, size: tuple[int, int], work: Path, seeds: list[int],
