@@ -120,6 +120,7 @@ from narf_core.geometry import (
     so3_log,
     transform_points,
 )
+from narf_core.kinematics import MAX_JOINTS
 from narf_core.metrics import add, add_s, joint_errors, success_rates
 from narf_core.modes import MODES, choose_mode
 from narf_core.observation import check_observation, mask_evidence, usable_depth
@@ -277,6 +278,11 @@ class EstimateOptions:
     # depth the observed surface's distance to them), and the theta_starts that fit best replace the spread
     # starts of _theta_starts (Gauss-Newton with depth: at the poses fitted, _keeps_search_pose). 0 = off.
     theta_search: int = 0
+    # Where the search runs (two joints or more), at least one of its configurations per corner of the joint
+    # box, up to this many, are the θ starts (0: theta_starts): with three joints, a fit that couples the
+    # pose and the joints (a cabinet moved forward, its drawers pushed back as far) scores among the best
+    # four, and the start that leads to the truth is among the next (docs/benchmarks.md).
+    search_theta_starts: int = 0
     uncertainty: bool = True  # a covariance of the estimate (one linearisation at the optimum)
     uncertainty_rays: int = 4096  # rays of the box used for it
     uncertainty_patch: int = 4  # pixels per side of the squares whose residuals count as correlated
@@ -331,6 +337,7 @@ class EstimateOptions:
         need(0 < self.pose_spread_deg <= 90, "pose_spread_deg", "must be in (0, 90] degrees")
         need(0 <= self.pose_starts_overlap < 1, "pose_starts_overlap", "must be in [0, 1) (0 = every pose start at once)")
         need(0 <= self.theta_search <= 256, "theta_search", "must be in [0, 256] (0 = off)")
+        need(0 <= self.search_theta_starts <= 64, "search_theta_starts", "must be in [0, 64] (0 = theta_starts)")
         need(1 <= self.uncertainty_patch <= 64, "uncertainty_patch", "must be in [1, 64]")
         for name in ("sigma_floor_position", "sigma_floor_rotation", "sigma_floor_joint", "uncertainty_usual_residual"):
             need(getattr(self, name) >= 0, name, "must be >= 0")
@@ -366,7 +373,8 @@ class EstimateOptions:
         """Levenberg-Marquardt on the robust preset's terms (colour, silhouette, depth) with Huber
         weights, 4 configuration starts and 2 pyramid levels, at most ``GN_ITERATIONS`` iterations
         (narf_core/gauss_newton.py), the covariance on ``GN_UNCERTAINTY_RAYS`` rays. With two joints or
-        more the starts come from a search over 16 (``theta_search``), with depth at the poses it fitted.
+        more the starts come from a search over 16 (``theta_search``), with depth at the poses it fitted, one
+        per corner of the joint box up to 8 (``search_theta_starts``).
         ``adam_iterations`` runs Adam first instead of the pyramid. Each configuration start begins at the
         given pose or its copy moved onto the mask and the depth, whichever scores lower (``align_start``):
         a thin tool's start 2 cm off along the line of sight otherwise ends there, or in a wrong joint
@@ -393,7 +401,7 @@ class EstimateOptions:
             "solver": "gauss-newton", "iterations": GN_ITERATIONS, "silhouette_weight": 1.0,
             "depth_weight": GN_DEPTH_WEIGHT, "theta_starts": 4, "coarse_to_fine": 2, "robust_loss": "huber",
             "tolerance": 3e-3, "patience": 2, "uncertainty_rays": GN_UNCERTAINTY_RAYS, "theta_search": 16,
-            "align_start": True, "pose_starts": GN_POSE_STARTS, "pose_starts_overlap": GN_POSE_OVERLAP,
+            "search_theta_starts": 8, "align_start": True, "pose_starts": GN_POSE_STARTS, "pose_starts_overlap": GN_POSE_OVERLAP,
             "refinements": 3, **PARTIAL_MASK, **overrides,
         })
 
@@ -411,7 +419,7 @@ class EstimateOptions:
         depend on the model."""
         scale = _MAX_BOX_SCALE if self.reference_box_px else 1
         partial = self.mask_trust == "partial" or (depth and self.mask_trust == "auto")  # as _partial_trust
-        theta_starts = max(self.theta_starts, self.partial_theta_starts) if partial else self.theta_starts
+        theta_starts = _configuration_starts(self, partial, joints=MAX_JOINTS)  # the most any object runs
         scoring = 3 * theta_starts * _SCORE_RAYS if self.align_start else 0  # _start_rows's alignment
         # cluster_sample draws at most uncertainty_rays squares of uncertainty_patch² pixels each
         covariance = self.uncertainty_rays * self.uncertainty_patch**2 if self.uncertainty else 0
@@ -505,6 +513,15 @@ def choose_preset(name: str, depth: bool) -> tuple[str, str]:
     if depth:
         return "gauss-newton", "the view has a depth image"
     return "robust", "no depth image: Adam's wider basin and three refinements hold the distance better"
+
+
+def _configuration_starts(opts: EstimateOptions, partial: bool, joints: int) -> int:
+    """How many configuration starts a refinement of an object with ``joints`` joints runs: ``theta_starts``,
+    at least ``partial_theta_starts`` where the mask is trusted partially (``partial``) and, where the
+    configuration search runs (``theta_search``, two joints or more: :func:`_given_rows`), at least one per
+    corner of the joint box (``2 ** joints``) up to ``search_theta_starts``."""
+    starts = max(opts.theta_starts, opts.partial_theta_starts) if partial else opts.theta_starts
+    return max(starts, min(opts.search_theta_starts, 2**joints)) if opts.theta_search and joints > 1 else starts
 
 
 def _gauss_newton_prunings(iterations: int) -> int:
@@ -1512,8 +1529,7 @@ def refine(
     opts = replace(opts, rays_per_iteration=round(scale * opts.rays_per_iteration)) if scale > 1 else opts
     partial = _partial_trust(opts, mask, depth)
     opts = replace(opts, mask_trust="partial" if partial else "full")
-    if partial:
-        opts = replace(opts, theta_starts=max(opts.theta_starts, opts.partial_theta_starts))
+    opts = replace(opts, theta_starts=_configuration_starts(opts, partial, len(theta0)))
     obs = _observation(image, mask, depth, box, opts.coarse_to_fine, device, opts.mask_band_px if partial else 0)
     obs.scale = scale
     param = _Parameterisation.around(T0, model)

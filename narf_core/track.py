@@ -325,7 +325,8 @@ class TrackOptions:
                   "uncertainty": self.uncertainty_rays > 0, "uncertainty_rays": max(self.uncertainty_rays, 16),
                   "uncertainty_usual_residual": self.usual_residual if depth else 0.0,
                   "uncertainty_trained_footprint": depth,
-                  "occlusion_margin": self.occlusion_margin, "refinements": 0, "rgb_refinements": 0, "pose_starts": 1}
+                  "occlusion_margin": self.occlusion_margin, "refinements": 0, "rgb_refinements": 0, "pose_starts": 1,
+                  "search_theta_starts": 0}
         if not depth and self.outside_weight_rgb < 1:
             common.update(mask_trust="partial", mask_band_px=0, outside_weight=self.outside_weight_rgb,
                           partial_theta_starts=0)

@@ -718,7 +718,8 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     # final choice of the last and best rows on eval_rays, and the covariance: at most uncertainty_rays
     # squares of 4 x 4 pixels.
     preset = EstimateOptions.preset("gauss-newton")
-    gauss = replace(preset, mask_trust="full", refinements=0)  # (the preset's partial trust and refinements below)
+    # (the preset's partial trust, refinements and 8 starts where its configuration search runs: below)
+    gauss = replace(preset, mask_trust="full", refinements=0, search_theta_starts=0)
     assert gauss.iterations == 25
     rays, iterations, covariance = gauss.rays_per_iteration, gauss.iterations, gauss.uncertainty_rays * 16
 
@@ -753,7 +754,9 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     partial = 3 * 9 * 8 * 1024 + run(8) + run(16) + (2 * 8 + 1 + 2 * (1 + 16)) * gauss.eval_rays
     edges = run(8) + 2 * 8 * gauss.eval_rays
     assert preset.max_rays() == 3 * 8 * 1024 + 2 * partial + edges + gauss.eval_rays + 3 * 16384 + covariance
-    assert preset.max_rays(depth=False) == two.max_rays(depth=False)
+    # Without one, the bound counts the 8 starts of an object whose configuration search runs (three joints or more).
+    assert preset.search_theta_starts == 8 and preset.max_rays(depth=False) == replace(two, theta_starts=8).max_rays(depth=False)
+    assert replace(preset, theta_search=0).max_rays(depth=False) == two.max_rays(depth=False)
 
 
 @pytest.mark.parametrize("preset", ["paper", "robust"])
@@ -929,6 +932,31 @@ def test_theta_search_finds_a_thin_chain_s_configuration_that_the_spread_starts_
     loss_fn.options = EstimateOptions(theta_starts=4)  # off: the spread starts
     rows = _start_rows(loss_fn, obs, camera, param, _given_rows(loss_fn, obs, camera, param, spread))
     assert torch.allclose(param.thetas(rows), spread, atol=1e-9)
+
+
+def test_the_gauss_newton_preset_refines_a_start_per_corner_of_the_joint_box_where_its_search_runs(model, monkeypatch):
+    """``search_theta_starts``: where the configuration search runs (two joints or more), at least one start
+    per corner of the joint box up to that many, the partial mask's own rule beside it; a one-joint object
+    keeps ``theta_starts`` (its refinement runs the preset's 4); the option is checked."""
+    import narf_core.estimate as estimate
+
+    preset = EstimateOptions.preset("gauss-newton")
+    assert (preset.theta_starts, preset.search_theta_starts, preset.theta_search) == (4, 8, 16)
+    starts = estimate._configuration_starts
+    # one start per corner of the joint box, up to 8: two joints keep 4, three or more run 8
+    assert [starts(preset, partial, joints) for partial in (False, True) for joints in (1, 2, 3, 8)] == [4, 4, 8, 8] + [8] * 4
+    assert starts(replace(preset, theta_search=0), False, 3) == 4 and starts(replace(preset, search_theta_starts=12), True, 4) == 12
+    assert starts(replace(preset, search_theta_starts=0), False, 3) == 4 and starts(replace(preset, theta_starts=6), False, 2) == 6
+    with pytest.raises(EstimateInputError, match=re.escape("options.search_theta_starts must be in [0, 64]")):
+        EstimateOptions(search_theta_starts=65)
+    seen = []
+    given_rows = estimate._given_rows
+    monkeypatch.setattr(estimate, "_given_rows", lambda *a: seen.append(len(a[-1])) or given_rows(*a))
+    T = view()
+    image, mask, _ = observe(model, T, TRUTH)
+    refine(model, image, mask, CAMERA, T, options=replace(preset, iterations=2, uncertainty=False, refinements=0,
+                                                         pose_starts=1, align_start=False))
+    assert seen == [4]  # one joint: no search, the preset's own 4
 
 
 def test_theta_search_option_is_checked_and_on_in_the_robust_preset():
