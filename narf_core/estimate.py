@@ -401,8 +401,8 @@ class EstimateOptions:
             "solver": "gauss-newton", "iterations": GN_ITERATIONS, "silhouette_weight": 1.0,
             "depth_weight": GN_DEPTH_WEIGHT, "theta_starts": 4, "coarse_to_fine": 2, "robust_loss": "huber",
             "tolerance": 3e-3, "patience": 2, "uncertainty_rays": GN_UNCERTAINTY_RAYS, "theta_search": 16,
-            "search_theta_starts": 8, "align_start": True, "pose_starts": GN_POSE_STARTS, "pose_starts_overlap": GN_POSE_OVERLAP,
-            "refinements": 3, **PARTIAL_MASK, **overrides,
+            "search_theta_starts": 8, "align_start": True, "pose_starts": GN_POSE_STARTS,
+            "pose_starts_overlap": GN_POSE_OVERLAP, "refinements": 3, **PARTIAL_MASK, **overrides,
         })
 
     def max_rays(self, depth: bool = True) -> int:

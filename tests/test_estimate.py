@@ -755,7 +755,8 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     edges = run(8) + 2 * 8 * gauss.eval_rays
     assert preset.max_rays() == 3 * 8 * 1024 + 2 * partial + edges + gauss.eval_rays + 3 * 16384 + covariance
     # Without one, the bound counts the 8 starts of an object whose configuration search runs (three joints or more).
-    assert preset.search_theta_starts == 8 and preset.max_rays(depth=False) == replace(two, theta_starts=8).max_rays(depth=False)
+    assert preset.search_theta_starts == 8
+    assert preset.max_rays(depth=False) == replace(two, theta_starts=8).max_rays(depth=False)
     assert replace(preset, theta_search=0).max_rays(depth=False) == two.max_rays(depth=False)
 
 
@@ -944,9 +945,12 @@ def test_the_gauss_newton_preset_refines_a_start_per_corner_of_the_joint_box_whe
     assert (preset.theta_starts, preset.search_theta_starts, preset.theta_search) == (4, 8, 16)
     starts = estimate._configuration_starts
     # one start per corner of the joint box, up to 8: two joints keep 4, three or more run 8
-    assert [starts(preset, partial, joints) for partial in (False, True) for joints in (1, 2, 3, 8)] == [4, 4, 8, 8] + [8] * 4
-    assert starts(replace(preset, theta_search=0), False, 3) == 4 and starts(replace(preset, search_theta_starts=12), True, 4) == 12
-    assert starts(replace(preset, search_theta_starts=0), False, 3) == 4 and starts(replace(preset, theta_starts=6), False, 2) == 6
+    assert [starts(preset, False, joints) for joints in (1, 2, 3, 8)] == [4, 4, 8, 8]
+    assert [starts(preset, True, joints) for joints in (1, 2, 3, 8)] == [8, 8, 8, 8]  # partial_theta_starts
+    assert starts(replace(preset, theta_search=0), False, 3) == 4
+    assert starts(replace(preset, search_theta_starts=12), True, 4) == 12
+    assert starts(replace(preset, search_theta_starts=0), False, 3) == 4
+    assert starts(replace(preset, theta_starts=6), False, 2) == 6
     with pytest.raises(EstimateInputError, match=re.escape("options.search_theta_starts must be in [0, 64]")):
         EstimateOptions(search_theta_starts=65)
     seen = []
