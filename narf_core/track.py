@@ -181,8 +181,10 @@ class TrackOptions:
     sigma_scale_rgb: float = 0.0  # without depth
     # With depth, the colour residual up to which the refiner's model error is in pixel footprints alone
     # (EstimateOptions.uncertainty_usual_residual); above it σ grows with the residual, which there marks a
-    # track turning away. Without depth the refiner's Σ is kept (the residual follows the error there).
-    usual_residual: float = 0.03
+    # track turning away, or colours the model was not trained on (another renderer's light, a camera's
+    # noise): on our renderer's sequences the residual stays below it, and σ with it. Without depth the
+    # refiner's Σ is kept (the residual follows the error there).
+    usual_residual: float = 0.02
     # With depth, a warm-started frame whose Σ passed the limits below (its colour residual far above
     # usual_residual) gets a second round of iterations from where the first ended, before its status.
     retry_uncertain: bool = True

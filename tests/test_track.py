@@ -588,8 +588,8 @@ def test_frame_and_iteration_marching_give_the_same_step(clamp, clamp_sequence: 
         for march in ("frame", "iteration"):
             state = TrackState.initial(clamp, off @ frames[i].T_cam_obj, frames[i].joints, frames[i - 1].time,
                                        status="tracking")
-            result, _ = step(clamp, dataset.camera, observed, state, TrackOptions(march=march, solver="adam",
-                                                                                  depth_align=False))
+            options = TrackOptions(march=march, solver="adam", depth_align=False, retry_uncertain=False)  # one round
+            result, _ = step(clamp, dataset.camera, observed, state, options)
             assert result.status in ("tracking", "uncertain") and result.uncertainty is not None
             answers.append(result)
         assert np.abs(answers[0].T_cam_obj - answers[1].T_cam_obj).max() < 5e-4
