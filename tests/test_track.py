@@ -109,16 +109,29 @@ def test_a_cached_sequence_with_events_but_no_bar_record_is_drawn_again(tmp_path
 def test_a_large_object_is_framed_as_its_single_views_are(tmp_path: Path) -> None:
     """The cabinet, whose views have camera distances of their own (it overflows the rig's at 0.4 m), is
     seen from as much farther in a sequence: whole in every frame, where the tools' 0.55 m cut it off
-    at the border in all of them; the tools and a URDF of one's own keep the path as it is."""
+    at the border in all of them; and from its front, as its views are; the tools and a URDF of one's
+    own keep the path as it is."""
     pytest.importorskip("pybullet")
     from narf_core.data.dataset import Dataset
-    from narf_core.data.synth.sequence import SequencePath, framed_path, synthesize_sequence
+    from narf_core.data.synth.sequence import SequencePath, folded, framed_path, synthesize_sequence
 
     path = SequencePath()
     assert framed_path("clamp", path) is path and framed_path(tmp_path / "own.urdf", path) is path
     far = framed_path("cabinet", path)
     assert far.distance == pytest.approx(path.distance * 1.5)
     assert far.distance_sway == pytest.approx(path.distance_sway * 1.5)
+    # It stands against a wall: the orbit turns back at 75° either side of its front, 10-50° above it.
+    assert far.azimuth_range_deg == (-75.0, 75.0) and path.azimuth_range_deg is None
+    assert (far.elevation_deg, far.elevation_sway_deg) == (30.0, 15.0)
+    assert [folded(a, (-75.0, 75.0)) for a in (0.0, 80.0, -80.0, 310.0)] == [0.0, 70.0, -70.0, 10.0]
+    azimuths, elevations = [], []
+    for t in np.linspace(0.0, 40.0, 400):  # 800° of the free orbit at its 20°/s
+        T = far.camera(float(t), np.zeros(3), 1e-6, np.zeros(8), 0.0)
+        eye = -T[:3, :3].T @ T[:3, 3]
+        azimuths.append(math.degrees(math.atan2(eye[1], eye[0])))
+        elevations.append(math.degrees(math.asin(eye[2] / np.linalg.norm(eye))))
+    assert -75.0 - 1e-3 <= min(azimuths) < -70.0 and 70.0 < max(azimuths) <= 75.0 + 1e-3
+    assert 15.0 - 1e-3 <= min(elevations) < 16.0 and 44.0 < max(elevations) <= 45.0 + 1e-3
     out = synthesize_sequence("cabinet", tmp_path / "seq", 6, size=(80, 60), events=False, supersample=1)
     dataset = Dataset.open(out)
     assert dataset.generator["sequence"]["path"]["distance"] == pytest.approx(far.distance)

@@ -6,7 +6,8 @@ like a hand-held camera or a robot's head around the object (which stays at the 
 
   - it orbits at a drifting, oscillating azimuth, with elevation, distance and roll swaying
     slowly and the look-at point wandering over the object (an object with camera distances of its
-    own, too large for the rig's, is seen from as much farther: :func:`framed_path`);
+    own, too large for the rig's, is seen from as much farther, and one seen only from its front
+    is orbited there: :func:`framed_path`);
   - the joints open and close (a sine between the tool's smallest and largest trained values);
   - with ``events`` (the default), the camera once glances away so that the object leaves the
     view for a few frames, and a grey bar (a stand-in for an arm or a cable) sweeps across the
@@ -66,6 +67,9 @@ class SequencePath:
     joint_period_s: float = 4.0
     max_speed_m_s: float = 0.30
     max_turn_deg_s: float = 60.0
+    # An object seen only from some azimuths (a cabinet against a wall: ViewSampling.azimuth_deg): the orbit
+    # turns back at these ends, a triangle wave of the free orbit's azimuth (None: the whole turn).
+    azimuth_range_deg: tuple[float, float] | None = None
     glance_at: float = 0.45
     glance_s: float = 2.4
     glance_offset: float = 4.0
@@ -75,8 +79,9 @@ class SequencePath:
     def camera(self, t: float, centre: np.ndarray, radius: float, phase: np.ndarray, glance: float) -> np.ndarray:
         """``T_cam_obj [4, 4]`` at time ``t`` (s); ``glance`` in [0, 1] is how far the camera looks away."""
         p = phase
-        azimuth = math.radians(p[0] * 360 + self.azimuth_rate_deg * t
-                               + self.azimuth_sway_deg * math.sin(2 * math.pi * 0.15 * t + p[1]))
+        azimuth = math.radians(folded(p[0] * 360 + self.azimuth_rate_deg * t
+                                      + self.azimuth_sway_deg * math.sin(2 * math.pi * 0.15 * t + p[1]),
+                                      self.azimuth_range_deg))
         elevation = math.radians(self.elevation_deg + self.elevation_sway_deg * math.sin(2 * math.pi * 0.11 * t + p[2]))
         distance = self.distance + self.distance_sway * math.sin(2 * math.pi * 0.13 * t + p[3])
         wander = self.target_wander * radius * np.array(
@@ -95,12 +100,32 @@ class SequencePath:
         return invert_pose(T_obj_cam).numpy()
 
 
+def folded(angle_deg: float, span: tuple[float, float] | None) -> float:
+    """``angle_deg`` (degrees, unbounded) folded into ``span = (low, high)`` as a triangle wave, so that a
+    path that moves on turns back at either end; unchanged where ``span`` is None."""
+    if span is None:
+        return angle_deg
+    low, high = span
+    m = (angle_deg - low) % (2 * (high - low))
+    return low + (m if m <= high - low else 2 * (high - low) - m)
+
+
 def framed_path(tool: str | Path, path: SequencePath) -> SequencePath:
-    """``path`` with its distances scaled as ``tool``'s own camera distances are the rig's
-    (:func:`~narf_core.data.synth.generate.default_sampling`, by the nearest): an object too large for
-    the rig's stays in the sequence's view as the tools do."""
-    k = default_sampling(tool).distance[0] / ViewSampling().distance[0]
-    return path if k == 1 else replace(path, distance=path.distance * k, distance_sway=path.distance_sway * k)
+    """``path`` fitted to ``tool``'s own views (:func:`~narf_core.data.synth.generate.default_sampling`):
+    its distances scaled as the object's camera distances are the rig's (by the nearest), so that an object
+    too large for the rig's stays in view as the tools do; and, for an object seen from some azimuths only,
+    its orbit kept to them and its elevation swaying inside the object's range."""
+    own, rig = default_sampling(tool), ViewSampling()
+    k = own.distance[0] / rig.distance[0]
+    if k != 1:
+        path = replace(path, distance=path.distance * k, distance_sway=path.distance_sway * k)
+    if own.azimuth_deg != rig.azimuth_deg:
+        path = replace(path, azimuth_range_deg=tuple(own.azimuth_deg))
+    if own.elevation_deg != rig.elevation_deg:
+        low, high = own.elevation_deg
+        sway = min(path.elevation_sway_deg, (high - low) / 2)
+        path = replace(path, elevation_deg=(low + high) / 2, elevation_sway_deg=sway)
+    return path
 
 
 def raised_cosine(x: float) -> float:
