@@ -293,6 +293,11 @@ class EstimateOptions:
     # > 0: colour residuals up to this count as the model's usual one, and the model's error (MODEL_ERROR)
     # grows only with a residual above it; 0: MODEL_ERROR's reference (model_error; the tracker's with depth).
     uncertainty_usual_residual: float = 0.0
+    # > 0: the silhouette's mean squared misfit (the render's opacity against the mask) up to this counts as
+    # usual, and above it the model's error grows with its ratio to this squared (SILHOUETTE_EXPONENT): an
+    # outline that disagrees with the mask (a segmenter's blobs, an occluder's edge, depth holes the mask
+    # follows) marks an estimate the colours do not rank. 0: off (the tracker's with depth sets it).
+    uncertainty_usual_silhouette: float = 0.0
     # With depth, the model's error in pixels no finer than the training views' (trained_footprint): an
     # estimate from a few iterations (the tracker's frame) keeps the model's error at a finer camera.
     uncertainty_trained_footprint: bool = False
@@ -339,7 +344,8 @@ class EstimateOptions:
         need(0 <= self.theta_search <= 256, "theta_search", "must be in [0, 256] (0 = off)")
         need(0 <= self.search_theta_starts <= 64, "search_theta_starts", "must be in [0, 64] (0 = theta_starts)")
         need(1 <= self.uncertainty_patch <= 64, "uncertainty_patch", "must be in [1, 64]")
-        for name in ("sigma_floor_position", "sigma_floor_rotation", "sigma_floor_joint", "uncertainty_usual_residual"):
+        for name in ("sigma_floor_position", "sigma_floor_rotation", "sigma_floor_joint", "uncertainty_usual_residual",
+                     "uncertainty_usual_silhouette"):
             need(getattr(self, name) >= 0, name, "must be >= 0")
         gain = self.colour_gain
         need(isinstance(gain, (tuple, list)) and len(gain) == 3
@@ -571,13 +577,19 @@ class Uncertainty:
     # without the model's error (which grows with the residual whatever the view shows); what
     # :func:`unobserved_joints` judges. Not in :meth:`to_dict`.
     view_joint_sigma: dict[str, float] | None = None
+    # The covariance with the model's error widened by the colour residual alone, where the silhouette's
+    # misfit widened it more (EstimateOptions.uncertainty_usual_silhouette; else None, the same as
+    # ``covariance``): what the tracker's second round judges, a track turning away, which the colours
+    # show. Not in :meth:`to_dict`.
+    colour_covariance: np.ndarray | None = None
 
     @classmethod
     def from_covariance(cls, covariance: np.ndarray, joint_names: list[str], variance: float, dof: int,
-                        view_joint_sigma: dict[str, float] | None = None) -> Uncertainty:
+                        view_joint_sigma: dict[str, float] | None = None,
+                        colour_covariance: np.ndarray | None = None) -> Uncertainty:
         sd = np.sqrt(np.clip(np.diag(covariance), 0, None))
         return cls(covariance, sd[:3].copy(), sd[3:6].copy(), dict(zip(joint_names, map(float, sd[6:]), strict=True)),
-                   float(variance), int(dof), view_joint_sigma)
+                   float(variance), int(dof), view_joint_sigma, colour_covariance)
 
     def to_dict(self) -> dict:
         """A JSON-able copy."""
@@ -1752,13 +1764,21 @@ def _uncertainty(
     floor = torch.cat([
         torch.full((3,), opts.sigma_floor_position), torch.full((3,), opts.sigma_floor_rotation), opts.sigma_floor_joint * span
     ]).double()
-    kind = _error_class(opts, uses_depth)
-    sd = model_error(model, kind, pixel, param.radius, stat.colour_variance, opts.uncertainty_usual_residual)
-    Sigma = stat.sigma + model_error_covariance(sd, kind, line_of_sight(model, T)) + torch.diag(floor**2)
+    kind, sight = _error_class(opts, uses_depth), line_of_sight(model, T)
+
+    def covariance_at(usual_silhouette: float) -> Tensor:
+        sd = model_error(model, kind, pixel, param.radius, stat.colour_variance, opts.uncertainty_usual_residual,
+                         stat.silhouette_misfit, usual_silhouette)
+        return stat.sigma + model_error_covariance(sd, kind, sight) + torch.diag(floor**2)
+
+    Sigma, colour = covariance_at(opts.uncertainty_usual_silhouette), None
+    if 0 < opts.uncertainty_usual_silhouette < stat.silhouette_misfit:  # the silhouette may have widened it
+        colour = covariance_at(0.0)
+        colour = None if torch.equal(colour, Sigma) else colour.numpy().copy()
     names = [j.name for j in model.joints]
     view = torch.sqrt(torch.diagonal(stat.sigma)[6:].clamp_min(0)).tolist()
     return Uncertainty.from_covariance(Sigma.numpy().copy(), names, stat.variance, stat.dof,
-                                       dict(zip(names, view, strict=True)))
+                                       dict(zip(names, view, strict=True)), colour)
 
 
 # The model's error, which the residuals cannot see: the field renders the object a little
@@ -1822,7 +1842,7 @@ def _centre_depth(T: Tensor, centre: Tensor) -> float:
 
 
 def model_error(model: NarfModel, kind: str, pixel_m: float, radius: float, colour_variance: float,
-                usual: float = 0.0) -> Tensor:
+                usual: float = 0.0, silhouette_misfit: float = 0.0, usual_silhouette: float = 0.0) -> Tensor:
     """σ ``[6 + k]`` of the model's error (see :data:`MODEL_ERROR`; ``kind`` from :func:`_error_class`)
     at an estimate where a pixel spans ``pixel_m`` metres at the object's centre: in position that
     times ``pixels``, in rotation that over the object's ``radius``, per joint that over the speed at
@@ -1831,19 +1851,32 @@ def model_error(model: NarfModel, kind: str, pixel_m: float, radius: float, colo
     at the end of a chain gets the wider angle a position error means there; :func:`_joint_speeds`).
     ``usual`` (> 0): the reference colour residual
     instead of the calibration's, and residuals below it count as it
-    (``EstimateOptions.uncertainty_usual_residual``)."""
+    (``EstimateOptions.uncertainty_usual_residual``). ``usual_silhouette`` (> 0): the error grows with
+    ``(silhouette_misfit / usual_silhouette) ^`` :data:`SILHOUETTE_EXPONENT` where that exceeds the
+    colour's growth (``EstimateOptions.uncertainty_usual_silhouette``)."""
     own = model.metadata.get("uncertainty") or {}
     calibration = {**MODEL_ERROR, **own, "pixels": {**MODEL_ERROR["pixels"], **own.get("pixels", {})}}
-    return model_error_sigma(calibration, kind, pixel_m, radius, colour_variance, _joint_speeds(model, radius), usual)
+    return model_error_sigma(calibration, kind, pixel_m, radius, colour_variance, _joint_speeds(model, radius), usual,
+                             silhouette_misfit, usual_silhouette)
+
+
+# How the model's error grows with the silhouette's misfit above the usual one (model_error): a frame's
+# misfit hardly ranks its error among frames under the same faults, but its level tells faulted images (a
+# segmenter's mask, an occluder, depth holes: half the frames' misfits 0.04-0.11) from our renderer's
+# (0.02 or less in 95 % of its frames); the exponent chosen on tracks of both (docs/benchmarks.md, session 41).
+SILHOUETTE_EXPONENT = 2.0
 
 
 def model_error_sigma(calibration: Mapping, kind: str, pixel_m: float, radius: float, colour_variance: float,
-                      joint_speeds: Tensor, usual: float = 0.0) -> Tensor:
+                      joint_speeds: Tensor, usual: float = 0.0, silhouette_misfit: float = 0.0,
+                      usual_silhouette: float = 0.0) -> Tensor:
     """:func:`model_error` under the constants ``calibration`` (:data:`MODEL_ERROR`'s keys), with each
     joint's surface speed ``joint_speeds [k]`` given: the one formula the refiner reports and
     ``narf_benchmarks.calibration`` fits."""
     reference = usual or calibration["reference_variance"]
     fit = (max(colour_variance, usual) / reference) ** calibration["exponent"]
+    if usual_silhouette > 0 and math.isfinite(silhouette_misfit):
+        fit = max(fit, (silhouette_misfit / usual_silhouette) ** SILHOUETTE_EXPONENT)
     position = calibration["pixels"][kind] * pixel_m * fit
     joints = position / joint_speeds.to(torch.float64)
     return torch.cat([torch.tensor([position] * 3 + [position / radius] * 3, dtype=torch.float64), joints])

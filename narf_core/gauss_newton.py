@@ -688,7 +688,10 @@ class Information:
       (the sandwich's "meat": residuals correlated inside a cluster add up before they are squared);
     - ``rss = Σ W r²`` and ``count``, the residuals that carry information;
     - ``colour_ss = Σ r²`` and ``colour_count`` over the colour residuals alone, unweighted: how well
-      the render explains the image, comparable between option sets (every one has colour residuals).
+      the render explains the image, comparable between option sets (every one has colour residuals);
+    - ``silhouette_ss`` and ``silhouette_count`` the same over the silhouette residuals, each over the
+      silhouette's weight's root: the squared difference of the render's opacity and the mask, how well
+      the render's outline explains the mask (0 without a silhouette term).
     """
 
     H: Tensor
@@ -697,6 +700,8 @@ class Information:
     count: float
     colour_ss: float
     colour_count: float
+    silhouette_ss: float = 0.0
+    silhouette_count: float = 0.0
 
     def variance(self) -> float:
         """The weighted residual variance ``σ² = rss / (count - d)``."""
@@ -707,16 +712,22 @@ class Information:
         """The mean squared colour residual (colour in [0, 1])."""
         return self.colour_ss / max(self.colour_count, 1.0)
 
+    def silhouette_misfit(self) -> float:
+        """The mean squared difference of the render's opacity and the mask (0 without a silhouette term)."""
+        return self.silhouette_ss / max(self.silhouette_count, 1.0)
+
 
 @dataclass
 class Covariance:
     """The statistical covariance at an estimate: ``sigma [d, d]``, the weighted residual variance
-    ``variance`` with ``dof`` degrees of freedom, and the mean squared colour residual ``colour_variance``."""
+    ``variance`` with ``dof`` degrees of freedom, the mean squared colour residual ``colour_variance``
+    and the silhouette's ``silhouette_misfit`` (:meth:`Information.silhouette_misfit`)."""
 
     sigma: Tensor
     variance: float
     dof: int
     colour_variance: float
+    silhouette_misfit: float = 0.0
 
 
 def cluster_sample(
@@ -758,7 +769,8 @@ def information(
     chunk's render graph is alive at once, whatever ``n``."""
     opts = problem.options
     H = G = None
-    rss = count = colour_ss = colour_count = 0.0
+    rss = count = colour_ss = colour_count = silhouette_ss = silhouette_count = 0.0
+    silhouette_scale = 1.0 / opts.silhouette_weight if opts.silhouette_weight > 0 else 0.0
     for start in range(0, len(index), chunk):
         part, part_cluster = index[start:start + chunk], cluster[start:start + chunk]
         res = problem.residuals(chain, p, camera.rays(obs.pixels[part].to(torch.float32)), obs.levels[-1], part, True)
@@ -779,9 +791,13 @@ def information(
         count += float((ray_weight * informative).sum())
         colour_ss += float((colour * r[:, :3] ** 2).sum())
         colour_count += float(colour.sum())
+        outline = res.used[0][:, 3:4] * ray_weight
+        silhouette_ss += silhouette_scale * float((outline * r[:, 3:4] ** 2).sum())
+        silhouette_count += float(outline.sum())
     if H is None:
         return None
-    return Information(H, (G * weight[:, None]).T @ G, rss, count, colour_ss, colour_count)
+    return Information(H, (G * weight[:, None]).T @ G, rss, count, colour_ss, colour_count, silhouette_ss,
+                       silhouette_count)
 
 
 def prior_precision(param: _Parameterisation) -> Tensor:
@@ -832,7 +848,7 @@ def covariance(
         index, cluster, weight = rays
         info = information(problem, obs, camera, chain, p, index, cluster, weight, chunk=max(len(index), 1))
     if info is None:  # a non-finite render: no Σ
-        return Covariance(torch.full((d, d), math.nan, dtype=torch.float64), math.nan, 1, math.nan)
+        return Covariance(torch.full((d, d), math.nan, dtype=torch.float64), math.nan, 1, math.nan, math.nan)
     variance, prior = info.variance(), prior_precision(param)
     if patch > 1:
         Sigma = sandwich(info, prior, variance)
@@ -841,7 +857,7 @@ def covariance(
     Sigma = _symmetric(Sigma)
     if not bool(torch.isfinite(Sigma).all()):
         Sigma = torch.diag(1 / prior)
-    return Covariance(Sigma, variance, max(round(info.count) - d, 1), info.colour_variance())
+    return Covariance(Sigma, variance, max(round(info.count) - d, 1), info.colour_variance(), info.silhouette_misfit())
 
 
 def _symmetric(A: Tensor) -> Tensor:

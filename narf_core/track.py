@@ -185,6 +185,10 @@ class TrackOptions:
     # noise): on our renderer's sequences the residual stays below it, and σ with it. Without depth the
     # refiner's Σ is kept (the residual follows the error there).
     usual_residual: float = 0.02
+    # With depth, the silhouette's mean squared misfit up to which σ does not grow with it
+    # (EstimateOptions.uncertainty_usual_silhouette): above it a mask the model's outline disagrees with
+    # (a segmenter's, an occluder's edge) widens the region, whose colours alone did not (0: off).
+    usual_silhouette: float = 0.02
     # With depth, a warm-started frame whose Σ passed the limits below (its colour residual far above
     # usual_residual) gets a second round of iterations from where the first ended, before its status.
     retry_uncertain: bool = True
@@ -294,6 +298,7 @@ class TrackOptions:
         need(self.sigma_scale >= 0, "sigma_scale", "must be >= 0 (0 = the model's own)")
         need(self.sigma_scale_rgb >= 0, "sigma_scale_rgb", "must be >= 0 (0 = the model's own)")
         need(self.usual_residual >= 0, "usual_residual", "must be >= 0")
+        need(self.usual_silhouette >= 0, "usual_silhouette", "must be >= 0 (0 = off)")
         need(self.silhouette_weight >= 0, "silhouette_weight", "must be >= 0")
         need(self.silhouette_weight_rgb >= 0, "silhouette_weight_rgb", "must be >= 0")
         need(self.distance_prior_rgb >= 0, "distance_prior_rgb", "must be >= 0")
@@ -326,6 +331,7 @@ class TrackOptions:
                   "ray_sampling": self.ray_sampling if depth else self.ray_sampling_rgb,
                   "uncertainty": self.uncertainty_rays > 0, "uncertainty_rays": max(self.uncertainty_rays, 16),
                   "uncertainty_usual_residual": self.usual_residual if depth else 0.0,
+                  "uncertainty_usual_silhouette": self.usual_silhouette if depth else 0.0,
                   "uncertainty_trained_footprint": depth,
                   "occlusion_margin": self.occlusion_margin, "refinements": 0, "rgb_refinements": 0, "pose_starts": 1,
                   "search_theta_starts": 0}
@@ -968,15 +974,17 @@ def _recentred(model: NarfModel, camera: Pinhole, T: np.ndarray, joints: Mapping
     return out
 
 
-def _uncertainty(result: EstimateResult, sigma_scale: float = 1.0) -> tuple[dict | None, np.ndarray | None]:
-    """The estimate's uncertainty (as a dict) and covariance, σ times ``sigma_scale``; Nones without one."""
+def _uncertainty(result: EstimateResult, sigma_scale: float = 1.0, colour: bool = False) -> tuple[dict | None, np.ndarray | None]:
+    """The estimate's uncertainty (as a dict) and covariance, σ times ``sigma_scale``; Nones without one.
+    ``colour``: the covariance as the colour residual alone widens it (``Uncertainty.colour_covariance``)."""
     u = result.uncertainty
     if u is None:
         return None, None
-    cov = np.asarray(u.covariance, dtype=np.float64) * sigma_scale**2
+    chosen = u.colour_covariance if colour and u.colour_covariance is not None else u.covariance
+    cov = np.asarray(chosen, dtype=np.float64) * sigma_scale**2
     if not np.isfinite(cov).all():
         return None, None
-    if sigma_scale != 1.0:
+    if sigma_scale != 1.0 or chosen is not u.covariance:
         u = Uncertainty.from_covariance(cov, list(u.joint_sigma), u.residual_variance, u.dof, u.view_joint_sigma)
     return u.to_dict(), cov
 
@@ -1204,10 +1212,11 @@ def _step(
         result = _warm_refine(model, camera, frame.image, mask, depth, T_pred, joints_pred, opts, checks, colour)
         iterations += result.iterations
         retry_scale = opts.sigma_scale or RETRY_SIGMA_SCALE[opts.solver_for(True)]
-        if depth is not None and opts.retry_uncertain and _too_uncertain(_uncertainty(result, retry_scale)[0], opts):
+        if depth is not None and opts.retry_uncertain and _too_uncertain(_uncertainty(result, retry_scale, True)[0], opts):
             # Σ grew past the limits with the colour residual: the estimate explains the image much worse
             # than the model usually does (a track turning away); one more round from where it ended. (Judged
-            # at RETRY_SIGMA_SCALE, not the model's own or the camera's: a calibration changes Σ, never the track.)
+            # at RETRY_SIGMA_SCALE, not the model's own or the camera's, and on the colours' growth alone, not
+            # the silhouette's, which a mask's own faults cause: a calibration changes Σ, never the track.)
             result = _warm_refine(model, camera, frame.image, mask, depth, result.T_cam_obj, result.joints, opts, checks)
             iterations += result.iterations
         score = overlap(model, camera, mask, result.T_cam_obj, result.joints) if result.loss is not None else 0.0

@@ -481,6 +481,20 @@ def test_the_information_is_the_same_whatever_the_chunk_of_rays():
     torch.testing.assert_close(split.B, whole.B)
     assert split.rss == pytest.approx(whole.rss) and split.count == pytest.approx(whole.count)
     assert split.colour_ss == pytest.approx(whole.colour_ss) and split.colour_count == pytest.approx(whole.colour_count)
+    assert whole.silhouette_count > 0
+    assert split.silhouette_ss == pytest.approx(whole.silhouette_ss)
+    assert split.silhouette_count == pytest.approx(whole.silhouette_count)
+
+
+def test_the_silhouette_misfit_is_the_mean_squared_outline_difference():
+    """The covariance reports the box's mean squared difference of opacity and mask: the silhouette
+    residuals over the silhouette weight's root, squared and averaged (every ray drawn); 0 where the
+    options have no silhouette term."""
+    A, y, obs, param = linear_case()
+    weighted = linear_covariance(LinearProblem(A, y, silhouette_weight=4.0), obs, param, max_rays=10_000)
+    assert weighted.silhouette_misfit == pytest.approx(float((y[:, 3] ** 2).mean()) / 4.0, rel=1e-9)
+    assert weighted.colour_variance == pytest.approx(float((y[:, :3] ** 2).mean()), rel=1e-9)
+    assert linear_covariance(LinearProblem(A, y, silhouette_weight=0.0), obs, param, max_rays=10_000).silhouette_misfit == 0.0
 
 
 def test_estimating_imports_neither_torch_dynamo_nor_sympy():

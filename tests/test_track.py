@@ -512,6 +512,23 @@ def test_model_error_grows_only_above_the_usual_residual(clamp) -> None:
         EstimateOptions(uncertainty_usual_residual=-1.0)
 
 
+def test_model_error_grows_with_the_square_of_a_silhouette_misfit_above_the_usual(clamp) -> None:
+    """``usual_silhouette`` (the tracker's ``usual_silhouette`` with depth): a silhouette misfit up to it
+    leaves the model's error as the colour residual gives it; above it the error grows with the
+    misfit's ratio to it squared, unless the colour's growth is the larger; 0 turns it off."""
+    from narf_core.estimate import SILHOUETTE_EXPONENT, EstimateInputError, EstimateOptions, model_error
+
+    at_usual = model_error(clamp, "shape", 0.004, 0.1, 0.03, usual=0.03)
+    for misfit in (0.0, 0.02, 0.05):
+        assert _close(model_error(clamp, "shape", 0.004, 0.1, 0.03, 0.03, misfit, 0.05), at_usual)
+    assert _close(model_error(clamp, "shape", 0.004, 0.1, 0.03, 0.03, 0.1, 0.05), 2**SILHOUETTE_EXPONENT * at_usual)
+    assert _close(model_error(clamp, "shape", 0.004, 0.1, 0.3, 0.03, 0.1, 0.05), 10 * at_usual)  # colour's 10x wins
+    assert _close(model_error(clamp, "shape", 0.004, 0.1, 0.03, 0.03, 0.5, 0.0), at_usual)  # off
+    assert _close(model_error(clamp, "shape", 0.004, 0.1, 0.03, 0.03, float("nan"), 0.05), at_usual)
+    with pytest.raises(EstimateInputError, match=r"options\.uncertainty_usual_silhouette must be >= 0"):
+        EstimateOptions(uncertainty_usual_silhouette=-0.1)
+
+
 def _close(a, b) -> bool:
     return bool(np.allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=0))
 
@@ -551,6 +568,47 @@ def test_depth_frame_sigma_is_in_pixel_footprints_below_the_usual_residual(clamp
     assert sigmas[False, 0.5].min() >= 0.95 * sigmas[False, 1.0].min()
     assert (sigmas[True, 0.5] > 1.5 * sigmas[True, 1.0]).all()  # RGB only: the colour residual scales σ
     assert sigmas[True, 1.0][2] > 1.5 * sigmas[True, 1.0][:2].max()  # and the distance is the least certain
+
+
+def test_depth_frame_sigma_grows_where_the_mask_disagrees_with_the_outline(clamp, clamp_sequence: Path) -> None:
+    """With depth, a mask with a segmenter's extra blob beside the tool over a dark patch (the colours
+    barely see it: the render's background is dark too, but the outline misfits the mask by more than
+    ``usual_silhouette``) widens the frame's σ by the misfit's ratio squared; the exact mask (a misfit
+    below it) leaves σ as it is without the rule, and 0 turns the rule off."""
+    from narf_core.data.dataset import Dataset
+    from narf_core.track import RETRY_SIGMA_SCALE, TrackFrame, TrackInputError, TrackOptions, TrackState, sigma_scale, step
+
+    with pytest.raises(TrackInputError, match=r"options\.usual_silhouette must be >= 0"):
+        TrackOptions(usual_silhouette=-0.1)
+    dataset = Dataset.open(clamp_sequence)
+    frame = dataset.frames()[1]
+    images = dataset.load(frame)
+    exact = images.labels > 0
+    rows, cols = np.nonzero(exact)
+    blob = exact.copy()
+    height, width = rows.max() - rows.min() + 1, cols.max() - cols.min() + 1
+    blob[rows.min():rows.min() + height // 2, cols.max() + 1:cols.max() + 1 + width // 3] = True
+    image = images.rgb.copy()
+    image[blob & ~exact] = 0
+    sigma = {}
+    for name, mask in (("exact", exact), ("blob", blob)):
+        for usual in (0.02, 0.0):
+            options = TrackOptions(iterations=2, rays_per_iteration=128, uncertainty_rays=256, usual_silhouette=usual,
+                                   retry_uncertain=False)
+            state = TrackState.initial(clamp, frame.T_cam_obj, frame.joints, frame.time - 1 / 30, status="tracking")
+            result = step(clamp, dataset.camera, TrackFrame(image, mask, frame.time, images.depth), state, options)[0]
+            sigma[name, usual] = np.asarray(result.uncertainty["position_sigma_m"])
+    assert np.allclose(sigma["exact", 0.02], sigma["exact", 0.0], rtol=1e-9)
+    assert (sigma["blob", 0.02] > 2 * sigma["blob", 0.0]).all()
+    assert np.allclose(sigma["blob", 0.0], sigma["exact", 0.0], rtol=0.5)  # the colours alone hardly see the blob
+    # The second round (retry_uncertain) judges the colours' growth alone: a limit between the blob frame's σ
+    # without the silhouette's growth and with it (at the retry's own factor) starts no second round.
+    own = sigma_scale(clamp, TrackOptions(), True, dataset.camera)
+    limit = 2.5 * float(sigma["blob", 0.0].max()) * RETRY_SIGMA_SCALE["gauss-newton"] / own
+    assert float(sigma["blob", 0.02].min()) * RETRY_SIGMA_SCALE["gauss-newton"] / own > limit
+    options = TrackOptions(iterations=2, rays_per_iteration=128, uncertainty_rays=256, max_position_sigma_m=limit)
+    state = TrackState.initial(clamp, frame.T_cam_obj, frame.joints, frame.time - 1 / 30, status="tracking")
+    assert step(clamp, dataset.camera, TrackFrame(image, blob, frame.time, images.depth), state, options)[0].iterations == 2
 
 
 def test_a_frame_whose_sigma_passes_the_limits_gets_a_second_round(clamp, clamp_sequence: Path) -> None:
