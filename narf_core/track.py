@@ -974,7 +974,9 @@ def _recentred(model: NarfModel, camera: Pinhole, T: np.ndarray, joints: Mapping
     return out
 
 
-def _uncertainty(result: EstimateResult, sigma_scale: float = 1.0, colour: bool = False) -> tuple[dict | None, np.ndarray | None]:
+def _uncertainty(
+    result: EstimateResult, sigma_scale: float = 1.0, colour: bool = False
+) -> tuple[dict | None, np.ndarray | None]:
     """The estimate's uncertainty (as a dict) and covariance, σ times ``sigma_scale``; Nones without one.
     ``colour``: the covariance as the colour residual alone widens it (``Uncertainty.colour_covariance``)."""
     u = result.uncertainty
