@@ -93,6 +93,13 @@ RETRY_SIGMA_SCALE = {"gauss-newton": 0.4, "adam": 3.0}
 # and without (a few iterations reach the bottom that Adam's fixed steps trail behind; without depth its
 # steps along the line of sight follow the silhouette's scale, where Adam's drift: docs/benchmarks.md).
 AUTO_SOLVER = {"rgbd": "gauss-newton", "rgb": "gauss-newton"}
+# How a warm-started frame with a depth image trusts its mask (EstimateOptions.mask_trust). A single image's
+# "auto" trusts it partially where the depth contradicts it (an occluder, a segmenter's edge): its rays
+# outside the mask weigh less, none behind an occluder, and a band along the mask's edge carries no
+# silhouette. A frame starts a few millimetres from its answer, where that band takes away the outline that
+# holds a thin part and the pliers' tracks under a segmenter's faults drift off: in full (docs/benchmarks.md,
+# session 42).
+DEPTH_MASK_TRUST = "full"
 # A frame's iterations and rays per iteration per solver, where TrackOptions leaves them at 0.
 BUDGETS = {"adam": (6, 768), "gauss-newton": (2, 768)}
 # A frame's iterations without depth, per solver, where TrackOptions leaves them at 0 (else BUDGETS'): there
@@ -335,7 +342,9 @@ class TrackOptions:
                   "uncertainty_trained_footprint": depth,
                   "occlusion_margin": self.occlusion_margin, "refinements": 0, "rgb_refinements": 0, "pose_starts": 1,
                   "search_theta_starts": 0}
-        if not depth and self.outside_weight_rgb < 1:
+        if depth:
+            common.update(mask_trust=DEPTH_MASK_TRUST)
+        elif self.outside_weight_rgb < 1:
             common.update(mask_trust="partial", mask_band_px=0, outside_weight=self.outside_weight_rgb,
                           partial_theta_starts=0)
         if solver != "adam":
@@ -721,13 +730,15 @@ def refine_frame(
     ``prior`` ``(σ position m, σ rotation rad)``: its iterations are held to the prediction, the box
     centre's position per camera axis and the rotation about it per axis (:meth:`~narf_core.gauss_newton.
     GaussNewtonRun.hold_to`; the joints are free). ``checks``: the frame's input checks, already made
-    (the tracker's step makes them before it aligns its prediction): not made again.
+    (the tracker's step makes them before it aligns its prediction): not made again. ``options.mask_trust``
+    "auto" means what it means to :func:`refine` (partial where the depth contradicts the mask, with its
+    edge band); the tracker's own frames pass :data:`DEPTH_MASK_TRUST` with depth.
     """
     from narf_core.band import ray_band
     from narf_core.compositing import composite
     from narf_core.estimate import (
         ROBUST_BOX_PX, _box_scale, _check_observation, _Loss, _mask_box, _object_rays, _observation, _overlaps,
-        _Parameterisation, _ray_index, _uncertainty,
+        _Parameterisation, _partial_trust, _ray_index, _uncertainty,
     )
     from narf_core.gauss_newton import GaussNewtonRun, Problem, cluster_sample
     from narf_core.geometry import pose_to_position_quaternion
@@ -743,7 +754,9 @@ def refine_frame(
     camera = Pinhole(camera.K.detach().to(device, torch.float32), camera.width, camera.height)
     box = _mask_box(mask, options.box_margin)
     scale = _box_scale(box, options)
-    obs = _observation(image, mask, depth, box, 1, device)
+    partial = _partial_trust(options, mask, depth)  # "auto" resolved as refine resolves it
+    options = replace(options, mask_trust="partial" if partial else "full")
+    obs = _observation(image, mask, depth, box, 1, device, options.mask_band_px if partial else 0)
     obs.scale = scale
     param = _Parameterisation.around(T0, model)
     uses_depth = depth is not None and options.depth_weight > 0

@@ -421,6 +421,42 @@ def test_first_frame_warm_and_sigma_scale(clamp, clamp_sequence: Path) -> None:
                                    2 * np.asarray(answers[0].uncertainty["position_sigma_m"]))
 
 
+def test_a_frame_with_depth_trusts_the_mask_as_its_options_say(clamp, clamp_sequence: Path, monkeypatch) -> None:
+    """``refine_frame`` resolves ``mask_trust`` "auto" as ``refine`` does: in full under an exact mask, partially
+    (with the preset's edge band) where the depth shows an occluder in front of what the mask leaves out; the
+    tracker's own frames with depth pass :data:`~narf_core.track.DEPTH_MASK_TRUST` (in full: no band either way),
+    and the same frame then ends where the "full" options end it."""
+    from dataclasses import replace
+
+    from narf_core import estimate
+    from narf_core.data.dataset import Dataset
+    from narf_core.track import DEPTH_MASK_TRUST, TrackOptions, refine_frame
+
+    dataset = Dataset.open(clamp_sequence)
+    frame = dataset.frames()[1]
+    images = dataset.load(frame)
+    mask = images.labels > 0
+    cols = np.nonzero(mask.any(0))[0]
+    hand = np.zeros_like(mask)
+    hand[:, cols[int(0.7 * len(cols))]:] = True  # a hand over the last 30 % of the clamp's columns
+    occluded = images.depth.copy()
+    occluded[hand & (occluded > 0)] = float(images.depth[mask].min()) - 0.05
+    bands = []
+    real = estimate._observation
+    monkeypatch.setattr(estimate, "_observation", lambda *a: bands.append(a[-1]) or real(*a))
+    tracker = TrackOptions(iterations=2, rays_per_iteration=64, uncertainty_rays=0).step_options(True)
+    assert DEPTH_MASK_TRUST == "full" and tracker.mask_trust == DEPTH_MASK_TRUST
+    auto = replace(tracker, mask_trust="auto")
+    assert auto.mask_band_px > 0
+    cases = ((auto, mask, images.depth), (auto, mask & ~hand, occluded), (tracker, mask & ~hand, occluded),
+             (replace(tracker, mask_trust="partial"), mask & ~hand, occluded))
+    results = [refine_frame(clamp, dataset.camera, images.rgb, m, d, frame.T_cam_obj, frame.joints, o)
+               for o, m, d in cases]
+    assert bands == [0, auto.mask_band_px, 0, auto.mask_band_px]
+    np.testing.assert_allclose(results[1].T_cam_obj, results[3].T_cam_obj)  # "auto" there is "partial"
+    assert not np.allclose(results[2].T_cam_obj, results[3].T_cam_obj)  # and the tracker's trust is not
+
+
 def test_model_error_footprint_is_never_finer_than_the_reference_box(clamp, clamp_sequence: Path, monkeypatch) -> None:
     """A mask box larger than the reference box (:data:`~narf_core.estimate.ROBUST_BOX_PX`: a finer camera)
     scales the pixel footprint of the model's error by the box's size over it, whatever the preset's own
@@ -1588,17 +1624,19 @@ def test_colour_gain_and_rate_are_validated() -> None:
 
 def test_without_depth_a_frame_may_trust_the_mask_outside_itself_less() -> None:
     """``outside_weight_rgb`` below one: a frame without depth trusts the mask partially (its rays outside the
-    mask weigh that much, no edge band, no extra configuration starts); at the default, and with depth, the
-    preset's own trust."""
+    mask weigh that much, no edge band, no extra configuration starts); at the default the preset's own trust
+    ("auto": in full without depth); with depth :data:`~narf_core.track.DEPTH_MASK_TRUST` whatever the option."""
     from narf_core.estimate import EstimateOptions
-    from narf_core.track import TrackInputError, TrackOptions
+    from narf_core.track import DEPTH_MASK_TRUST, TrackInputError, TrackOptions
 
     partial = TrackOptions(outside_weight_rgb=0.3).step_options(False)
     assert (partial.mask_trust, partial.outside_weight, partial.mask_band_px, partial.partial_theta_starts) == (
         "partial", 0.3, 0, 0)
     preset = EstimateOptions.gauss_newton()
-    for options in (TrackOptions().step_options(False), TrackOptions(outside_weight_rgb=0.3).step_options(True)):
-        assert (options.mask_trust, options.outside_weight, options.mask_band_px) == (
-            preset.mask_trust, preset.outside_weight, preset.mask_band_px)
+    default = TrackOptions().step_options(False)
+    assert (default.mask_trust, default.outside_weight, default.mask_band_px) == (
+        preset.mask_trust, preset.outside_weight, preset.mask_band_px)
+    with_depth = TrackOptions(outside_weight_rgb=0.3).step_options(True)
+    assert (with_depth.mask_trust, with_depth.outside_weight) == (DEPTH_MASK_TRUST, preset.outside_weight)
     with pytest.raises(TrackInputError, match="outside_weight_rgb"):
         TrackOptions(outside_weight_rgb=1.5)
