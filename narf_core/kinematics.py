@@ -277,17 +277,28 @@ class KinematicTree:
         A prismatic joint moves its points at 1; a revolute one at their distance from its axis, which is
         short for a small part at the end of a chain: there the same surface error is a larger angle.
         0 where the joint moves no point."""
+        speed = self.point_speeds(points, theta)
+        moving = speed > _SPEED_STEP
+        return ((speed**2 * moving).sum(-1) / moving.sum(-1).clamp_min(1)).sqrt()
+
+    def moved_points(self, points: Mapping[str, np.ndarray], theta: Tensor | None = None) -> Tensor:
+        """``[k, N]`` bool: which of the surface points ``points`` (as :meth:`point_speeds` orders them) each
+        joint moves, at ``theta [k]`` (mid-range if None)."""
+        return self.point_speeds(points, theta) > _SPEED_STEP
+
+    def point_speeds(self, points: Mapping[str, np.ndarray], theta: Tensor | None = None) -> Tensor:
+        """``[k, N]`` float64: each joint's speed (metres per unit of the joint) at each of the surface points
+        ``points`` (``{link: [n, 3]}``, link frame; ``N`` of them, in the order of :attr:`links`), at
+        ``theta [k]`` (mid-range if None), by central differences; 0 where the joint does not move it."""
         theta = self.mid_configuration() if theta is None else theta.detach().to(torch.float64)
         step = _SPEED_STEP * torch.eye(self.n_joints, dtype=torch.float64)
         poses = self.link_poses(torch.cat([theta + step, theta - step]))  # [2k, links, 4, 4]
         moved = []
         for i, link in enumerate(self.links):
-            own = torch.as_tensor(np.asarray(points.get(link, np.zeros((0, 3)))), dtype=torch.float64)
+            own = torch.as_tensor(np.asarray(points.get(link, np.zeros((0, 3)))), dtype=torch.float64).reshape(-1, 3)
             moved.append(own @ poses[:, i, :3, :3].transpose(-1, -2) + poses[:, i, None, :3, 3])  # [2k, n, 3]
         moved = torch.cat(moved, 1)
-        speed = (moved[: self.n_joints] - moved[self.n_joints :]).norm(dim=-1) / (2 * _SPEED_STEP)  # [k, N]
-        moving = speed > _SPEED_STEP
-        return ((speed**2 * moving).sum(-1) / moving.sum(-1).clamp_min(1)).sqrt()
+        return (moved[: self.n_joints] - moved[self.n_joints :]).norm(dim=-1) / (2 * _SPEED_STEP)
 
     def joint_dict(self, theta: Tensor) -> dict[str, float]:
         """``theta [k]`` to ``{name: value}`` in URDF file order."""

@@ -990,17 +990,20 @@ def _recentred(model: NarfModel, camera: Pinhole, T: np.ndarray, joints: Mapping
 def _uncertainty(
     result: EstimateResult, sigma_scale: float = 1.0, colour: bool = False
 ) -> tuple[dict | None, np.ndarray | None]:
-    """The estimate's uncertainty (as a dict) and covariance, σ times ``sigma_scale``; Nones without one.
+    """The estimate's uncertainty (as a dict) and covariance, σ times ``sigma_scale`` (but for the prior of
+    joints whose parts the mask leaves out, ``Uncertainty.unseen_variance``); Nones without one.
     ``colour``: the covariance as the colour residual alone widens it (``Uncertainty.colour_covariance``)."""
     u = result.uncertainty
     if u is None:
         return None, None
     chosen = u.colour_covariance if colour and u.colour_covariance is not None else u.covariance
-    cov = np.asarray(chosen, dtype=np.float64) * sigma_scale**2
+    unseen = np.diag(u.unseen_variance) if u.unseen_variance is not None else 0.0
+    cov = (np.asarray(chosen, dtype=np.float64) - unseen) * sigma_scale**2 + unseen
     if not np.isfinite(cov).all():
         return None, None
     if sigma_scale != 1.0 or chosen is not u.covariance:
-        u = Uncertainty.from_covariance(cov, list(u.joint_sigma), u.residual_variance, u.dof, u.view_joint_sigma)
+        u = Uncertainty.from_covariance(cov, list(u.joint_sigma), u.residual_variance, u.dof, u.view_joint_sigma,
+                                        unseen_variance=u.unseen_variance)
     return u.to_dict(), cov
 
 

@@ -830,11 +830,11 @@ def test_bench_estimate_counts_the_scenes_that_flag_a_joint_unobserved(model, tm
     from benchmarks.estimate import _fmt_joints, run_scenes, summarise
     from narf_core.data.dataset import Dataset, DatasetWriter, FrameImages, read_urdf
 
-    joints = {"slide": 0.06}
     root = tmp_path / "toy"
     with DatasetWriter(root, read_urdf(ASSETS / "estimate_slider.urdf"), CAMERA) as writer:
         for hide in (False, True):
             T = view()
+            joints = {"slide": 0.06 if hide else 0.0}  # the protocol starts the jaw mid-range
             image, mask, _ = observe(model, T, joints)
             if hide:  # only the bar's left third: from mid-range the jaw stays out of it
                 cols = np.nonzero(mask.any(0))[0]

@@ -622,3 +622,16 @@ def test_surface_speeds_are_the_moved_points_distance_from_the_axis_or_one_for_a
     tip = [math.hypot(0.2 + c * x - s * y, s * x + c * y) for x, y in ((0.05, 0.0), (0.0, 0.05))]
     expected = math.sqrt((0.1**2 + 0.2**2 + tip[0] ** 2 + tip[1] ** 2) / 4)
     assert abs(float(bent[0]) - expected) < 1e-6 and abs(expected - shoulder) > 1e-3
+
+
+def test_moved_points_are_those_of_the_links_each_joint_carries():
+    """``moved_points [k, N]``, the points in link order: the shoulder carries the arm's and the tip's, the wrist
+    the tip's, the slide its own, the fourth joint none, and none of them the base's."""
+    kin = KinematicTree.from_urdf_string(SPEED_URDF)
+    points = {"base": np.zeros((1, 3)), "arm": np.ones((2, 3)), "tip": np.ones((2, 3)), "slide": np.ones((2, 3))}
+    counts = [len(points.get(link, ())) for link in kin.links]
+    owner = np.repeat(np.array(kin.links), counts)
+    moved = kin.moved_points(points).numpy()
+    assert moved.shape == (4, 7)
+    assert set(owner[moved[0]]) == {"arm", "tip"} and set(owner[moved[1]]) == {"tip"}
+    assert set(owner[moved[2]]) == {"slide"} and not moved[3].any()

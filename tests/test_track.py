@@ -457,6 +457,45 @@ def test_a_frame_with_depth_trusts_the_mask_as_its_options_say(clamp, clamp_sequ
     assert not np.allclose(results[2].T_cam_obj, results[3].T_cam_obj)  # and the tracker's trust is not
 
 
+def test_a_joint_whose_part_the_mask_leaves_out_has_its_prior_sigma(clamp, clamp_sequence: Path) -> None:
+    """The jaw's pixels taken out of the mask (an occluder over it, a missed blob): the share of the jaw's surface
+    points inside the mask falls under :data:`~narf_core.estimate.HIDDEN_SHARE` and the joint's σ grows by its
+    half range, in a single image's Σ and a tracked frame's (where the tracker's factor on σ leaves that term
+    as it is), with the ``unobserved_joint`` warning; with the whole mask the share is nearly one and neither."""
+    from narf_core.data.dataset import Dataset
+    from narf_core.estimate import HIDDEN_SHARE, UNOBSERVED_CODE, EstimateOptions, refine
+    from narf_core.track import TrackFrame, TrackOptions, TrackState, step
+
+    dataset = Dataset.open(clamp_sequence)
+    frames = dataset.frames()
+    images = dataset.load(frames[1])
+    jaw = images.labels == dataset.links.index("moving_jaw") + 1
+    assert jaw.sum() > 20
+    whole = images.labels > 0
+    half = float(clamp.kinematics.upper[0] - clamp.kinematics.lower[0]) / 2
+    single = EstimateOptions.preset("gauss-newton", iterations=2, rays_per_iteration=128, uncertainty_rays=256)
+    sigmas, warned = [], []
+    for mask in (whole, whole & ~jaw):
+        result = refine(clamp, images.rgb, mask, dataset.camera, frames[1].T_cam_obj, joints_init=frames[1].joints,
+                        depth=images.depth, options=single)
+        sigmas.append(result.uncertainty.joint_sigma["jaw_opening"])
+        warned.append(any(w.startswith(f"{UNOBSERVED_CODE}: jaw_opening") for w in result.warnings))
+        unseen = result.uncertainty.unseen_variance
+        assert unseen[:6].tolist() == [0.0] * 6
+        assert unseen[6] == (pytest.approx(half**2) if mask is not whole else 0.0)
+    assert sigmas[0] < 0.2 * half and sigmas[1] >= half
+    assert warned == [False, True]
+    options = TrackOptions(iterations=1, rays_per_iteration=128, uncertainty_rays=256, sigma_scale=0.5)
+    state = TrackState.initial(clamp, frames[0].T_cam_obj, frames[0].joints, frames[0].time, status="tracking")
+    for mask, hidden in ((whole, False), (whole & ~jaw, True)):
+        frame = TrackFrame(images.rgb, mask, float(frames[1].time), images.depth)
+        answer = step(clamp, dataset.camera, frame, state, options)[0]
+        sigma = answer.uncertainty["joint_sigma"]["jaw_opening"]
+        assert (sigma >= half) == hidden, sigma  # the half range unscaled by the factor 0.5
+        assert any(w.startswith(f"{UNOBSERVED_CODE}: jaw_opening") for w in answer.warnings) == hidden
+    assert HIDDEN_SHARE == 0.5
+
+
 def test_model_error_footprint_is_never_finer_than_the_reference_box(clamp, clamp_sequence: Path, monkeypatch) -> None:
     """A mask box larger than the reference box (:data:`~narf_core.estimate.ROBUST_BOX_PX`: a finer camera)
     scales the pixel footprint of the model's error by the box's size over it, whatever the preset's own
