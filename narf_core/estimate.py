@@ -615,19 +615,24 @@ UNOBSERVED_SHARE = 0.5
 UNOBSERVED_CODE = "unobserved_joint"  # the warning's code: "unobserved_joint: <joint>: <why>"
 
 
-def unobserved_joints(model: NarfModel, joint_sigma: Mapping[str, float] | None) -> list[str]:
+def unobserved_joints(model: NarfModel, uncertainty: Uncertainty | None) -> list[str]:
     """One warning ``"unobserved_joint: <joint>: ..."`` (:data:`UNOBSERVED_CODE`) for each joint of ``model``
-    whose σ from the view (``joint_sigma``: :attr:`Uncertainty.view_joint_sigma`) is at least
-    :data:`UNOBSERVED_SHARE` of its half range; none without one."""
+    whose σ from the view (:attr:`Uncertainty.view_joint_sigma`) is at least :data:`UNOBSERVED_SHARE` of its
+    half range, saying why: the mask hardly shows the part it moves (:attr:`Uncertainty.unseen_variance`), or
+    the view barely constrains it; none without an uncertainty."""
+    joint_sigma = None if uncertainty is None else uncertainty.view_joint_sigma
     if joint_sigma is None:
         return []
+    unseen = uncertainty.unseen_variance
     out = []
     lower, upper = model.kinematics.lower.tolist(), model.kinematics.upper.tolist()
-    for joint, lo, hi in zip(model.joints, lower, upper, strict=True):
+    for i, (joint, lo, hi) in enumerate(zip(model.joints, lower, upper, strict=True)):
         sigma, half = joint_sigma[joint.name], (hi - lo) / 2
         if half > 0 and sigma >= UNOBSERVED_SHARE * half:
             scale, unit = (1000.0, "mm") if joint.type == "prismatic" else (180.0 / math.pi, "deg")
-            out.append(f"{UNOBSERVED_CODE}: {joint.name}: the view hardly constrains it (σ {sigma * scale:.1f} {unit} "
+            why = (f"the mask shows under {HIDDEN_SHARE:.0%} of the part it moves" if unseen is not None
+                   and unseen[6 + i] > 0 else "the view hardly constrains it")
+            out.append(f"{UNOBSERVED_CODE}: {joint.name}: {why} (σ {sigma * scale:.1f} {unit} "
                        f"over a range of {2 * half * scale:.1f} {unit}); its value is a guess within that range")
     return out
 
@@ -1577,7 +1582,7 @@ def refine(
             metrics=metrics,
             history=[] if run is None else run.history,
             uncertainty=uncertainty,
-            warnings=warnings + unobserved_joints(model, None if uncertainty is None else uncertainty.view_joint_sigma),
+            warnings=warnings + unobserved_joints(model, uncertainty),
             mode=mode,
             mode_reason=mode_reason,
         )

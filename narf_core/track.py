@@ -1059,8 +1059,7 @@ def _warnings(model: NarfModel, result: EstimateResult, checks: list[str]) -> li
     view constrains a joint is the linearisation's to say, before the model's error and the tracker's
     factor, which a factor below 1 would hide it behind), whichever refiner ran the frame."""
     more = [w for w in result.warnings if w not in checks and not w.startswith(f"{UNOBSERVED_CODE}:")]
-    view = None if result.uncertainty is None else result.uncertainty.view_joint_sigma
-    return [*checks, *more, *unobserved_joints(model, view)]
+    return [*checks, *more, *unobserved_joints(model, result.uncertainty)]
 
 
 def _too_uncertain(info: dict | None, options: TrackOptions, sight: tuple[Tensor, float] | None = None) -> bool:
