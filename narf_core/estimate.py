@@ -1814,9 +1814,7 @@ def joint_mask_shares(model: NarfModel, camera: Pinhole, T: Tensor, theta: Tenso
     if moved.shape[1] == 0:
         return shares
     xyz = surface_points(model, T.detach()[None], theta.detach()[None])[0]  # [N, 3] camera frame
-    K = camera.K.detach().double().cpu()
-    z = xyz[:, 2]
-    uv = (xyz @ K.T)[:, :2] / z.clamp_min(1e-9)[:, None]
+    uv, z = (x.cpu() for x in camera.project(xyz.to(camera.K.device)))
     h, w = obs.shape
     corner = obs.pixels[0].cpu()  # the box's (u0, v0): its pixels run row-major from there
     col = torch.floor(uv[:, 0]).long() - int(corner[0])
