@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
-from dataclasses import asdict, fields
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -41,8 +41,9 @@ from narf_benchmarks.estimate import (
 )
 from narf_benchmarks.load import describe_machine, machine
 from narf_core.bundle import NarfModel
+from narf_core.cli import option_overrides
 from narf_core.data.dataset import Dataset, FrameImages
-from narf_core.estimate import PRESETS, EstimateOptions
+from narf_core.estimate import PRESETS
 from narf_core.observation import check_observation
 
 INPUTS = ("rgb", "rgbd")
@@ -268,22 +269,6 @@ def plot(result: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def parse_overrides(items: list[str]) -> dict:
-    """``["name=JSON", ...]`` (``--set``) as ``{name: value}``; a ``ValueError`` naming the bad item."""
-    names = {f.name for f in fields(EstimateOptions)}
-    out = {}
-    for item in items:
-        name, sep, text = item.partition("=")
-        if not sep or name not in names:
-            raise ValueError(f"--set {item!r}: expected OPTION=JSON with OPTION one of the refiner's options")
-        try:
-            out[name] = json.loads(text)
-        except json.JSONDecodeError:
-            raise ValueError(f"--set {item!r}: the value is not JSON (strings need quotes: {name}='\"...\"')") from None
-    EstimateOptions(**out)  # a bad value is an EstimateInputError (a ValueError) naming the option
-    return out
-
-
 def main(args: argparse.Namespace) -> int:
     """``narf bench shift``: ``args`` has ``work``, ``tools``, ``models``, ``quick``, ``conditions``,
     ``inputs``, ``splits``, ``scenes``, ``scales``, ``presets``, ``size``, ``spp``, ``json``."""
@@ -296,7 +281,7 @@ def main(args: argparse.Namespace) -> int:
     mitsuba()  # a clear error before any work when the realism extra is missing
     drjit.set_thread_count(torch.get_num_threads())  # Mitsuba renders with as many threads as torch
     presets = tuple(args.presets or PRESETS)
-    overrides = parse_overrides(getattr(args, "set", []) or [])
+    overrides = option_overrides(getattr(args, "set", []) or [])
     unknown = [p for p in presets if p not in PRESETS]
     if unknown:
         raise ValueError(f"--presets: unknown {unknown}; the refiner's presets are {', '.join(PRESETS)}")

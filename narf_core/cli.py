@@ -706,8 +706,32 @@ def _add_estimate(commands: argparse._SubParsersAction) -> None:
     arg("--refinements", type=_positive_int, metavar="N",
         help="without --depth, or with a mask the depth contradicts: N refinements, the one of lowest loss "
              "on one fixed set of rays kept (at most 8; default 1, robust without --depth 3); N times the time")
+    arg("--set", action="append", default=[], metavar="OPTION=JSON",
+        help="set one of the refiner's options on top of the preset, e.g. --set ray_sampling='\"edges\"' for an "
+             "object whose moving parts cover a few pixels (repeatable; over the flags above)")
     _add_json_flag(parser)
     parser.set_defaults(run=_run_estimate)
+
+
+def option_overrides(items: list[str]) -> dict:
+    """``["name=JSON", ...]`` (``--set``) as ``{name: value}`` for :class:`~narf_core.estimate.EstimateOptions`;
+    a ``ValueError`` naming the bad item, or the option whose value the options refuse."""
+    from dataclasses import fields
+
+    from narf_core.estimate import EstimateOptions
+
+    names = {f.name for f in fields(EstimateOptions)}
+    out = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or name not in names:
+            raise ValueError(f"--set {item!r}: expected OPTION=JSON with OPTION one of the refiner's options")
+        try:
+            out[name] = json.loads(text)
+        except json.JSONDecodeError:
+            raise ValueError(f"--set {item!r}: the value is not JSON (strings need quotes: {name}='\"...\"')") from None
+    EstimateOptions(**out)  # a bad value is an EstimateInputError (a ValueError) naming the option
+    return out
 
 
 def _run_estimate(args: argparse.Namespace) -> int:
@@ -733,7 +757,8 @@ def _run_estimate(args: argparse.Namespace) -> int:
     chosen = {"iterations": args.iterations, "pose_starts": args.pose_starts, "refinements": args.refinements,
               "rgb_refinements": args.refinements}
     preset, preset_reason = choose_preset(args.preset, depth is not None)
-    options = EstimateOptions.preset(preset, mode=args.mode, **{k: v for k, v in chosen.items() if v is not None})
+    options = EstimateOptions.preset(preset, **{"mode": args.mode, **{k: v for k, v in chosen.items() if v is not None},
+                                                **option_overrides(args.set)})
     model = load_bundle(args.model, args.device)
     _mode_arg(model, args.mode)  # a mode the model lacks, named as the flag
     result = refine(model, image, mask > 0, camera, T_init, joints_init=_joints_arg(args.init_joints, "--init-joints"),

@@ -15,7 +15,7 @@ pytest.importorskip("pybullet")
 pytest.importorskip("matplotlib")
 
 from narf_benchmarks import shift  # noqa: E402
-from narf_core.cli import main  # noqa: E402
+from narf_core.cli import main, option_overrides  # noqa: E402
 from narf_core.data.dataset import Dataset  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -137,7 +137,7 @@ def test_bench_shift_errors(tmp_path: Path, monkeypatch, capsys: pytest.CaptureF
         assert main(["bench", "shift", "--set", bad, "--work", str(tmp_path)]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and says in err, err
-    assert shift.parse_overrides(['ray_sampling="edges"', "rays_per_iteration=2048"]) == {
+    assert option_overrides(['ray_sampling="edges"', "rays_per_iteration=2048"]) == {
         "ray_sampling": "edges", "rays_per_iteration": 2048}
     monkeypatch.setitem(sys.modules, "mitsuba", None)
     assert main(["bench", "shift", "--work", str(tmp_path)]) == 2

@@ -296,6 +296,21 @@ def test_estimate_gauss_newton_preset(capsys, tiny_bundle, view):
 
 
 @pytest.mark.slow
+def test_estimate_sets_a_refiner_option_on_top_of_the_preset(capsys, tiny_bundle, view):
+    """``--set OPTION=JSON`` reaches the refiner over the flags (one iteration where ``--iterations`` says 4); an
+    unknown option, a value that is not JSON or one the options refuse is one error line naming it."""
+    code, stdout, err = run(capsys, *estimate_argv(tiny_bundle, view), "--preset", "gauss-newton", "--set", "iterations=1",
+                            "--set", 'ray_sampling="edges"', "--set", "refinements=1", "--set", "rgb_refinements=1", "--set", "pose_starts_overlap=0",
+                            "--json")
+    assert code == 0, err
+    assert json.loads(stdout)["iterations"] == 1
+    assert_error(capsys, "estimate", [*estimate_argv(tiny_bundle, view), "--set", "nope=1"], "--set 'nope=1'")
+    assert_error(capsys, "estimate", [*estimate_argv(tiny_bundle, view), "--set", "ray_sampling=edges"], "not JSON")
+    assert_error(capsys, "estimate", [*estimate_argv(tiny_bundle, view), "--set", 'ray_sampling="sideways"'],
+                 "ray_sampling")
+
+
+@pytest.mark.slow
 def test_estimate_refuses_a_mask_of_another_size(capsys, tiny_bundle, view, tmp_path):
     mask = tmp_path / "mask.png"
     Image.fromarray(np.full((20, 30), 255, np.uint8)).save(mask)
