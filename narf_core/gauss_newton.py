@@ -34,7 +34,8 @@ tracker's frame has them; otherwise a march on densities without a graph, :meth:
 the samples the differentiable render would take), then the field gives every
 sample's value and derivatives in ``(x, θ)`` itself, by forward differences in its lookup coordinates,
 all in one batched evaluation without a graph (``ArticulatedField.jacobian``, ``KPlanesField.jacobian``),
-and the compositing is differentiated in closed form (:func:`narf_core.compositing.composite_jacobian`).
+and the compositing is differentiated in closed form (:func:`narf_core.compositing.composite_jacobian`;
+without depth only at the samples a ray still sees: the field's values come first).
 
 Step. Levenberg-Marquardt on the iteratively reweighted normal equations ``(JᵀWJ + λ diag(JᵀWJ)) δ
 = -JᵀWr``, with Huber or Cauchy weights ``W`` (``robust_loss``, scale ``robust_scale`` in residual
@@ -224,7 +225,10 @@ class Problem:
         rays_obj = Rays(o, d, rays_cam.z_per_t.repeat(S))
         fixed = self._fixed_samples(rays_obj, th, True, band) if grad and not parts and k > 0 else None
         if fixed is not None and _FIELD_JACOBIAN and getattr(fixed[0], "supports_jacobian", False):
-            P, J = composite_jacobian(fixed[0].jacobian, rays_obj, fixed[1], theta=th)
+            # Without depth the samples run on behind the surface, and their derivatives are left out; with
+            # depth the band about the observed surface leaves few there, and the extra pass would not pay.
+            field = None if self.uses_depth else fixed[0]
+            P, J = composite_jacobian(fixed[0].jacobian, rays_obj, fixed[1], theta=th, field=field)
             P_cpu, J = P.reshape(S, n, _CHANNELS).cpu(), J.reshape(S, n, _CHANNELS, -1).cpu()
             dP = [J[..., :3], J[..., 3:6], J[..., 6:]]
             if along_ray:

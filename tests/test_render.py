@@ -309,6 +309,36 @@ def test_composite_jacobian_is_reverse_mode_through_the_composite():
     assert J[:2].abs().amax() > 0.1 and J[2].abs().amax() == 0
 
 
+def test_composite_jacobian_given_the_field_leaves_out_the_samples_behind_the_surface():
+    """Given the field itself, :func:`composite_jacobian` asks for derivatives only at the samples a ray still
+    sees: on an opaque blob many of the crossing rays' samples lie behind its front, and ``P`` and ``J`` stay
+    what the derivatives at every sample give, within the transmittance left out."""
+    blob = Blob()
+    with torch.no_grad():
+        blob.scale.fill_(1e5)
+    rays = Rays(torch.tensor([[0.0, 0.0, -1.0], [0.02, -0.01, -1.0], [0.3, 0.3, -1.0]], dtype=torch.float64),
+                torch.tensor([[0.0, 0.0, 1.0]] * 3, dtype=torch.float64), torch.ones(3, dtype=torch.float64))
+    theta = torch.tensor([[0.3], [-0.2], [0.1]], dtype=torch.float64)
+    t = torch.arange(0.9, 1.1, STEP, dtype=torch.float64)  # every step through the box, as a tracked frame fixes them
+    samples = Samples(torch.arange(3).repeat_interleave(len(t)), t.repeat(3), torch.full((3 * len(t),), STEP, dtype=torch.float64))
+    asked = []
+
+    def field_jacobian(x, th):
+        asked.append(x.shape[0])
+        x, th = x.clone().requires_grad_(True), th.clone().requires_grad_(True)
+        sigma, rgb = blob(x, x.detach(), th)
+        values = torch.cat([sigma[:, None], rgb], 1)
+        rows = [torch.cat(torch.autograd.grad(values[:, c].sum(), (x, th), retain_graph=True), 1) for c in range(4)]
+        return values.detach(), torch.stack(rows, 1)
+
+    P_all, J_all = composite_jacobian(field_jacobian, rays, samples, theta=theta)
+    P, J = composite_jacobian(field_jacobian, rays, samples, theta=theta, field=blob)
+    assert asked[0] == len(samples) > 20 and 0 < asked[1] < 0.7 * len(samples)
+    assert P_all[:2, 3].min() > 1 - 1e-6  # both crossing rays end opaque
+    torch.testing.assert_close(P, P_all)
+    assert (J - J_all).abs().amax() <= 1e-3 * J_all.abs().amax()
+
+
 # --------------------------------------------------------------------------------------------
 # render_rays against analytic answers
 
