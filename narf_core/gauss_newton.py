@@ -35,7 +35,7 @@ the samples the differentiable render would take), then the field gives every
 sample's value and derivatives in ``(x, θ)`` itself, by forward differences in its lookup coordinates,
 all in one batched evaluation without a graph (``ArticulatedField.jacobian``, ``KPlanesField.jacobian``),
 and the compositing is differentiated in closed form (:func:`narf_core.compositing.composite_jacobian`;
-without depth only at the samples a ray still sees: the field's values come first).
+where the samples run on behind the surface, only at those a ray still sees: the field's values come first).
 
 Step. Levenberg-Marquardt on the iteratively reweighted normal equations ``(JᵀWJ + λ diag(JᵀWJ)) δ
 = -JᵀWr``, with Huber or Cauchy weights ``W`` (``robust_loss``, scale ``robust_scale`` in residual
@@ -225,9 +225,7 @@ class Problem:
         rays_obj = Rays(o, d, rays_cam.z_per_t.repeat(S))
         fixed = self._fixed_samples(rays_obj, th, True, band) if grad and not parts and k > 0 else None
         if fixed is not None and _FIELD_JACOBIAN and getattr(fixed[0], "supports_jacobian", False):
-            # Without depth the samples run on behind the surface, and their derivatives are left out; with
-            # depth the band about the observed surface leaves few there, and the extra pass would not pay.
-            field = None if self.uses_depth else fixed[0]
+            field = fixed[0] if self._samples_run_behind() else None
             P, J = composite_jacobian(fixed[0].jacobian, rays_obj, fixed[1], theta=th, field=field)
             P_cpu, J = P.reshape(S, n, _CHANNELS).cpu(), J.reshape(S, n, _CHANNELS, -1).cpu()
             dP = [J[..., :3], J[..., 3:6], J[..., 6:]]
@@ -256,6 +254,12 @@ class Problem:
         elif parts:
             dP.append(self._theta_differences(rays_cam, o.detach(), d.detach(), theta, P.detach(), S, n, band))
         return P_cpu, tuple(dP)
+
+    def _samples_run_behind(self) -> bool:
+        """Whether a Jacobian's samples run on behind the surface, so that :func:`composite_jacobian` takes
+        the field's derivatives only where a ray still sees (its values first): not the march's, which
+        stops where a ray turns opaque."""
+        return False
 
     def _fixed_samples(
         self, rays: Rays, theta: Tensor, jacobian: bool, band: tuple[Tensor, Tensor] | None = None

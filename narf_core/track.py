@@ -896,6 +896,10 @@ class FrameProblem(Problem):
         self.index = index
         return super().residuals(chain, p, rays_cam, target, index, jacobian, group, along_ray)
 
+    def _samples_run_behind(self) -> bool:
+        """The band's lattice samples run through the object unless pruned to those light reaches."""
+        return not self.prune
+
     def _fixed_samples(self, rays: Rays, theta: Tensor, jacobian: bool, band=None) -> tuple[object, Samples]:
         n = len(rays)
         if self.index is None or len(self.index) != n:
