@@ -15,7 +15,11 @@ per-frame settings head the table; ``--band-m`` marches only a band around the m
 every iteration instead of sampling the band found once per frame (``TrackOptions.march``);
 ``--no-depth-align`` leaves the prediction where the motion model puts it (``TrackOptions.depth_align``). With
 ``--events`` the sequence with a glance away and an occluding bar is tracked as well. ``--seed`` picks the
-sequences' seed (default 0), so that other motions of the same tools can be tracked; the result names it.
+sequences' seeds (default 0), so that other motions of the same tools can be tracked; the result names them.
+``--ray-seeds`` tracks each sequence once per seed of the tracker's ray draws (``TrackOptions.seed``, default 0):
+a track without depth can end in either of two regimes by the draw alone, so one track says little about a
+tool's mean. Where a cell holds several tracks (several seeds), a second table gives over them the mean of the
+tracks' mean ADD, the tracks over 1 cm, the worst track and the lost frames.
 ``--images`` picks what is tracked of each sequence: ``pybullet`` (the frames as synthesised, the renderer that drew
 the training views) and any of ``narf restyle``'s conditions (the same frames path-traced with Mitsuba in one scene
 for the whole sequence, then that condition's sensor, depth and mask faults; written once beside the sequence,
@@ -34,6 +38,7 @@ import os
 import shutil
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -145,24 +150,27 @@ def images_of(source: Path, images: str, spp: int = 32, seed: int = 0) -> Datase
 
 
 def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, modalities=MODALITIES,
-        events: bool = False, options: TrackOptions | None = None, seed: int = 0,
-        images: tuple[str, ...] = ("pybullet",), spp: int = 32) -> dict:
+        events: bool = False, options: TrackOptions | None = None, seeds: tuple[int, ...] = (0,),
+        images: tuple[str, ...] = ("pybullet",), spp: int = 32, ray_seeds: tuple[int, ...] = (0,)) -> dict:
     """Every tool x size x modality (x smooth/events) x ``images`` (:func:`images_of`) on the sequences
-    synthesised with ``seed``; returns the summary (rows saved beside it)."""
+    synthesised with each of ``seeds``, each tracked once per seed of the ray draws (``ray_seeds``, as
+    ``options.seed``); returns the summary (rows saved beside it)."""
     options = options or TrackOptions(first_frame="warm")
     out_dir = work / "track"
     runs = []
     for tool, model in models.items():
-        for size in sizes:
+        for size, seed in itertools.product(sizes, seeds):
             for with_events, kind in itertools.product((False, True) if events else (False,), images):
                 dataset = images_of(sequence(work, tool, size, frames, with_events, seed=seed), kind, spp, seed)
-                for modality in modalities:
+                for modality, ray_seed in itertools.product(modalities, ray_seeds):
                     start = time.perf_counter()
-                    one = run_one(model, dataset, modality == "rgb", options)
+                    one = run_one(model, dataset, modality == "rgb", replace(options, seed=ray_seed))
                     name = (f"{tool}-{size[0]}x{size[1]}-{modality}{'-events' if with_events else ''}"
-                            + ("" if kind == "pybullet" else f"-{kind}"))
+                            + ("" if kind == "pybullet" else f"-{kind}") + (f"-s{seed}" if seed else "")
+                            + (f"-r{ray_seed}" if ray_seed else ""))
                     one.update({"tool": tool, "size": list(size), "modality": modality, "events": with_events,
-                                "images": kind, "wall_seconds": time.perf_counter() - start,
+                                "images": kind, "seed": seed, "ray_seed": ray_seed,
+                                "wall_seconds": time.perf_counter() - start,
                                 "plot": str(plot(one["rows"], name, out_dir / f"{name}.png"))})
                     runs.append(one)
                     print(f"narf bench track: {name}: {one['frames_per_second']:.1f} frames/s, ADD mean "
@@ -173,11 +181,42 @@ def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, m
         step = options.step_options(modality == "rgbd", device)
         per_frame[modality] = {"solver": options.solver_for(modality == "rgbd"), "iterations": step.iterations,
                                "rays_per_iteration": step.rays_per_iteration}
-    result = {"frames": frames, "seed": seed, "options": options.__dict__, "per_frame": per_frame, "runs": runs,
-              "machine": machine(models.values())}
+    result = {"frames": frames, "seeds": list(seeds), "ray_seeds": list(ray_seeds), "options": options.__dict__,
+              "per_frame": per_frame, "runs": runs, "over_tracks": over_tracks(runs), "machine": machine(models.values())}
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "result.json").write_text(json.dumps(result, indent=1))
     return result
+
+
+def _cell(run: dict) -> tuple:
+    """What a track is a repeat of: tool, size, images, input, events."""
+    return run["tool"], tuple(run["size"]), run.get("images", "pybullet"), run["modality"], run["events"]
+
+
+def over_tracks(runs: list[dict]) -> list[dict]:
+    """Per cell (:func:`_cell`) of several tracks: their number, the mean over them of each track's mean ADD, the
+    tracks whose mean ADD is over 1 cm, the worst track's, frames per second over all their frames and the lost
+    frames (a track whose every frame was lost counts as over 1 cm)."""
+    cells: dict[tuple, list[dict]] = {}
+    for r in runs:
+        cells.setdefault(_cell(r), []).append(r)
+    out = []
+    for cell, group in cells.items():
+        if len(group) < 2:
+            continue
+        adds = np.array([r["add_m"]["mean"] if r["add_m"] else np.inf for r in group])
+        held = adds[np.isfinite(adds)]
+        seconds = sum(r["frames"] / r["frames_per_second"] for r in group)
+        out.append({"tool": cell[0], "size": list(cell[1]), "images": cell[2], "modality": cell[3], "events": cell[4],
+                    "tracks": len(group), "add_mean_m": float(held.mean()) if len(held) else None,
+                    "tracks_over_1cm": int((adds > 0.01).sum()), "worst_track_add_m": float(adds.max()),
+                    "frames_per_second": sum(r["frames"] for r in group) / seconds,
+                    "lost": sum(r["lost"] for r in group)})
+    return out
+
+
+def _seeds_text(seeds: list[int]) -> str:
+    return f"seed {seeds[0]}" if len(seeds) == 1 else "seeds " + ", ".join(map(str, seeds))
 
 
 def markdown(result: dict) -> str:
@@ -188,7 +227,8 @@ def markdown(result: dict) -> str:
     if not o["band_m"] and o.get("march") == "frame":
         band = "sampled in the band around the surface found once per frame (no marching)"
     lines = [
-        f"Tracking, {result['frames']}-frame sequences (30 fps, seed {result.get('seed', 0)}), "
+        f"Tracking, {result['frames']}-frame sequences (30 fps, {_seeds_text(result.get('seeds', [0]))}"
+        + ("" if result.get("ray_seeds", [0]) == [0] else f"; rays drawn with {_seeds_text(result['ray_seeds'])}") + "), "
         f"from the first frame's label "
         f"({'as exact' if o.get('first_frame') == 'warm' else 'refined by the multi-start refiner'}); per frame "
         + "; ".join(f"{'with depth' if m == 'rgbd' else 'RGB only'} {p['iterations']} {p['solver']} iterations of "
@@ -207,7 +247,7 @@ def markdown(result: dict) -> str:
         add = r["add_m"]
         after = r["frames_per_second_tracking"]
         lines.append(
-            f"| {r['tool']} | {r['size'][0]}x{r['size'][1]} | {_images_cell(r.get('images', 'pybullet'))} "
+            f"| {r['tool']}{_repeat_cell(r, result)} | {r['size'][0]}x{r['size'][1]} | {_images_cell(r.get('images', 'pybullet'))} "
             f"| {r['modality']} | {'yes' if r['events'] else 'no'} | "
             f"{r['frames_per_second']:.1f} / {after:.1f} | {r['frames_per_cpu_second_tracking']:.1f} | "
             + (f"{add['mean'] * 100:.2f} / {add['p95'] * 100:.2f} / {add['max'] * 100:.2f}" if add else "-") + " | "
@@ -216,6 +256,17 @@ def markdown(result: dict) -> str:
             + (f"{r['nees_coverage_95']:.2f}" if r["nees_coverage_95"] is not None else "-")
             + (f" (×{r['sigma_scale']:.2f})" if r.get("sigma_scale") else "") + " |"
         )
+    if result.get("over_tracks"):
+        lines += ["", "Over the tracks of each cell (one per sequence seed and ray seed):", "",
+                  "| tool | size | images | input | events | tracks | frames/s | ADD mean over the tracks (cm) "
+                  "| tracks over 1 cm | worst track (cm) | lost frames |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for c in result["over_tracks"]:
+            lines.append(
+                f"| {c['tool']} | {c['size'][0]}x{c['size'][1]} | {_images_cell(c['images'])} | {c['modality']} | "
+                f"{'yes' if c['events'] else 'no'} | {c['tracks']} | {c['frames_per_second']:.1f} | "
+                + (f"{c['add_mean_m'] * 100:.2f}" if c["add_mean_m"] is not None else "-")
+                + f" | {c['tracks_over_1cm']} | {c['worst_track_add_m'] * 100:.2f} | {c['lost']} |")
     service = result.get("service")
     if service:
         lines += ["", f"Service, {service['clients']} clients tracking at once over POST /v1/track (160x120 RGB-D, "
@@ -227,6 +278,13 @@ def markdown(result: dict) -> str:
                       + ", ".join(f"{c['frame_seconds_mean'] * 1000:.0f} ({c['tracker_seconds_mean'] * 1000:.0f})"
                                   for c in service["per_client"] if "error" not in c)]
     return "\n".join(lines)
+
+
+def _repeat_cell(run: dict, result: dict) -> str:
+    """`` (seed S, rays R)`` after the tool where the result holds several of either."""
+    parts = ([f"seed {run['seed']}"] if len(result.get("seeds", [0])) > 1 else []) + (
+        [f"rays {run['ray_seed']}"] if len(result.get("ray_seeds", [0])) > 1 else [])
+    return f" ({', '.join(parts)})" if parts else ""
 
 
 def _images_cell(images: str) -> str:
@@ -246,7 +304,7 @@ def _joint_cell(run: dict) -> str:
 
 def main(args: argparse.Namespace) -> int:
     """``narf bench track``: ``args`` has ``work``, ``models``, ``tools``, ``frames``, ``sizes``,
-    ``modalities``, ``events``, ``seed``, ``images``, ``spp``, ``iterations``, ``rays``, ``solver``, ``band_m``,
+    ``modalities``, ``events``, ``seed`` (a list), ``ray_seeds``, ``images``, ``spp``, ``iterations``, ``rays``, ``solver``, ``band_m``,
     ``march``, ``depth_align``, ``service_clients``, ``json``."""
     tools = args.tools or sorted(p.stem for p in args.models.glob("*.narf"))
     models, missing = {}, []
@@ -267,11 +325,12 @@ def main(args: argparse.Namespace) -> int:
                  "outside_weight_rgb": getattr(args, "outside_weight_rgb", None)}
     options = TrackOptions(first_frame="warm", **{k: v for k, v in overrides.items() if v is not None})
     result = run(models, args.work, frames=args.frames, sizes=sizes, modalities=tuple(args.modalities),
-                 events=args.events, options=options, seed=getattr(args, "seed", 0),
-                 images=tuple(getattr(args, "images", None) or ("pybullet",)), spp=getattr(args, "spp", 32))
+                 events=args.events, options=options, seeds=tuple(getattr(args, "seed", None) or (0,)),
+                 images=tuple(getattr(args, "images", None) or ("pybullet",)), spp=getattr(args, "spp", 32),
+                 ray_seeds=tuple(getattr(args, "ray_seeds", None) or (0,)))
     if args.service_clients:
         tool = next(iter(models))
-        dataset = Dataset.open(sequence(args.work, tool, (160, 120), args.frames, False, seed=result["seed"]))
+        dataset = Dataset.open(sequence(args.work, tool, (160, 120), args.frames, False, seed=result["seeds"][0]))
         result["service"] = service_run(args.models / f"{tool}.narf", dataset, args.service_clients,
                                         min(args.frames, 40))
     if args.json:

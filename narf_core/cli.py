@@ -1007,8 +1007,11 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
                      help="image size, repeatable (default: 160 120 and 640 480)")
     sub.add_argument("--modalities", nargs="+", choices=("rgbd", "rgb"), default=["rgbd", "rgb"])
     sub.add_argument("--events", action="store_true", help="also sequences with a glance away and an occluder")
-    sub.add_argument("--seed", type=_non_negative_int, default=0, metavar="S",
-                     help="seed of the synthesised sequences (default: %(default)s)")
+    sub.add_argument("--seed", type=_non_negative_int, nargs="+", default=[0], metavar="S",
+                     help="seeds of the synthesised sequences, one or more (default: 0)")
+    sub.add_argument("--ray-seeds", type=_non_negative_int, nargs="+", default=[0], metavar="R",
+                     help="track each sequence once per seed of the tracker's ray draws (TrackOptions.seed; "
+                          "default: 0): without depth a track can end in either of two regimes by the draw alone")
     sub.add_argument("--images", nargs="+", choices=("pybullet", *CONDITIONS), default=["pybullet"],
                      metavar="KIND", help="what is tracked of each sequence: pybullet (as synthesised) and/or the "
                      "same frames path-traced under a narf restyle condition (one scene per sequence; made once, "

@@ -1133,7 +1133,7 @@ def test_bench_track_tracks_the_sequence_of_the_seed_asked(tmp_path: Path, capfd
         out, err = capfd.readouterr()
         assert code == 0, err
         result = json.loads(out)
-        assert result["seed"] == seed and [r["frames"] for r in result["runs"]] == [2]
+        assert result["seeds"] == [seed] and [r["frames"] for r in result["runs"]] == [2]
         first_poses[seed] = Dataset.open(tmp_path / "sequences" / ("clamp-32x24-2" + ("-s1" if seed else ""))
                                          ).frames()[0].T_cam_obj
         tables[seed] = markdown(result)
@@ -1272,6 +1272,35 @@ def test_the_trackers_factor_is_fitted_to_hold_the_share_asked_and_stored_beside
     assert stored.metadata["uncertainty"]["pixels"] == {"shape": 0.5}
     assert stored.metadata["uncertainty"]["track"] == fitted
     assert sigma_scale(stored, TrackOptions(), True) == 1.7 and sigma_scale(stored, TrackOptions(), False) == 2.2
+
+
+def test_bench_track_repeats_each_sequence_per_ray_seed_and_sums_up_the_tracks(tmp_path: Path, capfd) -> None:
+    """``narf bench track --seed 0 1 --ray-seeds 0 1`` tracks both sequences once per seed of the ray draws
+    (``TrackOptions.seed``, which moves an RGB-only track), names each track's seeds, and the second table
+    gives over a cell's four tracks the mean of their mean ADD, the worst and those over 1 cm."""
+    pytest.importorskip("pybullet")
+    from narf_benchmarks.track import markdown
+
+    code = narf(["--threads", "1", "bench", "track", "--work", str(tmp_path), "--models", str(CLAMP.parent),
+                 "--tools", "clamp", "--frames", "2", "--size", "64", "48", "--modalities", "rgb",
+                 "--seed", "0", "1", "--ray-seeds", "0", "1", "--json"])
+    out, err = capfd.readouterr()
+    assert code == 0, err
+    result = json.loads(out)
+    runs = result["runs"]
+    assert [(r["seed"], r["ray_seed"]) for r in runs] == [(0, 0), (0, 1), (1, 0), (1, 1)]
+    assert result["seeds"] == [0, 1] and result["ray_seeds"] == [0, 1]
+    adds = [r["add_m"]["mean"] for r in runs]
+    assert adds[0] != adds[1] or adds[2] != adds[3]  # the ray draw moves a track without depth
+    [cell] = result["over_tracks"]
+    assert cell["tracks"] == 4 and cell["modality"] == "rgb" and cell["size"] == [64, 48]
+    assert cell["add_mean_m"] == pytest.approx(float(np.mean(adds)))
+    assert cell["worst_track_add_m"] == pytest.approx(max(adds))
+    assert cell["tracks_over_1cm"] == sum(a > 0.01 for a in adds)
+    table = markdown(result)
+    assert "seeds 0, 1; rays drawn with seeds 0, 1)" in table
+    assert "| clamp (seed 1, rays 0) | 64x48 |" in table
+    assert f"| clamp | 64x48 | pybullet | rgb | no | 4 | {cell['frames_per_second']:.1f} | {np.mean(adds) * 100:.2f} |" in table
 
 
 def test_bench_track_prints_joint_errors_in_mm_or_degrees() -> None:
