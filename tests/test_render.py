@@ -277,6 +277,19 @@ def test_composite_is_differentiable_in_theta_and_the_rays():
     assert torch.autograd.gradcheck(rgb_of, inputs)
 
 
+def _autograd_jacobian(field):
+    """A view-independent ``field``'s values ``[s, 4]`` and their derivatives in ``(x, θ)`` ``[s, 4, 3 + k]``, by
+    autograd sample by sample (the exact derivatives a field's own ``jacobian`` gives)."""
+    def field_jacobian(x, th):
+        x, th = x.clone().requires_grad_(True), th.clone().requires_grad_(True)
+        sigma, rgb = field(x, x.detach(), th)
+        values = torch.cat([sigma[:, None], rgb], 1)
+        rows = [torch.cat(torch.autograd.grad(values[:, c].sum(), (x, th), retain_graph=True), 1) for c in range(4)]
+        return values.detach(), torch.stack(rows, 1)
+
+    return field_jacobian
+
+
 def test_composite_jacobian_is_reverse_mode_through_the_composite():
     """Given a field's exact derivatives (here by autograd, sample by sample), the closed-form compositing
     gives what reverse mode through :func:`composite` gives: colour, opacity and depth and their
@@ -290,14 +303,7 @@ def test_composite_jacobian_is_reverse_mode_through_the_composite():
     samples = march(lambda x, th: blob(x, x, th)[0], rays, BOX, theta=theta, step=STEP)
     assert len(samples) > 20
 
-    def field_jacobian(x, th):
-        x, th = x.clone().requires_grad_(True), th.clone().requires_grad_(True)
-        sigma, rgb = blob(x, x.detach(), th)
-        values = torch.cat([sigma[:, None], rgb], 1)
-        rows = [torch.cat(torch.autograd.grad(values[:, c].sum(), (x, th), retain_graph=True), 1) for c in range(4)]
-        return values.detach(), torch.stack(rows, 1)
-
-    P, J = composite_jacobian(field_jacobian, rays, samples, theta=theta)
+    P, J = composite_jacobian(_autograd_jacobian(blob), rays, samples, theta=theta)
     o, d, th = (rays.origins.clone().requires_grad_(True), rays.directions.clone().requires_grad_(True),
                 theta.clone().requires_grad_(True))
     out = composite(blob, Rays(o, d, rays.z_per_t), samples, theta=th, outputs=("rgb", "opacity", "depth"))
@@ -321,15 +327,11 @@ def test_composite_jacobian_given_the_field_leaves_out_the_samples_behind_the_su
     theta = torch.tensor([[0.3], [-0.2], [0.1]], dtype=torch.float64)
     t = torch.arange(0.9, 1.1, STEP, dtype=torch.float64)  # every step through the box, as a tracked frame fixes them
     samples = Samples(torch.arange(3).repeat_interleave(len(t)), t.repeat(3), torch.full((3 * len(t),), STEP, dtype=torch.float64))
-    asked = []
+    asked, exact = [], _autograd_jacobian(blob)
 
     def field_jacobian(x, th):
         asked.append(x.shape[0])
-        x, th = x.clone().requires_grad_(True), th.clone().requires_grad_(True)
-        sigma, rgb = blob(x, x.detach(), th)
-        values = torch.cat([sigma[:, None], rgb], 1)
-        rows = [torch.cat(torch.autograd.grad(values[:, c].sum(), (x, th), retain_graph=True), 1) for c in range(4)]
-        return values.detach(), torch.stack(rows, 1)
+        return exact(x, th)
 
     P_all, J_all = composite_jacobian(field_jacobian, rays, samples, theta=theta)
     P, J = composite_jacobian(field_jacobian, rays, samples, theta=theta, field=blob)
