@@ -182,7 +182,8 @@ def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, m
         per_frame[modality] = {"solver": options.solver_for(modality == "rgbd"), "iterations": step.iterations,
                                "rays_per_iteration": step.rays_per_iteration}
     result = {"frames": frames, "seeds": list(seeds), "ray_seeds": list(ray_seeds), "options": options.__dict__,
-              "per_frame": per_frame, "runs": runs, "over_tracks": over_tracks(runs), "machine": machine(models.values())}
+              "per_frame": per_frame, "runs": runs, "over_tracks": over_tracks(runs),
+              "machine": machine(models.values())}
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "result.json").write_text(json.dumps(result, indent=1))
     return result
@@ -196,7 +197,7 @@ def _cell(run: dict) -> tuple:
 def over_tracks(runs: list[dict]) -> list[dict]:
     """Per cell (:func:`_cell`) of several tracks: their number, the mean over them of each track's mean ADD, the
     tracks whose mean ADD is over 1 cm, the worst track's, frames per second over all their frames and the lost
-    frames (a track whose every frame was lost counts as over 1 cm)."""
+    frames (a track whose every frame was lost has no ADD: it counts as over 1 cm, not in the mean or the worst)."""
     cells: dict[tuple, list[dict]] = {}
     for r in runs:
         cells.setdefault(_cell(r), []).append(r)
@@ -209,7 +210,8 @@ def over_tracks(runs: list[dict]) -> list[dict]:
         seconds = sum(r["frames"] / r["frames_per_second"] for r in group)
         out.append({"tool": cell[0], "size": list(cell[1]), "images": cell[2], "modality": cell[3], "events": cell[4],
                     "tracks": len(group), "add_mean_m": float(held.mean()) if len(held) else None,
-                    "tracks_over_1cm": int((adds > 0.01).sum()), "worst_track_add_m": float(adds.max()),
+                    "tracks_over_1cm": int((adds > 0.01).sum()),
+                    "worst_track_add_m": float(held.max()) if len(held) else None,
                     "frames_per_second": sum(r["frames"] for r in group) / seconds,
                     "lost": sum(r["lost"] for r in group)})
     return out
@@ -228,7 +230,8 @@ def markdown(result: dict) -> str:
         band = "sampled in the band around the surface found once per frame (no marching)"
     lines = [
         f"Tracking, {result['frames']}-frame sequences (30 fps, {_seeds_text(result.get('seeds', [0]))}"
-        + ("" if result.get("ray_seeds", [0]) == [0] else f"; rays drawn with {_seeds_text(result['ray_seeds'])}") + "), "
+        + ("" if result.get("ray_seeds", [0]) == [0] else f"; rays drawn with {_seeds_text(result['ray_seeds'])}")
+        + "), "
         f"from the first frame's label "
         f"({'as exact' if o.get('first_frame') == 'warm' else 'refined by the multi-start refiner'}); per frame "
         + "; ".join(f"{'with depth' if m == 'rgbd' else 'RGB only'} {p['iterations']} {p['solver']} iterations of "
@@ -247,7 +250,8 @@ def markdown(result: dict) -> str:
         add = r["add_m"]
         after = r["frames_per_second_tracking"]
         lines.append(
-            f"| {r['tool']}{_repeat_cell(r, result)} | {r['size'][0]}x{r['size'][1]} | {_images_cell(r.get('images', 'pybullet'))} "
+            f"| {r['tool']}{_repeat_cell(r, result)} | {r['size'][0]}x{r['size'][1]} "
+            f"| {_images_cell(r.get('images', 'pybullet'))} "
             f"| {r['modality']} | {'yes' if r['events'] else 'no'} | "
             f"{r['frames_per_second']:.1f} / {after:.1f} | {r['frames_per_cpu_second_tracking']:.1f} | "
             + (f"{add['mean'] * 100:.2f} / {add['p95'] * 100:.2f} / {add['max'] * 100:.2f}" if add else "-") + " | "
@@ -266,7 +270,9 @@ def markdown(result: dict) -> str:
                 f"| {c['tool']} | {c['size'][0]}x{c['size'][1]} | {_images_cell(c['images'])} | {c['modality']} | "
                 f"{'yes' if c['events'] else 'no'} | {c['tracks']} | {c['frames_per_second']:.1f} | "
                 + (f"{c['add_mean_m'] * 100:.2f}" if c["add_mean_m"] is not None else "-")
-                + f" | {c['tracks_over_1cm']} | {c['worst_track_add_m'] * 100:.2f} | {c['lost']} |")
+                + f" | {c['tracks_over_1cm']} | "
+                + (f"{c['worst_track_add_m'] * 100:.2f}" if c["worst_track_add_m"] is not None else "-")
+                + f" | {c['lost']} |")
     service = result.get("service")
     if service:
         lines += ["", f"Service, {service['clients']} clients tracking at once over POST /v1/track (160x120 RGB-D, "
@@ -304,8 +310,8 @@ def _joint_cell(run: dict) -> str:
 
 def main(args: argparse.Namespace) -> int:
     """``narf bench track``: ``args`` has ``work``, ``models``, ``tools``, ``frames``, ``sizes``,
-    ``modalities``, ``events``, ``seed`` (a list), ``ray_seeds``, ``images``, ``spp``, ``iterations``, ``rays``, ``solver``, ``band_m``,
-    ``march``, ``depth_align``, ``service_clients``, ``json``."""
+    ``modalities``, ``events``, ``seed`` (a list), ``ray_seeds``, ``images``, ``spp``, ``iterations``, ``rays``,
+    ``solver``, ``band_m``, ``march``, ``depth_align``, ``service_clients``, ``json``."""
     tools = args.tools or sorted(p.stem for p in args.models.glob("*.narf"))
     models, missing = {}, []
     for tool in tools:

@@ -166,7 +166,8 @@ def composite_jacobian(
     sample, and ``field_jacobian`` then only at the samples a ray still sees (transmittance before them at
     least :data:`JACOBIAN_TRANSMITTANCE`); the others' derivatives are 0. A sample's weight in ``P`` and in
     every derivative is under its transmittance, while its derivatives cost ``3 + k`` evaluations more than
-    its value: worth it where samples run on behind the surface (a frame without depth)."""
+    its value: worth it where samples run on behind the surface (a tracked frame not pruned to what light
+    reaches)."""
     theta, per_ray = ray_theta(theta, len(rays))
     n, k = len(rays), 0 if theta is None else theta.shape[-1]
     P = torch.zeros(n, 5, dtype=torch.float64, device=rays.origins.device)

@@ -1303,6 +1303,28 @@ def test_bench_track_repeats_each_sequence_per_ray_seed_and_sums_up_the_tracks(t
     assert f"| clamp | 64x48 | pybullet | rgb | no | 4 | {cell['frames_per_second']:.1f} | {np.mean(adds) * 100:.2f} |" in table
 
 
+def test_bench_track_sums_up_a_cell_whose_track_was_lost_throughout() -> None:
+    """A track with every frame lost has no ADD: it counts among the cell's tracks over 1 cm, not in its mean or
+    worst, and the table prints what there is (a cell of one track gets no summary)."""
+    from narf_benchmarks.track import markdown, over_tracks
+    from narf_core.track import TrackOptions
+
+    def run(add, lost, seed):
+        return {"tool": "clamp", "size": [160, 120], "images": "pybullet", "modality": "rgb", "events": False,
+                "frames": 10, "frames_per_second": 5.0, "lost": lost, "seed": seed, "ray_seed": 0,
+                "add_m": None if add is None else {"mean": add, "p95": add, "max": add}}
+
+    [cell] = over_tracks([run(0.004, 0, 0), run(None, 10, 1), run(0.02, 2, 2), {**run(0.5, 0, 0), "tool": "x"}])
+    assert cell["tracks"] == 3 and cell["tracks_over_1cm"] == 2 and cell["lost"] == 12
+    assert cell["add_mean_m"] == pytest.approx(0.012) and cell["worst_track_add_m"] == pytest.approx(0.02)
+    assert cell["frames_per_second"] == pytest.approx(5.0)
+    [alone] = over_tracks([run(None, 10, 0), run(None, 10, 1)])
+    assert alone["add_mean_m"] is None and alone["worst_track_add_m"] is None and alone["tracks_over_1cm"] == 2
+    table = markdown({"frames": 10, "runs": [], "seeds": [0, 1], "over_tracks": [alone],
+                      "options": TrackOptions(first_frame="warm").__dict__})
+    assert "| clamp | 160x120 | pybullet | rgb | no | 2 | 5.0 | - | 2 | - | 20 |" in table
+
+
 def test_bench_track_prints_joint_errors_in_mm_or_degrees() -> None:
     """``narf bench track``'s table gives a prismatic joint's error in mm and a revolute one's in
     degrees (the result keeps metres and radians), and beside the NEES coverage the factor on σ it was
