@@ -177,19 +177,20 @@ def composite_jacobian(
         return P, J
     rays_hit, row, counts = torch.unique_consecutive(ray, return_inverse=True, return_counts=True)
     slot = torch.arange(ray.shape[0], device=ray.device) - (counts.cumsum(0) - counts)[row]
-    x = rays.origins[ray] + samples.t[:, None].to(rays.origins) * rays.directions[ray]
+    d = rays.directions[ray]
+    x = rays.origins[ray] + samples.t[:, None].to(rays.origins) * d
     th = sample_theta(theta, per_ray, ray)
     if field is None:
         values, dvalues = field_jacobian(x, th)
         values, dvalues = values.double(), dvalues.double()
     else:
         with torch.no_grad():
-            sigma, rgb = field(x, rays.directions[ray], th)
-        values, dvalues = torch.cat([sigma[:, None], rgb], 1).double(), None
+            sigma, rgb = field(x, d, th)
+        values = torch.cat([sigma[:, None], rgb], 1).double()
     tau = values[:, 0] * delta
     padded = tau.new_zeros(rays_hit.shape[0], int(slot.max()) + 1).index_put((row, slot), tau)
     w, transmittance = (a[row, slot] for a in _weights_from_optical_depth(padded, None))
-    if dvalues is None:
+    if field is not None:  # the derivatives where the ray still sees
         seen = (transmittance >= JACOBIAN_TRANSMITTANCE).nonzero()[:, 0]
         dvalues = values.new_zeros(values.shape[0], 4, 3 + k)
         dvalues[seen] = field_jacobian(x[seen], None if th is None else th[seen])[1].double()
