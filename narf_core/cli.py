@@ -515,6 +515,9 @@ def _add_train(commands: argparse._SubParsersAction) -> None:
     arg("--sparsity-weight", type=float, metavar="W", help="stage 1's sparsity term: the opacity a part "
         "renders at random points of its box away from its own surfaces, so that it leaves empty what no "
         "training view shows (default 0.1; 0: off)")
+    arg("--exclusion-weight", type=float, metavar="W", help="stage 1's exclusion term: the opacity a part "
+        "renders on the other parts' surfaces at the training configurations, where parts that touch in every "
+        "training view would otherwise run on into each other (default 1; 0: off)")
     arg("--no-parts", action="store_true", help="leave the part fields out of the bundle (no 'parts' mode)")
     arg("--track-sequences", type=_non_negative_int, metavar="N", help="fit the tracker's own factor on σ on N "
         "smooth 60-frame sequences of the dataset's object, about half a minute each (default 3; 0: the pooled "
@@ -528,7 +531,8 @@ def _run_train(args: argparse.Namespace) -> int:
 
     overrides = {"part_steps": args.part_steps, "distill_steps": args.distill_steps, "batch_rays": args.batch_rays,
                  "composites": args.composites, "free_space_weight": args.free_space_weight,
-                 "sparsity_weight": args.sparsity_weight, "track_sequences": args.track_sequences}
+                 "sparsity_weight": args.sparsity_weight, "exclusion_weight": args.exclusion_weight,
+                 "track_sequences": args.track_sequences}
     try:
         config = TrainConfig(arch=args.arch, field=args.field, budget_s=args.budget, seed=args.seed, keep_parts=not args.no_parts)
         config = replace(config.for_arch(), **{k: v for k, v in overrides.items() if v is not None})

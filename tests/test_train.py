@@ -844,6 +844,69 @@ def test_the_sparsity_term_leaves_the_parts_own_urdf_surface_alone(tiny_dataset)
         assert 0.0 < surface.occupied(inside).float().mean().item() < 1.0  # the rest of the box still counts
 
 
+# The exclusion term: no part where another's surface stands at the training configurations
+
+
+def test_exclusion_points_are_the_other_parts_surface_away_from_the_parts_own(tmp_path, assets):
+    """Longnose pliers closed (its training configuration): the lower half's jaw lies beside the upper's,
+    inside the upper half's box. The upper half's exclusion points are the lower half's surface points at
+    that configuration (in the upper half's frame), inside its box and more than a grid cell from its own
+    surface; they move with the configuration. A part with no other part has none."""
+    from narf_core.data.synth import tools
+    from narf_core.train.parts import part_surface_points
+
+    kin = KinematicTree.from_urdf(tools.build_tool("longnose", tmp_path))
+    upper, lower = kin.part_names.index("upper_half"), kin.part_names.index("lower_half")
+    box = part_boxes(kin)[upper]
+    resolution = 64
+    cell = float((box[1] - box[0]).min()) / resolution
+    closed = torch.tensor([[0.02]], dtype=torch.float64)
+    points = pipeline.exclusion_points(kin, upper, box, resolution, closed)
+    assert len(points) > 1000
+    assert bool(((points >= box[0]) & (points <= box[1])).all())
+    some = points[:: max(1, len(points) // 1000)]
+    own = part_surface_points(kin, upper, cell)
+    assert torch.cdist(some, own).min().item() > cell  # a whole cell from the part's own surface at least
+    T = kin.part_poses(closed[0])
+    lower_in_upper = torch.linalg.inv(T[upper]) @ T[lower]
+    theirs = transform_points(lower_in_upper.float(), part_surface_points(kin, lower, cell))
+    assert torch.cdist(some, theirs).min(dim=1).values.max().item() < 1e-4  # each one on the lower half's surface
+    opened = pipeline.exclusion_points(kin, upper, box, resolution, torch.tensor([[0.5]], dtype=torch.float64))
+    assert len(opened) != len(points) or not torch.equal(opened, points)
+    both = pipeline.exclusion_points(kin, upper, box, resolution, torch.cat([closed, closed.new_tensor([[0.5]])]))
+    assert len(both) == len(points) + len(opened)
+    rigid = KinematicTree.from_urdf(assets / "fixed_chain.urdf")  # one part: no other to exclude
+    assert len(pipeline.exclusion_points(rigid, 0, box, resolution, torch.zeros(1, 0, dtype=torch.float64))) == 0
+
+
+def test_the_exclusion_term_empties_a_part_where_another_stands():
+    """A part's field runs on behind its measured surface (the back slab, which no ray reaches: another part
+    stands there in every view). ``exclusion_loss`` is the mean opacity of one step at the points; with the
+    term on those points the back slab empties while the rays still end, opaque, on the front one."""
+    field = Slabs((math.log(200.0), math.log(200.0)))
+    rays = rays_along_z(16)
+    targets = RayTargets(rays, torch.full((16, 3), 0.5), torch.ones(16), torch.full((16,), 0.8))  # the front slab
+    config = TrainConfig()
+    generator = torch.Generator().manual_seed(0)
+    behind = torch.stack([torch.zeros(200), torch.zeros(200), torch.linspace(0.61, 0.69, 200)], dim=-1)
+    cell = torch.full((3,), 0.01)
+    got = pipeline.exclusion_loss(field, behind, 0.01, 512, generator, cell).item()
+    assert got == pytest.approx(1 - math.exp(-200.0 * 0.01), rel=0.05)  # a few jittered out of the slab
+    optimizer = torch.optim.Adam(field.parameters(), lr=0.1)
+    for _ in range(60):
+        out = pipeline.render_rays(field, rays, SLAB_BOX, step=0.01, outputs=("rgb", "opacity", "depth"), jitter=True)
+        loss = ray_loss(out, targets, config)
+        loss = loss + config.exclusion_weight * pipeline.exclusion_loss(field, behind, 0.01, 512, generator, cell)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    with torch.no_grad():
+        out = pipeline.render_rays(field, rays, SLAB_BOX, step=0.01, outputs=("opacity", "depth"))
+    sigma = field.log_sigma.exp()
+    assert sigma[1].item() < 5.0 < 30.0 < sigma[0].item()
+    assert bool((out.opacity > 0.95).all())
+
+
 def test_free_rays_are_the_batch_rays_with_a_depth_and_drawn_occluders():
     rays = rays_along_z(4)
     batch = RayTargets(rays, torch.zeros(4, 3), torch.tensor([1.0, 0.0, 1.0, 1.0]), torch.tensor([0.9, 0.0, 0.0, 1.2]))

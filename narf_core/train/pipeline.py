@@ -61,6 +61,13 @@ class TrainConfig:
     a clamp's jaw in its body, keeps what no view shows of it). On by default (0.1): it helps most where
     parts hide one another at the training configurations and costs the others little (docs/benchmarks.md).
 
+    ``exclusion_weight``: stage 1's exclusion term (:func:`exclusion_loss`), the mean opacity of a part field
+    at ``exclusion_points`` points a step drawn on the other parts' URDF surfaces as they stand at the training
+    configurations (:func:`exclusion_points`), away from the part's own surface. Where two parts touch or overlap at every training configuration (closed
+    pliers' jaws side by side, a drawer in its carcass) no ray sees behind the one in front, and a part field
+    is free to run on into its neighbour; at another configuration that density shows as a fat inner edge.
+    No part can be where another's surface is, so that space is emptied (0: off).
+
     ``track_sequences``: after both stages, the tracker's own factor on σ is fitted on this many smooth
     60-frame sequences of the dataset's object at its camera and at one 4x finer (:mod:`narf_core.train.track_sigma`;
     half a minute to two minutes of CPU each) where the dataset names the object that drew it; 0: none (the
@@ -88,6 +95,8 @@ class TrainConfig:
     sparsity_weight: float = 0.1
     sparsity_points: int = 4096
     sparsity_keeps_meshes: bool = True
+    exclusion_weight: float = 1.0
+    exclusion_points: int = 1024
     budget_s: float | None = None
     seed: int = 0
     keep_parts: bool = True
@@ -98,12 +107,13 @@ class TrainConfig:
         need = option_rule(self, TrainInputError)
         need(self.arch in ARCHS, "arch", f"must be one of {', '.join(ARCHS)}")
         need(self.field in FIELDS, "field", f"must be one of {', '.join(FIELDS)}")
-        for name in ("part_steps", "distill_steps", "batch_rays", "views_per_batch", "theta_bins", "sparsity_points"):
+        for name in ("part_steps", "distill_steps", "batch_rays", "views_per_batch", "theta_bins", "sparsity_points",
+                     "exclusion_points"):
             need(getattr(self, name) >= 1, name, "must be >= 1")
         need(self.grid_resolution >= 2, "grid_resolution", "must be >= 2")
         need(self.composites >= 0, "composites", "must be >= 0 (0 = fresh rays every step)")
         need(self.lr > 0, "lr", "must be > 0")
-        for name in ("depth_weight", "opacity_weight", "free_space_weight", "sparsity_weight"):
+        for name in ("depth_weight", "opacity_weight", "free_space_weight", "sparsity_weight", "exclusion_weight"):
             need(getattr(self, name) >= 0, name, "must be >= 0")
         near_far = self.distance
         need(
@@ -188,14 +198,19 @@ def free_space_loss(field, free: FreeRays, box, grid, step: float) -> torch.Tens
 SURFACE_CELLS = 3  # grid cells around a measured surface point that the sparsity term leaves alone
 
 
+def measured_points(targets: RayTargets) -> torch.Tensor:
+    """The surface points ``[n,3]`` the part's own pixels of ``targets`` measured (each its depth along its ray)."""
+    own = (targets.opacity > 0.5) & (targets.depth > 0)
+    rays = targets.rays[own]
+    return rays.origins + (targets.depth[own] / rays.z_per_t)[:, None] * rays.directions
+
+
 def observed_surface(targets: RayTargets, box: torch.Tensor, resolution: int,
                      known: torch.Tensor | None = None) -> OccupancyGrid | None:
     """The cells of ``box [2,3]`` (a grid of ``resolution``) within :data:`SURFACE_CELLS` of a surface point
     that one of the part's own pixels measured (its depth along its ray) or of a ``known [m,3]`` point of
     its surface (its URDF meshes: :func:`~narf_core.train.parts.part_surface_points`); ``None`` without any."""
-    own = (targets.opacity > 0.5) & (targets.depth > 0)
-    rays = targets.rays[own]
-    points = [rays.origins + (targets.depth[own] / rays.z_per_t)[:, None] * rays.directions]
+    points = [measured_points(targets)]
     if known is not None:
         points.append(known.to(points[0]))
     x = torch.cat(points)
@@ -215,6 +230,45 @@ def sparsity_loss(field, box: torch.Tensor, step: float, n: int, generator: torc
         x = x[~surface.occupied(x)]
     if len(x) == 0:
         return box.new_zeros(())
+    sigma = density_fn(field)(x, None)
+    return (1 - torch.exp(-sigma * step)).mean()
+
+
+EXCLUSION_CELLS = 1  # grid cells around a part's own surface that the exclusion term leaves alone
+
+
+def exclusion_points(kin: KinematicTree, part: int, box: torch.Tensor, resolution: int, thetas: torch.Tensor,
+                     measured: torch.Tensor | None = None, seed: int = 0) -> torch.Tensor:
+    """The other parts' URDF surfaces ``[m,3]`` in part ``part``'s frame, as they stand at each of the training
+    configurations ``thetas [c,k]``: those inside the part's ``box [2,3]`` and farther than :data:`EXCLUSION_CELLS`
+    cells (a grid of ``resolution``) from the part's own surface, its meshes' and what its own pixels
+    ``measured [n,3]`` (:func:`measured_points`). Empty for an object of one part."""
+    others = [q for q in range(len(kin.parts)) if q != part]
+    if not others:
+        return torch.zeros(0, 3, dtype=box.dtype)
+    spacing = float((box[1] - box[0]).min()) / resolution
+    own = [part_surface_points(kin, part, spacing, seed)]
+    if measured is not None:
+        own.append(measured.to(own[0]))
+    near = OccupancyGrid.from_points(box, resolution, torch.cat(own).to(box), dilate=EXCLUSION_CELLS)
+    surfaces = {q: part_surface_points(kin, q, spacing, seed).double() for q in others}
+    points = []
+    for T in kin.part_poses(thetas.double()).reshape(-1, len(kin.parts), 4, 4):  # object from part, per configuration
+        part_from_object = torch.linalg.inv(T[part])
+        for q in others:
+            M = part_from_object @ T[q]
+            points.append(surfaces[q] @ M[:3, :3].T + M[:3, 3])
+    x = torch.cat(points).to(box)
+    x = x[((x >= box[0]) & (x <= box[1])).all(-1)]
+    return x[~near.occupied(x)]
+
+
+def exclusion_loss(field, points: torch.Tensor, step: float, n: int, generator: torch.Generator,
+                   cell: torch.Tensor) -> torch.Tensor:
+    """Mean opacity over one march ``step`` of ``field`` at ``n`` of ``points [m,3]`` (:func:`exclusion_points`)
+    drawn with ``generator``, each moved at random within a grid cell of sides ``cell [3]``."""
+    x = points[torch.randint(len(points), (n,), generator=generator)]
+    x = x + (torch.rand(x.shape, generator=generator).to(x) - 0.5) * cell
     sigma = density_fn(field)(x, None)
     return (1 - torch.exp(-sigma * step)).mean()
 
@@ -264,6 +318,7 @@ def train(
     budget_parts = None if config.budget_s is None else share * config.budget_s / len(kin.parts)
 
     boxes = part_boxes(kin)
+    train_thetas = training_configurations(dataset, kin)
     rays_per_part: list[RayTargets] | None = None
     occluders: list[FreeRays | None] = [None] * len(boxes)
     part_fields, part_grids, timings = [], [], {}
@@ -283,9 +338,13 @@ def train(
             known = None
             if config.sparsity_weight > 0 and config.sparsity_keeps_meshes:
                 known = part_surface_points(kin, p, float((box[1] - box[0]).min()) / config.grid_resolution, config.seed)
+            exclusion = None
+            if config.exclusion_weight > 0:
+                exclusion = exclusion_points(kin, p, box, config.grid_resolution, train_thetas,
+                                             measured_points(rays_per_part[p]), config.seed)
             grid, seconds = _train_part(
                 field, box, rays_per_part[p], config, work / f"part{p}.ckpt", budget_parts, progress, kin.part_names[p],
-                occluders[p], known,
+                occluders[p], known, exclusion,
             )
             save_atomic({"field": field.state_dict(), "grid": grid.occupancy.to(torch.uint8), "seconds": seconds}, done)
             timings[f"part{p}_s"] = seconds
@@ -367,6 +426,14 @@ def train(
     return out
 
 
+def training_configurations(dataset: Dataset, kin: KinematicTree) -> torch.Tensor:
+    """``[c,k]``: the distinct configurations of the dataset's ``train`` frames."""
+    thetas = [kin.joint_vector(frame.joints) for frame in dataset.frames("train")]
+    if not thetas:
+        return torch.zeros(0, kin.n_joints, dtype=torch.float64)
+    return torch.unique(torch.stack(thetas), dim=0)
+
+
 def _check_work_folder(work: Path, config: TrainConfig, dataset_hash: str) -> None:
     # Step counts and the budget only say how long to train: a resumed run may change them.
     how_long = ("budget_s", "part_steps", "distill_steps", "track_sequences")
@@ -415,16 +482,21 @@ def _theta_samples(kin: KinematicTree, boxes: list[torch.Tensor], cell: float, m
 def _fit_step(
     field, optimizer, batch: RayTargets, theta, box, grid, step: float, config: TrainConfig, free: FreeRays | None = None,
     generator: torch.Generator | None = None, surface: OccupancyGrid | None = None,
+    exclusion: torch.Tensor | None = None,
 ) -> float:
     """One optimiser step of ``field`` on the rays of ``batch`` (jittered samples), with the free-space
     term on ``free`` and, given the ``generator`` of its points, the sparsity term away from ``surface``
-    (a part field's step); returns the loss."""
+    and the exclusion term at ``exclusion``'s points (a part field's step); returns the loss."""
     out = render_rays(field, batch.rays, box, theta=theta, grid=grid, step=step, outputs=("rgb", "opacity", "depth"), jitter=True)
     loss = ray_loss(out, batch, config) + field.regularization()
     if free is not None and len(free):
         loss = loss + config.free_space_weight * free_space_loss(field, free, box, grid, step)
     if generator is not None and config.sparsity_weight > 0:
         loss = loss + config.sparsity_weight * sparsity_loss(field, box, step, config.sparsity_points, generator, surface)
+    if generator is not None and config.exclusion_weight > 0 and exclusion is not None and len(exclusion):
+        cell = (box[1] - box[0]) / config.grid_resolution
+        loss = loss + config.exclusion_weight * exclusion_loss(field, exclusion, step, config.exclusion_points,
+                                                               generator, cell)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
@@ -455,10 +527,12 @@ def refreshes_grid(step: int, steps: int) -> bool:
 
 def _train_part(
     field, box, targets: RayTargets, config: TrainConfig, ckpt: Path, budget_s, progress: bool, name: str,
-    occluders: FreeRays | None = None, known: torch.Tensor | None = None,
+    occluders: FreeRays | None = None, known: torch.Tensor | None = None, exclusion: torch.Tensor | None = None,
 ):
     """Stage 1 for one part; with ``occluders`` (the free-space term on) each step also draws them in
-    the proportion they have to ``targets``, so every labelled pixel crossing the box bounds the free space."""
+    the proportion they have to ``targets``, so every labelled pixel crossing the box bounds the free space;
+    ``known``: its URDF surface points (the sparsity term leaves them alone); ``exclusion``: the exclusion
+    term's points (:func:`exclusion_points`)."""
     n_occluders = 0 if occluders is None else round(config.batch_rays * len(occluders) / max(len(targets), 1))
     generator = torch.Generator().manual_seed(config.seed)
     optimizer = torch.optim.Adam(field.parameters(), lr=config.lr, eps=1e-15)
@@ -475,7 +549,7 @@ def _train_part(
         idx = torch.randint(len(targets), (config.batch_rays,), generator=generator)
         batch = targets[idx]
         free = None if occluders is None else free_rays(batch, occluders, n_occluders, generator)
-        return _fit_step(field, optimizer, batch, None, box, grid, step, config, free, generator, surface)
+        return _fit_step(field, optimizer, batch, None, box, grid, step, config, free, generator, surface, exclusion)
 
     result = run_stage(
         f"part {name}", field, optimizer, step_fn, steps=config.part_steps, budget_s=budget_s, checkpoint=ckpt,
