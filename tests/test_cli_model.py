@@ -77,7 +77,7 @@ def view(tiny_dataset, tmp_path_factory):
 def test_train_writes_a_bundle_with_its_command(capsys, tiny_dataset, tmp_path):
     out = tmp_path / "m.narf"
     argv = ["train", tiny_dataset, "--out", out, "--part-steps", "1", "--distill-steps", "1", "--batch-rays", "64",
-            "--no-parts", "--sparsity-weight", "0.05", "--track-sequences", "0"]
+            "--no-parts", "--sparsity-weight", "0.05", "--exclusion-weight", "0.5", "--track-sequences", "0"]
     code, stdout, err = run(capsys, *argv)
     assert code == 0, err
     assert stdout.startswith(f"wrote {out} (")
@@ -88,6 +88,7 @@ def test_train_writes_a_bundle_with_its_command(capsys, tiny_dataset, tmp_path):
     assert provenance["command"] == "narf " + " ".join(str(a) for a in argv)  # what was typed, not pytest's argv
     assert provenance["config"]["part_steps"] == 1 and provenance["config"]["keep_parts"] is False
     assert provenance["config"]["sparsity_weight"] == 0.05  # the flag, not the default
+    assert provenance["config"]["exclusion_weight"] == 0.5
     assert provenance["config"]["track_sequences"] == 0 and "uncertainty" not in model.metadata
     from narf_core.data.dataset import Dataset
 
@@ -101,9 +102,10 @@ def test_train_refuses_a_missing_dataset(capsys, tmp_path):
     assert_error(capsys, "train", ["train", tmp_path / "nope", "--out", tmp_path / "m.narf"], str(tmp_path / "nope"))
 
 
-def test_train_names_the_flag_of_a_bad_sparsity_weight(capsys, tiny_dataset, tmp_path):
-    assert_error(capsys, "train", ["train", tiny_dataset, "--out", tmp_path / "m.narf", "--sparsity-weight", "-1"],
-                 "--sparsity-weight must be >= 0")
+@pytest.mark.parametrize("flag", ["--sparsity-weight", "--exclusion-weight"])
+def test_train_names_the_flag_of_a_bad_term_weight(capsys, tiny_dataset, tmp_path, flag):
+    assert_error(capsys, "train", ["train", tiny_dataset, "--out", tmp_path / "m.narf", flag, "-1"],
+                 f"{flag} must be >= 0")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -176,6 +176,8 @@ def test_an_unknown_configuration_field_is_refused_before_training():
         ("free_space_weight", float("nan"), "must be finite"),
         ("sparsity_weight", -0.1, "must be >= 0"),
         ("sparsity_points", 0, "must be >= 1"),
+        ("exclusion_weight", -1.0, "must be >= 0"),
+        ("exclusion_points", 0, "must be >= 1"),
         ("depth_weight", True, "must be a number"),
         ("distance", (1.0, 0.4), "must be (near, far) metres with 0 < near <= far"),
         ("distance", (0.4,), "must be (near, far)"),
