@@ -853,9 +853,10 @@ def test_exclusion_points_are_the_other_parts_surface_away_from_the_parts_own(tm
     """Longnose pliers closed (its training configuration): the lower half's jaw lies beside the upper's,
     inside the upper half's box. The upper half's exclusion points are the lower half's surface points at
     that configuration (in the upper half's frame), inside its box and more than a grid cell from its own
-    surface; they move with the configuration. A part with no other part has none."""
+    surface; they move with the configuration. The clamp's bar passes through its jaw's mesh: none of the jaw's
+    points lies inside the jaw's own meshes. A part with no other part has none."""
     from narf_core.data.synth import tools
-    from narf_core.train.parts import part_surface_points
+    from narf_core.train.parts import part_meshes, part_surface_points
 
     kin = KinematicTree.from_urdf(tools.build_tool("longnose", tmp_path))
     upper, lower = kin.part_names.index("upper_half"), kin.part_names.index("lower_half")
@@ -877,6 +878,11 @@ def test_exclusion_points_are_the_other_parts_surface_away_from_the_parts_own(tm
     assert len(opened) != len(points) or not torch.equal(opened, points)
     both = pipeline.exclusion_points(kin, upper, box, resolution, torch.cat([closed, closed.new_tensor([[0.5]])]))
     assert len(both) == len(points) + len(opened)
+    clamp = KinematicTree.from_urdf(tools.build_tool("clamp", tmp_path))  # its bar's mesh runs through the jaw's
+    jaw = clamp.part_names.index("moving_jaw")
+    in_jaw = pipeline.exclusion_points(clamp, jaw, part_boxes(clamp)[jaw], resolution, torch.tensor([[0.05]]))
+    assert len(in_jaw) > 1000
+    assert not any(mesh.contains(in_jaw.double().numpy()).any() for mesh in part_meshes(clamp, jaw))
     rigid = KinematicTree.from_urdf(assets / "fixed_chain.urdf")  # one part: no other to exclude
     assert len(pipeline.exclusion_points(rigid, 0, box, resolution, torch.zeros(1, 0, dtype=torch.float64))) == 0
 

@@ -33,7 +33,8 @@ from narf_core.train.distill import composite_rays
 from narf_core.train.loop import run_stage, save_atomic
 from narf_core.train.track_sigma import calibrate_tracker, dataset_tool, draw_ahead
 from narf_core.train.parts import (
-    FreeRays, RayTargets, concat_free, concat_targets as _concat_targets, part_boxes, part_rays, part_surface_points,
+    FreeRays, RayTargets, concat_free, concat_targets as _concat_targets, part_boxes, part_meshes, part_rays,
+    part_surface_points,
 )
 
 
@@ -240,9 +241,9 @@ EXCLUSION_CELLS = 1  # grid cells around a part's own surface that the exclusion
 def exclusion_points(kin: KinematicTree, part: int, box: torch.Tensor, resolution: int, thetas: torch.Tensor,
                      measured: torch.Tensor | None = None, seed: int = 0) -> torch.Tensor:
     """The other parts' URDF surfaces ``[m,3]`` in part ``part``'s frame, as they stand at each of the training
-    configurations ``thetas [c,k]``: those inside the part's ``box [2,3]`` and farther than :data:`EXCLUSION_CELLS`
-    cells (a grid of ``resolution``) from the part's own surface, its meshes' and what its own pixels
-    ``measured [n,3]`` (:func:`measured_points`). Empty for an object of one part."""
+    configurations ``thetas [c,k]``: those inside the part's ``box [2,3]``, farther than :data:`EXCLUSION_CELLS`
+    cells (a grid of ``resolution``) from the part's own surface (its meshes' and what its own pixels
+    ``measured [n,3]``, :func:`measured_points`) and outside its own meshes. Empty for an object of one part."""
     others = [q for q in range(len(kin.parts)) if q != part]
     if not others:
         return torch.zeros(0, 3, dtype=box.dtype)
@@ -260,7 +261,11 @@ def exclusion_points(kin: KinematicTree, part: int, box: torch.Tensor, resolutio
             points.append(surfaces[q] @ M[:3, :3].T + M[:3, 3])
     x = torch.cat(points).to(box)
     x = x[((x >= box[0]) & (x <= box[1])).all(-1)]
-    return x[~near.occupied(x)]
+    x = x[~near.occupied(x)]
+    inside = torch.zeros(len(x), dtype=torch.bool)
+    for mesh in part_meshes(kin, part):  # where the meshes pass through each other (a jaw in its body): its own
+        inside |= torch.from_numpy(mesh.contains(x.detach().cpu().double().numpy()))
+    return x[~inside.to(x.device)]
 
 
 def exclusion_loss(field, points: torch.Tensor, step: float, n: int, generator: torch.Generator,
