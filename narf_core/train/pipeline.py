@@ -64,10 +64,11 @@ class TrainConfig:
 
     ``exclusion_weight``: stage 1's exclusion term (:func:`exclusion_loss`), the mean opacity of a part field
     at ``exclusion_points`` points a step drawn on the other parts' URDF surfaces as they stand at the training
-    configurations (:func:`exclusion_points`), away from the part's own surface. Where two parts touch or overlap at every training configuration (closed
-    pliers' jaws side by side, a drawer in its carcass) no ray sees behind the one in front, and a part field
-    is free to run on into its neighbour; at another configuration that density shows as a fat inner edge.
-    No part can be where another's surface is, so that space is emptied (0: off).
+    configurations, away from the part's own surface and outside its own meshes (:func:`exclusion_points`).
+    Where two parts touch at every training configuration (closed pliers' jaws side by side) no ray sees where
+    one runs on into the other, and a part field is free to fill it; at another configuration that density
+    shows as a fat inner edge. No part can be where another's surface is, so that space is emptied (0: off;
+    the measured gains and costs per object: docs/benchmarks.md, Session 45).
 
     ``track_sequences``: after both stages, the tracker's own factor on σ is fitted on this many smooth
     60-frame sequences of the dataset's object at its camera and at one 4x finer (:mod:`narf_core.train.track_sigma`;
