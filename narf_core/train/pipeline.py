@@ -237,6 +237,7 @@ def sparsity_loss(field, box: torch.Tensor, step: float, n: int, generator: torc
 
 
 EXCLUSION_CELLS = 1  # grid cells around a part's own surface that the exclusion term leaves alone
+_INSIDE_RAY = (0.4395064455, 0.617598629942, 0.652231566745)  # exclusion_points' inside test's direction
 
 
 def exclusion_points(kin: KinematicTree, part: int, box: torch.Tensor, resolution: int, thetas: torch.Tensor,
@@ -263,9 +264,14 @@ def exclusion_points(kin: KinematicTree, part: int, box: torch.Tensor, resolutio
     x = torch.cat(points).to(box)
     x = x[((x >= box[0]) & (x <= box[1])).all(-1)]
     x = x[~near.occupied(x)]
+    from trimesh.ray.ray_util import contains_points
+
     inside = torch.zeros(len(x), dtype=torch.bool)
     for mesh in part_meshes(kin, part):  # where the meshes pass through each other (a jaw in its body): its own
-        inside |= torch.from_numpy(mesh.contains(x.detach().cpu().double().numpy()))
+        # One fixed ray direction (trimesh's own default): where its two senses disagree (an open mesh) the point
+        # counts as outside, instead of trimesh retrying on a random direction, so training stays reproducible.
+        found = contains_points(mesh.ray, x.detach().cpu().double().numpy(), check_direction=_INSIDE_RAY)
+        inside |= torch.from_numpy(found)
     return x[~inside.to(x.device)]
 
 
@@ -435,8 +441,8 @@ def train(
 def training_configurations(dataset: Dataset, kin: KinematicTree) -> torch.Tensor:
     """``[c,k]``: the distinct configurations of the dataset's ``train`` frames."""
     thetas = [kin.joint_vector(frame.joints) for frame in dataset.frames("train")]
-    if not thetas:
-        return torch.zeros(0, kin.n_joints, dtype=torch.float64)
+    if not thetas or kin.n_joints == 0:  # a rigid object has one configuration, the empty one
+        return torch.zeros(min(len(thetas), 1), kin.n_joints, dtype=torch.float64)
     return torch.unique(torch.stack(thetas), dim=0)
 
 
