@@ -200,10 +200,13 @@ def scenes_log(
     return scene_log(out_dir, tool, block, key, model)
 
 
-def _preset_options(preset: str, iterations: int, **overrides) -> EstimateOptions:
-    """A preset's options; ``iterations`` applies to the Adam presets (the Gauss-Newton preset keeps its own)."""
+def _preset_options(preset: str, iterations: int, /, **overrides) -> EstimateOptions:
+    """A preset's options with ``overrides``; the protocol's ``iterations`` applies to the Adam presets (the
+    Gauss-Newton preset keeps its own), and an ``iterations`` among ``overrides`` (``--set``) to any."""
     options = EstimateOptions.preset(preset, **overrides)
-    return options if options.solver == "gauss-newton" else EstimateOptions.preset(preset, iterations=iterations, **overrides)
+    if options.solver == "gauss-newton" or "iterations" in overrides:
+        return options
+    return EstimateOptions.preset(preset, iterations=iterations, **overrides)
 
 
 def summarise(model: NarfModel, rows: list[dict]) -> dict:

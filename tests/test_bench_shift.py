@@ -146,3 +146,16 @@ def test_bench_shift_errors(tmp_path: Path, monkeypatch, capsys: pytest.CaptureF
     assert "install the extra: pip install 'narf[realism]'" in capsys.readouterr().err
     assert main(["bench", "estimate", "--shift", "--noise", "--work", str(tmp_path)]) == 2
     assert "--noise (label noise) does not combine" in capsys.readouterr().err
+
+
+def test_preset_options_take_iterations_from_set() -> None:
+    """The protocol's iteration count applies to the Adam presets unless ``--set iterations=N`` names one (then to
+    any preset); the Gauss-Newton preset otherwise keeps its own (before, ``--set iterations`` was a TypeError)."""
+    from narf_benchmarks.estimate import _preset_options
+    from narf_core.estimate import GN_ITERATIONS
+
+    assert _preset_options("robust", 150).iterations == 150
+    assert _preset_options("robust", 150, iterations=300).iterations == 300
+    assert _preset_options("gauss-newton", 150).iterations == GN_ITERATIONS
+    assert _preset_options("gauss-newton", 150, iterations=7).iterations == 7
+    assert _preset_options("robust", 150, iterations=300, silhouette_weight=2.0).silhouette_weight == 2.0
