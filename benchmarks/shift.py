@@ -138,20 +138,27 @@ def run(
     iterations: int = 150,
     seed: int = 0,
     overrides: dict | None = None,
+    ray_seeds: tuple[int, ...] | None = None,
     progress: bool = True,
 ) -> dict:
     """Run the shifted protocol; writes ``shift.json``, ``shift.md`` and ``shift.png`` into ``out_dir``.
 
     ``models`` and ``sources`` (the tool's pybullet dataset) are keyed by tool. The shifted sets are
     cached under ``out_dir/data/<tool>-<W>x<H>-spp<N>-seed<S>/``. ``overrides``: refiner options set
-    in every preset (:class:`~narf_core.estimate.EstimateOptions` fields).
+    in every preset (:class:`~narf_core.estimate.EstimateOptions` fields). ``ray_seeds``: every block
+    refined once per seed of the refiner's ray draws (``EstimateOptions.seed``; default: ``seed``) from the
+    same starts, a row each and, with several, a row ``"pooled"`` over all their scenes: without depth a
+    scene's end depends on its rays, and one draw's mean can be twice another's (docs/benchmarks.md).
     """
     overrides = dict(overrides or {})
+    ray_seeds = tuple(ray_seeds) if ray_seeds else (seed,)
+    if len(ray_seeds) > 1 and "seed" in overrides:
+        raise ValueError("--ray-seeds and --set seed=... both set the refiner's seed: give one")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     config = {"conditions": list(conditions), "inputs": list(inputs), "splits": list(splits), "scenes": scenes,
               "scales": list(scales), "presets": list(presets), "size": list(size), "spp": spp,
-              "iterations": iterations, "seed": seed,
+              "iterations": iterations, "seed": seed, "ray_seeds": list(ray_seeds),
               "overrides": overrides,
               "options": {p: asdict(_preset_options(p, iterations, **overrides)) for p in presets}}
     table, warnings = [], []
@@ -171,14 +178,22 @@ def run(
                     view = dataset if kind == "rgbd" else _WithoutDepth(dataset)
                     for preset in presets:
                         for scale in scales:
-                            options = _preset_options(preset, iterations, **{"seed": seed, **overrides})
-                            log = scenes_log(out_dir, tool, f"{condition}-{split}-{kind}-{preset}-x{scale:g}", model,
-                                             view, frames, options, scale=scale, seed=seed)
-                            rows = run_scenes(model, view, frames, options, scale=scale, seed=seed, progress=progress,
-                                              log=log)
-                            table.append({"tool": tool, "condition": condition, "split": split, "input": kind,
-                                          "preset": preset, "scale": scale, **summarise(model, rows),
-                                          "scenes_detail": rows})
+                            block = f"{condition}-{split}-{kind}-{preset}-x{scale:g}"
+                            every_draw = []
+                            for rays in ray_seeds:
+                                options = _preset_options(preset, iterations, **{"seed": rays, **overrides})
+                                log = scenes_log(out_dir, tool, block + ("" if rays == seed else f"-r{rays}"), model,
+                                                 view, frames, options, scale=scale, seed=seed)
+                                rows = run_scenes(model, view, frames, options, scale=scale, seed=seed,
+                                                  progress=progress, log=log)
+                                every_draw += rows
+                                table.append({"tool": tool, "condition": condition, "split": split, "input": kind,
+                                              "preset": preset, "scale": scale, "ray_seed": options.seed,
+                                              **summarise(model, rows), "scenes_detail": rows})
+                            if len(ray_seeds) > 1:
+                                table.append({"tool": tool, "condition": condition, "split": split, "input": kind,
+                                              "preset": preset, "scale": scale, "ray_seed": "pooled",
+                                              **summarise(model, every_draw)})
     result = {"config": config, "table": table, "warnings": warnings, "machine": machine(models.values())}
     (out_dir / "shift.json").write_text(json.dumps(result, indent=1))
     (out_dir / "shift.md").write_text(markdown(result))
@@ -226,9 +241,11 @@ def markdown(result: dict) -> str:
         "| along / across view (cm) | s/scene | target |",
         "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    draws = len(c.get("ray_seeds", [0])) > 1
     for r in result["table"]:
+        preset = f"{r['preset']}, rays {r['ray_seed']}" if draws else r["preset"]
         lines.append(
-            f"| {r['tool']} | {r['condition']} | {r['split']} | {r['input']} | {r['preset']} | {r['scale']:g}x "
+            f"| {r['tool']} | {r['condition']} | {r['split']} | {r['input']} | {preset} | {r['scale']:g}x "
             f"| {r['scenes']} | {100 * r['add_mean_m']:.2f} ± {100 * r['add_std_m']:.2f} | {100 * r['add<1cm']:.0f}% "
             f"| {_joints(r)} | {_view(r)} | {r['seconds_mean']:.2f} | {_target(r)} |"
         )
@@ -301,6 +318,7 @@ def main(args: argparse.Namespace) -> int:
         models[tool], sources[tool] = pair
     result = run(models, sources, out_dir=args.work / "shift", conditions=tuple(args.conditions),
                  inputs=tuple(args.inputs), splits=splits, scenes=scenes, scales=scales, presets=presets,
-                 size=tuple(args.size), spp=args.spp, overrides=overrides)
+                 size=tuple(args.size), spp=args.spp, overrides=overrides,
+                 ray_seeds=tuple(getattr(args, "ray_seeds", None) or ()))
     print(json.dumps(result, indent=1) if args.json else markdown(result))
     return 0

@@ -974,6 +974,10 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--presets", nargs="+", default=None, metavar="PRESET", help="default: every refiner preset")
     sub.add_argument("--set", action="append", default=[], metavar="OPTION=JSON",
                      help="override a refiner option in every preset, e.g. --set ray_sampling='\"edges\"' (repeatable)")
+    sub.add_argument("--ray-seeds", type=_non_negative_int, nargs="+", default=None, metavar="R",
+                     help="refine every scene once per seed of the refiner's ray draws (EstimateOptions.seed; "
+                          "default: the protocol's 0), a row each and one pooled: without depth one draw's mean "
+                          "can be twice another's")
     sub.add_argument("--size", nargs=2, type=_positive_int, default=(640, 480), metavar=("W", "H"))
     sub.add_argument("--spp", type=_positive_int, default=16, help="path-tracing samples per pixel")
     sub.add_argument("--quick", action="store_true", help="3 scenes of the first split at the first scale")

@@ -127,6 +127,29 @@ def test_a_tiny_shifted_run(tmp_path: Path, monkeypatch) -> None:
     assert grown["depth"].generator["restyle"]["source_frames"] == sorted([*ids, extra])
 
 
+def test_a_shifted_run_per_ray_draw(tmp_path: Path) -> None:
+    """``ray_seeds``: every block refined once per draw of the refiner's rays from the same starts, a row each
+    and a pooled row over all their scenes; the markdown names the draw; a ``seed`` override beside them is refused."""
+    from narf_core.bundle import load_bundle
+    from narf_core.data.synth.generate import synthesize
+
+    source = Dataset.open(synthesize("clamp", tmp_path / "src", size=(96, 72), views=4, seed=0))
+    kw = dict(out_dir=tmp_path / "out", conditions=("lighting",), inputs=("rgb",), splits=("test",), scenes=2,
+              scales=(1.0,), presets=("robust",), size=(96, 72), spp=2, iterations=3, progress=False)
+    model = load_bundle(MODEL)
+    rows = shift.run({"clamp": model}, {"clamp": source}, ray_seeds=(0, 5), **kw)["table"]
+    assert [r["ray_seed"] for r in rows] == [0, 5, "pooled"]
+    first, second, pooled = rows
+    assert first["scenes"] == second["scenes"] == 2 and pooled["scenes"] == 4
+    assert [s["frame"] for s in first["scenes_detail"]] == [s["frame"] for s in second["scenes_detail"]]
+    assert [s["metrics"]["add"] for s in first["scenes_detail"]] != [s["metrics"]["add"] for s in second["scenes_detail"]]
+    assert pooled["add_mean_m"] == pytest.approx((first["add_mean_m"] + second["add_mean_m"]) / 2)
+    text = (tmp_path / "out" / "shift.md").read_text()
+    assert "| robust, rays 5 |" in text and "| robust, rays pooled |" in text
+    with pytest.raises(ValueError, match="--ray-seeds and --set seed"):
+        shift.run({"clamp": model}, {"clamp": source}, ray_seeds=(0, 1), overrides={"seed": 2}, **kw)
+
+
 def test_bench_shift_errors(tmp_path: Path, monkeypatch, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["bench", "shift", "--presets", "fastest", "--work", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
