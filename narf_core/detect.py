@@ -125,6 +125,7 @@ class DetectOptions:
         return EstimateOptions.preset(self.preset, **{"iterations": self.iterations,
                                                       "theta_starts": self.refine_theta_starts,
                                                       "seed": self.seed, "refinements": 0, "rgb_refinements": 0,
+                                                      "rgb_polish": 0,
                                                       "pose_starts": 1, **overrides})
 
 

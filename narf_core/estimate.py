@@ -166,6 +166,11 @@ _POSE_TURNS = ((0, 0, 0), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0),
 _ADAM_BETAS = (0.9, 0.999)
 _ADAM_EPS = 1e-8
 GN_ITERATIONS = 25  # the gauss-newton preset's Levenberg-Marquardt iterations (at most; docs/benchmarks.md)
+# rgb_polish stops once _POLISH_PATIENCE accepted steps in a row each moved less than this (radii, radians):
+# the valley it follows is shallow, and the gauss-newton preset's 3e-3 stops it at its first steps.
+_POLISH_TOLERANCE = 1e-5
+_POLISH_PATIENCE = 2
+RGB_POLISH = 60  # the robust preset's rgb_polish (docs/benchmarks.md, session 47)
 GN_DEPTH_WEIGHT = 50.0  # the gauss-newton preset's depth_weight (see EstimateOptions.gauss_newton)
 GN_UNCERTAINTY_RAYS = 1024  # the gauss-newton preset's uncertainty_rays
 GN_POSE_STARTS = 9  # the gauss-newton preset's pose_starts, refined only below ...
@@ -243,6 +248,12 @@ class EstimateOptions:
     # Where the view comes without a depth image, at least this many refinements (as above). Only then, not
     # where a given depth turns out unusable: a request's work is bounded before its depth is read (max_rays).
     rgb_refinements: int = 0
+    # Where the view comes without a depth image (as above), at most this many Levenberg-Marquardt iterations
+    # after Adam's iterations (none: none), from its estimate, on one fixed set of up to polish_rays box rays and
+    # Adam's loss; the estimate of lower loss is kept (_polished). 0 = off. Adam only (gauss-newton is that
+    # solver already).
+    rgb_polish: int = 0
+    polish_rays: int = 16384
     # Rays of an iteration: "uniform" (independent draws over the box), "stratified" (one per cell of a
     # grid over the box), "edges" (half drawn on silhouette edges and texture, half uniform) or
     # "auto" (uniform in a box up to reference_box_px, edges in a larger one).
@@ -332,6 +343,10 @@ class EstimateOptions:
         need(0 <= self.partial_theta_starts <= 64, "partial_theta_starts", "must be in [0, 64] (0 = theta_starts)")
         need(0 <= self.refinements <= 8, "refinements", "must be in [0, 8] (0 or 1 = one refinement)")
         need(0 <= self.rgb_refinements <= 8, "rgb_refinements", "must be in [0, 8] (0 = refinements)")
+        need(0 <= self.rgb_polish <= 1000, "rgb_polish", "must be in [0, 1000] (0 = off)")
+        need(self.rgb_polish == 0 or self.solver == "adam", "rgb_polish",
+             "is for the adam solver (gauss-newton's iterations are the polish)")
+        need(self.polish_rays >= 16, "polish_rays", "must be >= 16")
         need(self.reference_box_px >= 0, "reference_box_px", "must be >= 0 (0 = off)")
         need(self.ray_sampling in RAY_SAMPLINGS, "ray_sampling", f"must be one of {', '.join(RAY_SAMPLINGS)}")
         need(self.uncertainty_rays >= 16, "uncertainty_rays", "must be >= 16")
@@ -365,13 +380,15 @@ class EstimateOptions:
         mask is trusted only partially (``mask_trust = "auto"``), with a 2-pixel band: a segmenter's
         edge is off by about that much, and a wider band leaves a small visible part no evidence. With two
         joints or more the configuration starts come from a search over 16 (``theta_search``): 4 spread
-        starts leave most of a 3-joint box unvisited. Without a depth image, 3 refinements and the best
-        of them (``rgb_refinements``): there the distance along the line of sight is weakly observed, and
-        where a run ends depends on its random rays."""
+        starts leave most of a 3-joint box unvisited. Without a depth image, at most ``RGB_POLISH``
+        Levenberg-Marquardt iterations from Adam's estimate on ``polish_rays`` fixed rays (``rgb_polish``):
+        there the distance along the line of sight is weakly observed, and Adam stops in the valley where
+        it trades against a turn, wherever its random rays leave it (three refinements of it and the best
+        of them, ``rgb_refinements`` 3, were this preset's before: less exact in more time)."""
         return cls(**{
             "silhouette_weight": 1.0, "depth_weight": 1.0, "theta_starts": 4, "coarse_to_fine": 2, "lr_pose": 0.02,
             "reference_box_px": ROBUST_BOX_PX, "ray_sampling": "auto", **PARTIAL_MASK, "theta_search": 16,
-            "rgb_refinements": 3, **overrides,
+            "rgb_polish": RGB_POLISH, **overrides,
         })
 
     @classmethod
@@ -434,7 +451,7 @@ class EstimateOptions:
         if self.solver != "gauss-newton":  # the runs inside the estimate (_best_refinement)
             work = self._estimate_rays(theta_starts,
                                        lambda starts: self._adam_rays(self.iterations, starts, scale, runs))
-            return scoring + work + covariance
+            return scoring + work + (0 if depth else self._polish_rays()) + covariance
         estimates = _gauss_newton_estimates(replace(self, mask_trust="partial" if partial else "full"), runs)
         work = sum(o._estimate_rays(theta_starts, lambda starts, o=o: o._gauss_newton_run_rays(starts, scale))
                    for o in estimates)
@@ -464,6 +481,14 @@ class EstimateOptions:
         best rows; where several run (:func:`_best_refinement`), the choice among them."""
         per_run = iterations * self.rays_per_iteration * scale * starts + 3 * starts * self.eval_rays
         return runs * per_run + (runs * _CHOICE_RAYS if runs > 1 else 0)
+
+    def _polish_rays(self) -> int:
+        """The rays of ``rgb_polish`` (:func:`_polished`): every iteration's linearisation and its longest
+        series of trial steps on ``polish_rays`` rays, and the choice of both estimates."""
+        from narf_core.gauss_newton import _POLISH_STEP_FACTORS, _STEP_FACTORS
+
+        steps = max(len(_POLISH_STEP_FACTORS), len(_STEP_FACTORS))
+        return self.rgb_polish * self.polish_rays * (1 + steps) + 2 * self.eval_rays if self.rgb_polish else 0
 
     def _gauss_newton_run_rays(self, starts: int, scale: int) -> int:
         """The rays of one ``GaussNewtonRun`` from ``starts`` rows (narf_core/gauss_newton.py), after the
@@ -508,7 +533,7 @@ def choose_preset(name: str, depth: bool) -> tuple[str, str]:
     error is as small as the robust preset's or smaller, in less time where the mask is not
     contradicted, on our renderer's views and on path-traced ones with sensor, mask and occlusion
     faults; without depth, where the distance along the line of sight is weakly observed, Adam's
-    wider basin and its three refinements (``rgb_refinements``) are several times more exact at a
+    wider basin and its Levenberg-Marquardt polish (``rgb_polish``) are several times more exact at a
     camera's native resolution (docs/benchmarks.md has the figures). A depth image the refiner finds
     unusable (a wrong unit, off the mask: a warning) still counts as given here."""
     if name not in PRESET_NAMES:
@@ -518,7 +543,7 @@ def choose_preset(name: str, depth: bool) -> tuple[str, str]:
         return name, "requested"
     if depth:
         return "gauss-newton", "the view has a depth image"
-    return "robust", "no depth image: Adam's wider basin and three refinements hold the distance better"
+    return "robust", "no depth image: Adam's wider basin and its polish hold the distance better"
 
 
 def _configuration_starts(opts: EstimateOptions, partial: bool, joints: int) -> int:
@@ -1625,6 +1650,9 @@ def refine(
         run, final = _best_gauss_newton(estimate, opts, count, loss_fn, obs, camera, param)
     else:
         run, final = estimate(opts)
+    if rgb_only and opts.rgb_polish > 0 and opts.iterations > 0 and final is not None \
+            and run.status in ("max_iterations", "converged"):  # (no iterations: the start itself is asked for)
+        final = _polished(model, opts, obs, camera, param, loss_fn, run, final, start_time, should_stop)
     if final is None:
         run.recovered = True
         return result("non_finite", None, None, run)
@@ -1677,6 +1705,55 @@ def _gauss_newton_refinement(
         run.history = warm.history + run.history
         run.recovered |= warm.recovered
     return run, run.params
+
+
+def _polished(
+    model: NarfModel,
+    opts: EstimateOptions,
+    obs: _Observation,
+    camera: Pinhole,
+    param: _Parameterisation,
+    loss_fn: _Loss,
+    run,
+    final: tuple[Tensor, float, bool],
+    start_time: float,
+    should_stop: Callable[[], str | None] | None,
+) -> tuple[Tensor, float, bool]:
+    """``options.rgb_polish``: at most that many Levenberg-Marquardt iterations (narf_core/gauss_newton.py) from
+    Adam's estimate ``final`` (its row ``[1, d]``, loss and recovery flag) at the finest level, on one fixed set
+    of up to ``polish_rays`` uniform box rays and Adam's own loss (Gauss-Newton sums the three colour channels
+    where Adam averages them: the silhouette weighs three times as much there). Returns the final choice of the
+    two estimates on the same rays; ``run`` (Adam's) takes the polish's iterations, trace and history, and the
+    status a ``should_stop`` gave it.
+
+    Why: without depth the distance along the line of sight and a turn out of the image plane trade against
+    each other in a long, shallow valley. Adam's steps, drawn from a few thousand random rays each, stop in
+    it centimetres from the truth while the loss on every pixel still falls towards it; the polish's steps
+    follow the valley, on enough rays that its bottom is the loss's over the whole box (docs/benchmarks.md)."""
+    from narf_core.gauss_newton import GaussNewtonRun, Problem
+
+    row, _, replaced = final
+    o = replace(opts, solver="gauss-newton", iterations=opts.rgb_polish, rays_per_iteration=opts.polish_rays,
+                ray_sampling="uniform", silhouette_weight=3 * opts.silhouette_weight, tolerance=_POLISH_TOLERANCE,
+                patience=_POLISH_PATIENCE, early_stop=True, rgb_polish=0)
+    polish = GaussNewtonRun(Problem(model, o, loss_fn.radius, False, camera), obs, camera, param, row, start_time, o.seed)
+    polish.should_stop, polish.fine_only = should_stop, True
+
+    def snapshot(params: Tensor, losses: Tensor, iteration: int, elapsed: float) -> Snapshot:
+        return _snapshot(model, param, params, losses, run.iteration + iteration, elapsed)
+
+    polish.optimise(snapshot)
+    run.iteration += polish.iteration
+    run.trace = run.trace + polish.trace
+    run.history = run.history + polish.history
+    run.recovered |= polish.recovered
+    if polish.status not in ("max_iterations", "converged", "non_finite"):  # should_stop's reason
+        run.status = polish.status
+    candidates = torch.cat([row, polish.best_params[:1]])
+    losses = _fixed_rays_loss(loss_fn, obs, camera, param, candidates, torch.Generator().manual_seed(opts.seed))
+    losses = torch.where(torch.isfinite(losses), losses, math.inf)
+    i = int(losses.argmin())
+    return (candidates[i : i + 1], float(losses[i]), replaced) if math.isfinite(float(losses[i])) else final
 
 
 def _adaptive_refinement(

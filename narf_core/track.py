@@ -340,8 +340,8 @@ class TrackOptions:
                   "uncertainty_usual_residual": self.usual_residual if depth else 0.0,
                   "uncertainty_usual_silhouette": self.usual_silhouette if depth else 0.0,
                   "uncertainty_trained_footprint": depth,
-                  "occlusion_margin": self.occlusion_margin, "refinements": 0, "rgb_refinements": 0, "pose_starts": 1,
-                  "search_theta_starts": 0}
+                  "occlusion_margin": self.occlusion_margin, "refinements": 0, "rgb_refinements": 0, "rgb_polish": 0,
+                  "pose_starts": 1, "search_theta_starts": 0}
         if depth:
             common.update(mask_trust=DEPTH_MASK_TRUST)
         elif self.outside_weight_rgb < 1:
@@ -361,7 +361,7 @@ class TrackOptions:
         return EstimateOptions.preset(self.reinit_solver, iterations=self.reinit_iterations, mode=self.mode,
                                       theta_starts=self.reinit_theta_starts, seed=self.seed, band_m=self.band_m,
                                       uncertainty=self.uncertainty_rays > 0, uncertainty_rays=max(self.uncertainty_rays, 16),
-                                      occlusion_margin=0.0, refinements=0, rgb_refinements=0)
+                                      occlusion_margin=0.0, refinements=0, rgb_refinements=0, rgb_polish=0)
 
 
 @dataclass

@@ -217,14 +217,15 @@ def check_work(options: EstimateOptions, max_rays: int, field: str, depth: bool)
     The cost is the core's bound, :meth:`EstimateOptions.max_rays` (iterations x rays_per_iteration
     x the largest box scale x starts x refinements, the choices between starts and estimates and the
     covariance; with gauss-newton also its trial steps and prunings), known before any work; ``depth``:
-    whether the request carries a depth image (without one, the RGB-only refinements count).
+    whether the request carries a depth image (without one, the RGB-only refinements and polish count).
     """
     rays = options.max_rays(depth=depth)
     if rays > max_rays:
         raise invalid(
             field,
             f"would trace up to {rays} rays (iterations x rays_per_iteration x box scale x starts "
-            f"x refinements, with the choices and the covariance), over this server's work limit of {max_rays}",
+            f"x refinements, with the choices, the polish without depth and the covariance), over this server's work "
+            f"limit of {max_rays}",
         )
 
 

@@ -55,7 +55,7 @@ class Settings(BaseSettings):
     )
     max_work_rays: int = Field(
         10_000_000, gt=0, description="Largest estimate, in rays traced: iterations x rays_per_iteration x box scale x "
-        "starts x refinements (without a depth image: the RGB-only ones), with the choices and the covariance "
+        "starts x refinements (without a depth image: the RGB-only ones and the polish), with the choices and the covariance "
         "(EstimateOptions.max_rays; 422 above, before any work)."
     )
     header_timeout_s: float = Field(

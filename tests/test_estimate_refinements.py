@@ -17,7 +17,8 @@ from tests.test_estimate import ASSETS, CAMERA, TRUTH, SliderField, make_model, 
 
 pytest_plugins = ("conftest_model",)  # tiny_bundle, tiny_dataset (the CLI test)
 
-FAST = dict(iterations=30, rays_per_iteration=256, theta_starts=2, uncertainty=False, early_stop=False)
+# (rgb_polish off: these are the refinements' tests; tests/test_estimate_polish.py has the polish's)
+FAST = dict(iterations=30, rays_per_iteration=256, theta_starts=2, uncertainty=False, early_stop=False, rgb_polish=0)
 
 
 @pytest.fixture(scope="module")
@@ -104,14 +105,15 @@ def test_a_cancelled_refinement_ends_the_series(model, scene, monkeypatch):
     assert len(calls) == 1 and calls[0][0].shape[0] == 2
 
 
-def test_robust_refines_three_times_without_a_depth_image_and_once_with_one(model, scene, monkeypatch):
-    """The robust preset's ``rgb_refinements``: a view without a depth image gets 3 refinements and the
-    choice among them (``refinements`` may ask for more, not fewer); with a depth image (and the mask
-    trusted in full) one, as before."""
+def test_rgb_refinements_refine_three_times_without_a_depth_image_and_once_with_one(model, scene, monkeypatch):
+    """``rgb_refinements`` 3 (the robust preset's before its polish): a view without a depth image gets 3
+    refinements and the choice among them (``refinements`` may ask for more, not fewer); with a depth image
+    (and the mask trusted in full) one, as before. The robust preset now polishes instead."""
     T, image, mask, depth, T0 = scene
     calls = spy_on_choice(monkeypatch)
-    options = EstimateOptions.robust(**FAST)
-    assert options.rgb_refinements == 3 and options.refinements == 0
+    assert EstimateOptions.robust().rgb_refinements == 0 and EstimateOptions.robust().rgb_polish == estimate.RGB_POLISH
+    options = EstimateOptions.robust(rgb_refinements=3, **FAST)
+    assert options.refinements == 0
     rgb = refine(model, image, mask, CAMERA, T0, options=options, ground_truth=(T, TRUTH))
     assert len(calls) == 1 and calls[0][0].shape[0] == 3 and rgb.iterations == 3 * FAST["iterations"]
     calls.clear()
@@ -205,7 +207,7 @@ def test_max_rays_bounds_the_rays_traced_without_a_depth_image(model, scene, mon
     """Without a depth image the bound counts ``rgb_refinements`` runs of ``theta_starts`` (a partially
     trusted mask needs a depth, unless asked for) and the choice's rays; with one, as many runs as
     ``refinements``. The rays an RGB-only refinement renders stay within its bound."""
-    options = EstimateOptions.robust()
+    options = EstimateOptions.robust(rgb_refinements=3, rgb_polish=0)
     one = replace(options, rgb_refinements=0)
     loop = options.iterations * options.rays_per_iteration * estimate._MAX_BOX_SCALE
 
@@ -226,7 +228,7 @@ def test_max_rays_bounds_the_rays_traced_without_a_depth_image(model, scene, mon
     rays = []
     real = model.render_rays
     monkeypatch.setattr(model, "render_rays", lambda r, *a, **k: rays.append(len(r)) or real(r, *a, **k))
-    small = EstimateOptions.robust(**FAST)
+    small = EstimateOptions.robust(rgb_refinements=3, **FAST)
     refine(model, image, mask, CAMERA, T0, options=small)
     three = sum(rays)
     rays.clear()
@@ -258,8 +260,8 @@ def test_narf_estimate_takes_refinements(capsys, monkeypatch, tiny_bundle, tiny_
     seen, real = [], estimate.refine
     monkeypatch.setattr(estimate, "refine", lambda *a, options, **k: seen.append(options) or real(*a, options=options, **k))
     argv = estimate_argv(tiny_bundle, view.__wrapped__(tiny_dataset, tmp_path_factory), **{"--iterations": "1"})
-    # The default preset, auto, on a view without --depth: robust with its three refinements.
-    for extra, refinements in ((["--preset", "robust", "--refinements", "2"], (2, 2)), ([], (0, 3)),
+    # The default preset, auto, on a view without --depth: robust, one refinement (and its polish).
+    for extra, refinements in ((["--preset", "robust", "--refinements", "2"], (2, 2)), ([], (0, 0)),
                                (["--preset", "paper"], (0, 0))):
         code, _, err = run(capsys, *argv, *extra, "--json")
         assert code == 0 and (seen[-1].refinements, seen[-1].rgb_refinements) == refinements, err
@@ -270,14 +272,14 @@ def test_narf_estimate_takes_refinements(capsys, monkeypatch, tiny_bundle, tiny_
 
 
 def test_the_tracker_and_the_detector_refine_once_per_image_without_depth():
-    """A tracked frame, a re-initialisation and a detector's candidate keep one refinement without a depth
-    image or with a partly trusted mask (the robust preset's rgb_refinements and gauss-newton's refinements
-    are a single image's extra cost, not a frame's)."""
+    """A tracked frame, a re-initialisation and a detector's candidate keep one refinement, unpolished, without a
+    depth image or with a partly trusted mask (the robust preset's rgb_refinements and rgb_polish and
+    gauss-newton's refinements are a single image's extra cost, not a frame's)."""
     from narf_core.detect import DetectOptions
     from narf_core.track import TrackOptions
 
     track = TrackOptions()
     for options in (track.step_options(depth=False), track.step_options(depth=True), track.reinit_options(),
                     DetectOptions(preset="robust").refine_options(), DetectOptions(preset="gauss-newton").refine_options()):
-        assert options.rgb_refinements == 0 and options.refinements == 0
+        assert options.rgb_refinements == 0 and options.refinements == 0 and options.rgb_polish == 0
         assert options.max_rays(depth=False) <= options.max_rays(depth=True)

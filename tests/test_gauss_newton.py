@@ -740,7 +740,7 @@ def test_narf_estimate_takes_pose_starts(capsys, monkeypatch, tiny_bundle, tiny_
     code, out, err = run(capsys, *argv, "--json")
     assert code == 0 and seen[-1].pose_starts == 1, err
     chosen = json.loads(out)  # the default preset, auto, on a view without --depth
-    assert chosen["preset"] == "robust" and "no depth" in chosen["preset_reason"] and seen[-1].rgb_refinements == 3
+    assert chosen["preset"] == "robust" and "no depth" in chosen["preset_reason"] and seen[-1].rgb_polish == estimate.RGB_POLISH
     assert_error(capsys, "estimate", [*argv, "--pose-starts", "0"], "--pose-starts")
     assert_error(capsys, "estimate", [*argv, "--pose-starts", "12"], "pose_starts")
 

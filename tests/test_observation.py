@@ -153,8 +153,9 @@ def test_refine_reports_warnings_and_drops_a_depth_in_millimetres() -> None:
     assert clean.warnings == [] and clean.to_dict()["warnings"] == []
     bad = refine(model, image, mask, camera, T, depth=depth * 1000, options=options)
     assert _codes(bad.warnings) == ["depth_unit"]
-    # the bad depth was not used; a depth given but dropped keeps one refinement (the work bound was the depth's)
-    rgb_only = refine(model, image, mask, camera, T, options=EstimateOptions.preset("robust", iterations=3, rgb_refinements=0))
+    # the bad depth was not used; a depth given but dropped keeps one refinement and no polish (the work bound was
+    # the depth's)
+    rgb_only = refine(model, image, mask, camera, T, options=EstimateOptions.preset("robust", iterations=3, rgb_polish=0))
     assert np.allclose(bad.T_cam_obj, rgb_only.T_cam_obj) and bad.iterations == rgb_only.iterations
 
 

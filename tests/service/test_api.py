@@ -427,7 +427,7 @@ def test_the_preset_auto_is_resolved_per_view_and_named_in_the_response(service_
     assert "depth" in with_depth["preset_reason"] and "no depth" in without["preset_reason"]
     assert paper["preset_reason"] == "requested"
     assert [o.solver for o in seen] == ["gauss-newton", "adam", "adam"]
-    assert seen[0].depth_weight == EstimateOptions.preset("gauss-newton").depth_weight and seen[1].rgb_refinements == 3
+    assert seen[0].depth_weight == EstimateOptions.preset("gauss-newton").depth_weight and seen[1].rgb_polish == EstimateOptions.preset("robust").rgb_polish > 0
     assert seen[2] == EstimateOptions.preset("paper", iterations=5)
 
 

@@ -1,6 +1,6 @@
 """The service's work bound (``jobs.check_work``) knows whether the request carries a depth image: the
-robust preset refines an RGB-only view three times (``EstimateOptions.rgb_refinements``) and one with a
-depth once, so the same options may be refused without a depth image and admitted with one."""
+robust preset polishes an RGB-only view's estimate (``EstimateOptions.rgb_polish``) and not one with a
+depth, so the same options may be refused without a depth image and admitted with one."""
 
 from __future__ import annotations
 
@@ -29,10 +29,10 @@ def test_the_default_limit_admits_robust_and_gauss_newton_with_and_without_a_dep
     for options in (robust, EstimateOptions.gauss_newton(), EstimateOptions.gauss_newton(iterations=30)):
         for depth in (True, False):
             jobs.check_work(options, limit, "request.options", depth=depth)  # no 422
-    assert robust.max_rays(depth=False) > robust.max_rays(depth=True) * 1.4  # three runs of 4 starts vs one of 8
+    assert robust.max_rays(depth=False) > robust.max_rays(depth=True) * 1.4  # 4 starts and the polish vs 8 starts
 
 
-def test_the_bound_without_a_depth_image_counts_its_refinements() -> None:
+def test_the_bound_without_a_depth_image_counts_its_polish() -> None:
     options = EstimateOptions.robust(iterations=5)
     between = (options.max_rays(depth=True) + options.max_rays(depth=False)) // 2
     jobs.check_work(options, between, "request.options", depth=True)
