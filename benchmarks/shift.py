@@ -159,7 +159,7 @@ def run(
     config = {"conditions": list(conditions), "inputs": list(inputs), "splits": list(splits), "scenes": scenes,
               "scales": list(scales), "presets": list(presets), "size": list(size), "spp": spp,
               "iterations": iterations, "seed": seed, "ray_seeds": list(ray_seeds),
-              "overrides": overrides,
+              "overrides": overrides, "trained_on": {tool: trained_on(model) for tool, model in models.items()},
               "options": {p: asdict(_preset_options(p, iterations, **overrides)) for p in presets}}
     table, warnings = [], []
     for tool, model in models.items():
@@ -202,6 +202,14 @@ def run(
     return result
 
 
+def trained_on(model: NarfModel) -> str:
+    """The size of the views ``model`` was trained on (``WxH``, its bundle's ``training_camera``), or ``not
+    recorded``: a field trained on coarser views than the test's draws a softer outline, which without
+    depth moves the estimate along the line of sight (docs/benchmarks.md, session 48)."""
+    camera = model.metadata.get("training_camera")
+    return f"{camera['width']}x{camera['height']}" if camera else "not recorded"
+
+
 def _target(row: dict) -> str:
     """The issue's target for the row and whether it is met, or ``-``."""
     goal = TARGETS.get((row["condition"], row["input"])) if row["scale"] == 1 else None
@@ -235,7 +243,7 @@ def markdown(result: dict) -> str:
         f"Shifted test sets (Mitsuba path tracing at {c['size'][0]}x{c['size'][1]}, {c['spp']} spp, plus faults): "
         f"up to {c['scenes']} scenes per split, starts perturbed by ±10 deg / ≤ 2 cm times the scale, θ at "
         f"mid-range, {c['iterations']} iterations (a Gauss-Newton preset keeps its own count). `rgb`: no depth "
-        "given; `rgbd`: the (faulty) depth too." + describe_machine(result.get("machine")),
+        "given; `rgbd`: the (faulty) depth too." + _trained_sentence(c) + describe_machine(result.get("machine")),
         "",
         "| tool | condition | split | input | preset | scale | N | ADD (cm) | ADD < 1 cm | per joint "
         "| along / across view (cm) | s/scene | target |",
@@ -255,6 +263,14 @@ def markdown(result: dict) -> str:
         text = ", ".join(f"{code} {n}" for code, n in sorted(w["warnings"].items())) or "none"
         lines.append(f"| {w['tool']} | {w['condition']} | {w['frames']} | {text} |")
     return "\n".join(lines) + "\n"
+
+
+def _trained_sentence(config: dict) -> str:
+    """`` Models trained on views of: tool WxH, ...`` (with its leading space), or empty for results without it."""
+    trained = config.get("trained_on")
+    if not trained:
+        return ""
+    return " Models trained on views of: " + ", ".join(f"{tool} {size}" for tool, size in trained.items()) + "."
 
 
 def plot(result: dict, path: Path) -> None:

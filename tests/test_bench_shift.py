@@ -44,6 +44,23 @@ def test_targets_of_the_issue_are_checked() -> None:
     text = shift.markdown({"config": {"size": [640, 480], "spp": 16, "scenes": 3, "iterations": 150},
                            "table": [located], "warnings": []})
     assert "| jaw_opening 2.0 ± 1.0 mm | 0.30 / 0.05 | 2.00 |" in text
+    trained = {"size": [640, 480], "spp": 16, "scenes": 3, "iterations": 150,
+               "trained_on": {"clamp": "not recorded", "lineman-b": "320x240"}}
+    text = shift.markdown({"config": trained, "table": [located], "warnings": []})
+    assert "Models trained on views of: clamp not recorded, lineman-b 320x240." in text
+
+
+@pytest.mark.skipif(not MODEL.exists(), reason="no bundled demo model")
+def test_the_training_views_size_comes_from_the_bundle() -> None:
+    """The bundled clamp records no training camera; a bundle that does says its size."""
+    from dataclasses import replace
+
+    from narf_core.bundle import load_bundle
+
+    model = load_bundle(MODEL)
+    assert shift.trained_on(model) == "not recorded"
+    camera = {"width": 320, "height": 240, "fx": 268.25, "fy": 268.25}
+    assert shift.trained_on(replace(model, metadata={**model.metadata, "training_camera": camera})) == "320x240"
 
 
 @pytest.mark.skipif(not MODEL.exists(), reason="no bundled demo model")
