@@ -171,6 +171,9 @@ GN_ITERATIONS = 25  # the gauss-newton preset's Levenberg-Marquardt iterations (
 _POLISH_TOLERANCE = 1e-5
 _POLISH_PATIENCE = 2
 RGB_POLISH = 60  # the robust preset's rgb_polish (docs/benchmarks.md, session 47)
+# rgb_polish runs only where Adam's silhouette overlaps the mask at least this much (polish_overlap): exact masks
+# 0.95-0.99, a segmenter's and an occluder's 0.6-0.8 on path-traced 640x480 pliers (docs/benchmarks.md, session 48).
+POLISH_OVERLAP = 0.9
 GN_DEPTH_WEIGHT = 50.0  # the gauss-newton preset's depth_weight (see EstimateOptions.gauss_newton)
 GN_UNCERTAINTY_RAYS = 1024  # the gauss-newton preset's uncertainty_rays
 GN_POSE_STARTS = 9  # the gauss-newton preset's pose_starts, refined only below ...
@@ -251,9 +254,11 @@ class EstimateOptions:
     # Where the view comes without a depth image (as above), at most this many Levenberg-Marquardt iterations
     # after Adam's iterations (none: none), from its estimate, on one fixed set of up to polish_rays box rays and
     # Adam's loss; the estimate of lower loss is kept (_polished). 0 = off. Adam only (gauss-newton is that
-    # solver already).
+    # solver already). Only where Adam's silhouette overlaps the mask (intersection over union) at least
+    # polish_overlap (0 = always).
     rgb_polish: int = 0
     polish_rays: int = 16384
+    polish_overlap: float = POLISH_OVERLAP
     # Rays of an iteration: "uniform" (independent draws over the box), "stratified" (one per cell of a
     # grid over the box), "edges" (half drawn on silhouette edges and texture, half uniform) or
     # "auto" (uniform in a box up to reference_box_px, edges in a larger one).
@@ -347,6 +352,7 @@ class EstimateOptions:
         need(self.rgb_polish == 0 or self.solver == "adam", "rgb_polish",
              "is for the adam solver (gauss-newton's iterations are the polish)")
         need(self.polish_rays >= 16, "polish_rays", "must be >= 16")
+        need(0 <= self.polish_overlap <= 1, "polish_overlap", "must be in [0, 1] (0 = always polish)")
         need(self.reference_box_px >= 0, "reference_box_px", "must be >= 0 (0 = off)")
         need(self.ray_sampling in RAY_SAMPLINGS, "ray_sampling", f"must be one of {', '.join(RAY_SAMPLINGS)}")
         need(self.uncertainty_rays >= 16, "uncertainty_rays", "must be >= 16")
@@ -484,11 +490,12 @@ class EstimateOptions:
 
     def _polish_rays(self) -> int:
         """The rays of ``rgb_polish`` (:func:`_polished`): every iteration's linearisation and its longest
-        series of trial steps on ``polish_rays`` rays, and the choice of both estimates."""
+        series of trial steps on ``polish_rays`` rays, the overlap that lets it run, and the choice of both
+        estimates."""
         from narf_core.gauss_newton import _POLISH_STEP_FACTORS, _STEP_FACTORS
 
         steps = max(len(_POLISH_STEP_FACTORS), len(_STEP_FACTORS))
-        return self.rgb_polish * self.polish_rays * (1 + steps) + 2 * self.eval_rays if self.rgb_polish else 0
+        return self.rgb_polish * self.polish_rays * (1 + steps) + 3 * self.eval_rays if self.rgb_polish else 0
 
     def _gauss_newton_run_rays(self, starts: int, scale: int) -> int:
         """The rays of one ``GaussNewtonRun`` from ``starts`` rows (narf_core/gauss_newton.py), after the
@@ -1724,15 +1731,21 @@ def _polished(
     of up to ``polish_rays`` uniform box rays and Adam's own loss (Gauss-Newton sums the three colour channels
     where Adam averages them: the silhouette weighs three times as much there). Returns the final choice of the
     two estimates on the same rays; ``run`` (Adam's) takes the polish's iterations, trace and history, and the
-    status a ``should_stop`` gave it.
+    status a ``should_stop`` gave it. Adam's estimate stands, unpolished, where its silhouette overlaps the mask
+    less than ``polish_overlap`` (:func:`_silhouette_overlap`).
 
     Why: without depth the distance along the line of sight and a turn out of the image plane trade against
     each other in a long, shallow valley. Adam's steps, drawn from a few thousand random rays each, stop in
     it centimetres from the truth while the loss on every pixel still falls towards it; the polish's steps
-    follow the valley, on enough rays that its bottom is the loss's over the whole box (docs/benchmarks.md)."""
+    follow the valley, on enough rays that its bottom is the loss's over the whole box (docs/benchmarks.md). A mask
+    that no pose explains (a segmenter's blob or miss, an occluder) puts that bottom where the silhouette shrinks to
+    fit it, decimetres further along the line of sight: there the polish, weighing the silhouette three times, would
+    follow it."""
     from narf_core.gauss_newton import GaussNewtonRun, Problem
 
     row, _, replaced = final
+    if opts.polish_overlap > 0 and _silhouette_overlap(loss_fn, obs, camera, param, row) < opts.polish_overlap:
+        return final
     o = replace(opts, solver="gauss-newton", iterations=opts.rgb_polish, rays_per_iteration=opts.polish_rays,
                 ray_sampling="uniform", silhouette_weight=3 * opts.silhouette_weight, tolerance=_POLISH_TOLERANCE,
                 patience=_POLISH_PATIENCE, early_stop=True, rgb_polish=0)

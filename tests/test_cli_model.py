@@ -268,8 +268,9 @@ def test_estimate_json_with_ground_truth_reports_add(capsys, tiny_bundle, view):
     r = json.loads(stdout)
     assert np.asarray(r["pose"]["matrix"]).shape == (4, 4) and len(r["pose"]["orientation"]) == 4
     assert set(r["joints"]) == {"pivot"} and 0.0 <= r["joints"]["pivot"] <= 0.6
-    # The default preset, auto, without --depth: robust, whose Adam iterations its polish follows.
-    assert r["preset"] == "robust" and 4 < r["iterations"] <= 4 + RGB_POLISH and r["status"] in ("converged", "max_iterations")
+    # The default preset, auto, without --depth: robust, whose Adam iterations its polish follows where Adam's
+    # silhouette explains the mask (not after these 4).
+    assert r["preset"] == "robust" and 4 <= r["iterations"] <= 4 + RGB_POLISH and r["status"] in ("converged", "max_iterations")
     metrics = r["metrics"]
     assert 0 <= metrics["add"] < 0.1  # metres: 1.2 cm off at the start; the tiny model's loss is least centimetres off
     assert "add_s" in metrics and np.isfinite(metrics["add_s"])

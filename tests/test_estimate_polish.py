@@ -14,9 +14,10 @@ from narf_core.gauss_newton import _POLISH_STEP_FACTORS, _STEP_FACTORS
 from tests.test_estimate import CAMERA, TRUTH
 from tests.test_estimate_refinements import model, scene  # noqa: F401 (the toy and its view 8 deg / 1.2 cm off)
 
-# Adam stopped early and short: 6 iterations from 8 deg / 1.2 cm off leave the estimate millimetres away.
+# Adam stopped early and short: 6 iterations from 8 deg / 1.2 cm off leave the estimate millimetres away, its
+# silhouette still off the mask (overlap 0.74), so the polish is let run whatever the overlap.
 SHORT = dict(iterations=6, rays_per_iteration=256, theta_starts=1, rgb_refinements=1, uncertainty=False,
-             early_stop=False)
+             early_stop=False, polish_overlap=0.0)
 
 
 def test_the_polish_takes_adam_s_estimate_to_the_bottom_of_the_loss(model, scene):
@@ -80,12 +81,33 @@ def test_a_cancelled_polish_returns_the_better_estimate_so_far_and_says_so(model
     assert np.isfinite(result.T_cam_obj).all()
 
 
+def test_a_mask_the_render_cannot_explain_is_not_polished(model, scene):
+    """After 40 Adam iterations the silhouette explains the exact mask (overlap 0.95) and the polish runs. With
+    half the mask cut away (an occluder, a segmenter's miss) Adam's silhouette overlaps it far less than
+    ``polish_overlap``, and the polish, which would shrink the silhouette onto it, does not run; told to run
+    whatever the overlap (0), it does."""
+    _, image, mask, _, T0 = scene
+    options = EstimateOptions.robust(rgb_polish=40, polish_rays=2048, **{**SHORT, "iterations": 40})
+    options = replace(options, polish_overlap=EstimateOptions().polish_overlap)
+    assert options.polish_overlap == 0.9
+    assert refine(model, image, mask, CAMERA, T0, options=options).iterations > 40
+    cut = mask.copy()
+    columns = np.nonzero(mask.any(axis=0))[0]
+    cut[:, (columns[0] + columns[-1]) // 2:] = False
+    kept = refine(model, image, cut, CAMERA, T0, options=options)
+    adam = refine(model, image, cut, CAMERA, T0, options=replace(options, rgb_polish=0))
+    assert kept.iterations == adam.iterations == 40
+    assert np.array_equal(kept.T_cam_obj, adam.T_cam_obj)
+    forced = refine(model, image, cut, CAMERA, T0, options=replace(options, polish_overlap=0.0))
+    assert forced.iterations > 40
+
+
 def test_max_rays_bounds_the_rays_a_polished_refinement_traces(model, scene, monkeypatch):
     _, image, mask, _, T0 = scene
     options = EstimateOptions.robust(rgb_polish=40, polish_rays=2048, **SHORT)
     plain = replace(options, rgb_polish=0)
     steps = max(len(_POLISH_STEP_FACTORS), len(_STEP_FACTORS))
-    assert options.max_rays(depth=False) == plain.max_rays(depth=False) + 40 * 2048 * (1 + steps) + 2 * options.eval_rays
+    assert options.max_rays(depth=False) == plain.max_rays(depth=False) + 40 * 2048 * (1 + steps) + 3 * options.eval_rays
     assert options.max_rays(depth=True) == plain.max_rays(depth=True)
     rays = []
     real = model.render_rays
@@ -100,6 +122,7 @@ def test_max_rays_bounds_the_rays_a_polished_refinement_traces(model, scene, mon
         (dict(rgb_polish=-1), "options.rgb_polish must be in [0, 1000]"),
         (dict(rgb_polish=10, solver="gauss-newton"), "options.rgb_polish is for the adam solver"),
         (dict(polish_rays=8), "options.polish_rays must be >= 16"),
+        (dict(polish_overlap=1.5), "options.polish_overlap must be in [0, 1]"),
     ],
 )
 def test_bad_polish_options_are_refused(kwargs, message):
