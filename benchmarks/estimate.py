@@ -36,6 +36,7 @@ import torch
 from narf_benchmarks.checkpoint import SceneLog, remove_logs, scene_log
 from narf_benchmarks.load import describe_machine, machine
 from narf_core.bundle import NarfModel, load_bundle
+from narf_core.cli import option_overrides
 from narf_core.data.dataset import Dataset, Frame
 from narf_core.estimate import PRESETS, UNOBSERVED_CODE, EstimateOptions, EstimateResult, chi2_quantile, refine
 from narf_core.geometry import so3_exp, transform_points
@@ -552,16 +553,19 @@ def run_arguments(args: argparse.Namespace) -> dict:
                                 ("modes", tuple(getattr(args, "modes", None) or ()))) if v}
     if getattr(args, "seed", None) is not None:
         chosen["seed"] = args.seed
-    if getattr(args, "pose_starts", None) is not None:
-        chosen["overrides"] = {"pose_starts": args.pose_starts}
+    overrides = {} if getattr(args, "pose_starts", None) is None else {"pose_starts": args.pose_starts}
+    overrides.update(option_overrides(getattr(args, "set", None) or []))
+    if overrides:
+        chosen["overrides"] = overrides
     return chosen
 
 
 def main(args: argparse.Namespace) -> int:
     """``narf bench estimate``: ``args`` has ``work``, ``tools``, ``noise``, ``quick``, ``models``, ``json``
     and optionally ``presets``, ``scales`` (the perturbation sweep), ``scenes`` (per split), ``modes`` (the
-    render modes), ``seed`` (the frames, the starts and the refiner's) and ``pose_starts`` (every preset's
-    option)."""
+    render modes), ``seed`` (the frames, the starts and the refiner's), ``pose_starts`` (every preset's
+    option) and ``set`` (``--set``: any option of every preset, over ``pose_starts``)."""
+    chosen = run_arguments(args)  # a bad --set is refused before any data is made
     if args.tools:
         tools = tuple(args.tools)
     elif args.quick:
@@ -584,6 +588,6 @@ def main(args: argparse.Namespace) -> int:
         raise ValueError(f"no model to benchmark: {args.models} has no bundled model for {names}")
     if missing:
         print(f"narf bench estimate: skipping {', '.join(missing)}: no bundled model in {args.models}", file=sys.stderr)
-    result = run(models, datasets, out_dir=args.work / "estimate", quick=args.quick, **run_arguments(args))
+    result = run(models, datasets, out_dir=args.work / "estimate", quick=args.quick, **chosen)
     print(json.dumps(result, indent=1) if args.json else markdown(result))
     return 0

@@ -1060,6 +1060,9 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     which.choices["estimate"].add_argument("--pose-starts", type=_positive_int, metavar="N",
                                            help="every preset's pose_starts: the given pose and N - 1 turned by 30 deg "
                                                 "(at most 11; default: each preset's, 1)")
+    which.choices["estimate"].add_argument("--set", action="append", default=[], metavar="OPTION=JSON",
+                                           help="override a refiner option in every preset, e.g. --set slide_share=0 "
+                                                "(repeatable; over --pose-starts)")
     which.choices["estimate"].add_argument("--seed", type=_non_negative_int, metavar="S",
                                            help="the scenes, their perturbed starts and the refiner's rays (default: 0)")
     which.choices["estimate"].add_argument("--modes", nargs="+", choices=MODES[1:], metavar="MODE",

@@ -324,7 +324,8 @@ class TrackOptions:
 
     def step_options(self, depth: bool, device: torch.device | str = "cpu") -> EstimateOptions:
         """The refiner's options for a warm-started frame on a model on ``device`` (from the prediction
-        alone: a frame that misses is the re-initialisation's to find, so no pose starts)."""
+        alone: a frame that misses is the re-initialisation's to find, so no pose starts and no slide along
+        the object's axis)."""
         solver = self.solver_for(depth)
         iterations, rays = BUDGETS[solver]
         if not depth:
@@ -341,7 +342,7 @@ class TrackOptions:
                   "uncertainty_usual_silhouette": self.usual_silhouette if depth else 0.0,
                   "uncertainty_trained_footprint": depth,
                   "occlusion_margin": self.occlusion_margin, "refinements": 0, "rgb_refinements": 0, "rgb_polish": 0,
-                  "pose_starts": 1, "search_theta_starts": 0}
+                  "pose_starts": 1, "search_theta_starts": 0, "slide_share": 0.0}
         if depth:
             common.update(mask_trust=DEPTH_MASK_TRUST)
         elif self.outside_weight_rgb < 1:

@@ -504,6 +504,7 @@ def test_estimate_bad_request_part(client, observation, service_model) -> None:
         (json.dumps(estimate_request(options={"rays_per_iteration": 0})), 422, "request.options.rays_per_iteration", ""),
         (json.dumps(estimate_request(options={"learning_rate": 1})), 422, "request.options.learning_rate", "Extra"),
         (json.dumps(estimate_request(options={"preset": "fast"})), 422, "request.options.preset", "paper"),
+        (json.dumps(estimate_request(options={"slide_share": 0.5})), 422, "request.options.slide_share", "[0, 0.25]"),
         (json.dumps(estimate_request(ground_truth={"pose": pose_json()})), 422, "request.ground_truth.joints", "missing"),
         (json.dumps(estimate_request(camera=camera_json(4096, 4096))), 413, "request.camera", "pixels"),
         (json.dumps(estimate_request(initial_pose={"matrix": [[1, 0, 0, 0]] * 4})), 422, "request.initial_pose.matrix", ""),
