@@ -284,9 +284,10 @@ class EstimateOptions:
     # union on eval_rays box rays: _silhouette_overlap) once more from the pose starts (_turned_rows), the
     # estimate of lower loss kept (_adaptive_refinement). 0: every pose start from the beginning.
     pose_starts_overlap: float = 0.0
-    # > 0: the estimate slid along the object's longest box axis by ± this share of that axis's length and by
-    # twice that is scored on eval_rays box rays, and where a slid copy scores lower than the estimate, one
-    # more refinement runs from the lowest; the estimate of lower loss is kept (_slid_refinement). 0 = off.
+    # > 0: where the mask is trusted only partially (mask_trust), the estimate slid along the object's longest
+    # box axis by ± this share of that axis's length and by twice that is scored on eval_rays box rays, and where
+    # a slid copy scores lower than the estimate, one more refinement runs from the lowest; the estimate of
+    # lower loss is kept (_slid_refinement). 0 = off.
     slide_share: float = 0.0
     # Every θ start's given pose replaced by its copy moved onto the mask's centroid and the observed depth
     # (_aligned) where that copy scores lower on the pose starts' rays: for a start centimetres off along
@@ -464,7 +465,7 @@ class EstimateOptions:
         if self.solver != "gauss-newton":  # the runs inside the estimate (_best_refinement)
             work = self._estimate_rays(theta_starts,
                                        lambda starts: self._adam_rays(self.iterations, starts, scale, runs))
-            slide = self._slide_rays(self._adam_rays(self.iterations, 1, scale, runs))
+            slide = self._slide_rays(self._adam_rays(self.iterations, 1, scale, runs)) if partial else 0
             return scoring + work + slide + (0 if depth else self._polish_rays()) + covariance
         estimates = _gauss_newton_estimates(replace(self, mask_trust="partial" if partial else "full"), runs)
         work = sum(o._estimate_rays(theta_starts, lambda starts, o=o: o._gauss_newton_run_rays(starts, scale))
@@ -472,12 +473,13 @@ class EstimateOptions:
         several = len(estimates) > 1
         check = self.eval_rays if several and self.pose_starts_overlap > 0 else 0  # _best_gauss_newton's
         choice = len(estimates) * _CHOICE_RAYS if several else 0  # _lowest_run among the estimates
-        slide = self._slide_rays(self._gauss_newton_run_rays(1, scale))
+        slide = self._slide_rays(self._gauss_newton_run_rays(1, scale)) if partial else 0
         return scoring + work + check + choice + slide + covariance
 
     def _slide_rays(self, refinement: int) -> int:
-        """The rays of ``slide_share`` (:func:`_slid_refinement`): the estimate's and its four slid copies' scoring,
-        one more refinement (``refinement`` rays, from one start) and the choice between both estimates."""
+        """The rays of ``slide_share`` (:func:`_slid_refinement`, where the mask is trusted partially): the
+        estimate's and its four slid copies' scoring, one more refinement (``refinement`` rays, from one start) and
+        the choice between both estimates."""
         return (5 + 4) * self.eval_rays + refinement if self.slide_share > 0 else 0
 
     def _estimate_rays(self, theta_starts: int, refinement: Callable[[int], int]) -> int:
@@ -1672,7 +1674,7 @@ def refine(
         run, final = _best_gauss_newton(estimate, opts, count, loss_fn, obs, camera, param)
     else:
         run, final = estimate(opts)
-    if opts.slide_share > 0 and final is not None and run.status in ("max_iterations", "converged"):
+    if opts.slide_share > 0 and partial and final is not None and run.status in ("max_iterations", "converged"):
         run, final = _slid_refinement(lambda starts: refinement(opts, starts), loss_fn, obs, camera, param, run, final)
     if rgb_only and opts.rgb_polish > 0 and opts.iterations > 0 and final is not None \
             and run.status in ("max_iterations", "converged"):  # (no iterations: the start itself is asked for)
@@ -1865,12 +1867,14 @@ def _slid_refinement(
     the object's longest axis (:func:`_slid_rows`) are scored on the same ``eval_rays`` box rays; where a copy
     scores lower, one more refinement (``refinement(start rows)`` runs one and returns it and its last
     parameters) from the lowest copy, and the estimate of lower loss is kept (:func:`_second_refinement`).
-    Returns ``run`` and ``final`` where no copy scored lower.
+    Returns ``run`` and ``final`` where no copy scored lower. Only where the mask is trusted partially.
 
     Why: a long, thin tool whose one end an occluder hides and whose other end a segmenter's blob extends
     is pulled along its own axis, where neither the depth of its flat surface nor the silhouette's long sides
     resist; the refinement stops centimetres along it, in a minimum the truth's loss undercuts
-    (docs/benchmarks.md). No start near the estimate leads back: the pose starts turn about the centre."""
+    (docs/benchmarks.md). No start near the estimate leads back: the pose starts turn about the centre. An
+    exact mask's outline holds both ends: there a copy that scores lower finds another minimum of the model's
+    own error as often as the truth."""
     opts = loss_fn.options
     rows = torch.cat([final[0], _slid_rows(loss_fn.model, param, final[0].cpu().double(), opts.slide_share).to(final[0])])
     losses = _fixed_rays_loss(loss_fn, obs, camera, param, rows, torch.Generator().manual_seed(opts.seed))

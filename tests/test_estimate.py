@@ -741,10 +741,10 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     assert every.max_rays() == scoring + run(8) + 2 * 8 * gauss.eval_rays + covariance
     choices = (2 * 4 + 1 + 2 * (1 + 8)) * gauss.eval_rays  # the first run's rows, the check, both estimates' rows
     assert gauss.max_rays() == scoring + run(4) + run(8) + choices + covariance
-    # The slide: the estimate and its four slid copies scored, one more refinement from one start and the
-    # choice between both estimates.
+    # The slide, only where the mask is trusted partially (below): the estimate and its four slid copies scored,
+    # one more refinement from one start and the choice between both estimates.
     slide = 9 * gauss.eval_rays + run(1)
-    assert replace(gauss, slide_share=0.05).max_rays() == gauss.max_rays() + slide
+    assert replace(gauss, slide_share=0.05).max_rays() == gauss.max_rays()
     # Two whole estimates (refinements), the second on edge rays from the given pose alone (4 starts, no pose
     # starts), the overlap check before it and the choice between them: counted with a depth image too (one
     # found unusable leaves the view without). A fully trusted mask has no third kind of estimate.
@@ -761,8 +761,8 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     assert preset.max_rays() == 3 * 8 * 1024 + 2 * partial + edges + gauss.eval_rays + 3 * 16384 + slide + covariance
     # Without one, the bound counts the 8 starts of an object whose configuration search runs (three joints or more).
     assert preset.search_theta_starts == 8
-    assert preset.max_rays(depth=False) == replace(two, theta_starts=8).max_rays(depth=False) + slide
-    assert replace(preset, theta_search=0).max_rays(depth=False) == two.max_rays(depth=False) + slide
+    assert preset.max_rays(depth=False) == replace(two, theta_starts=8).max_rays(depth=False)
+    assert replace(preset, theta_search=0).max_rays(depth=False) == two.max_rays(depth=False)
 
 
 @pytest.mark.parametrize("preset", ["paper", "robust"])
@@ -809,8 +809,7 @@ def test_max_rays_bounds_every_ray_a_gauss_newton_refinement_traces(model, monke
     assert traced <= options.max_rays()
     if starts == "one":
         trial_steps = [n for n, _, grad in calls if not grad and n == options.rays_per_iteration]
-        # 12 iterations leave it centimetres off: a slid copy scores lower, and the slide refines once more
-        assert result.iterations == 2 * options.iterations <= len(trial_steps)
+        assert result.iterations == options.iterations <= len(trial_steps)
         assert traced > options.iterations * options.rays_per_iteration  # what one render per iteration would be
     elif starts == "the preset's":
         assert turns == [options.theta_starts] and result.iterations == 2 * options.iterations  # both refinements

@@ -19,9 +19,10 @@ from tests.test_estimate import CAMERA, TRUTH, loss_problem, make_model, observe
 LENGTH = 0.18  # the toy's box along x, its longest side
 # One Levenberg-Marquardt iteration damped so hard that it barely moves: the refinement ends where it starts, as
 # one stuck in a minimum along the axis does; the pose starts and the other estimates are off, so that only the
-# slide's second refinement can move it (align_start, which would move the start onto the mask, is off too).
+# slide's second refinement can move it (align_start, which would move the start onto the mask, is off too). The
+# mask is trusted partially, as where a depth image contradicts it (the slide runs only there), with one θ start.
 STUCK = dict(iterations=1, damping=1e6, uncertainty=False, theta_starts=1, pose_starts=1, refinements=1,
-             align_start=False)
+             align_start=False, mask_trust="partial", partial_theta_starts=1)
 
 
 @pytest.fixture(scope="module")
@@ -85,10 +86,26 @@ def test_an_estimate_no_copy_undercuts_is_returned_unchanged(model, monkeypatch)
     assert np.array_equal(on.T_cam_obj, off.T_cam_obj) and on.joints == off.joints and on.iterations == off.iterations
 
 
-def test_the_slide_is_counted_in_max_rays_and_its_share_is_bounded():
+def test_a_fully_trusted_mask_is_not_slid(model, monkeypatch):
+    """The stuck estimate of the test above with the mask trusted in full (its outline holds both ends): no copy
+    is scored, and the estimate is the one without the option, to the bit."""
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    options = EstimateOptions.gauss_newton(**{**STUCK, "mask_trust": "full"})
+    scored = []
+    monkeypatch.setattr(estimate, "_slid_rows", lambda *a: scored.append(1))
+    start = slid(T, 2 * 0.05 * LENGTH)
+    full = refine(model, image, mask, CAMERA, start, joints_init=TRUTH, depth=depth, options=options)
+    off = refine(model, image, mask, CAMERA, start, joints_init=TRUTH, depth=depth, options=replace(options, slide_share=0))
+    assert not scored and np.array_equal(full.T_cam_obj, off.T_cam_obj)
+
+
+def test_the_slide_is_counted_in_max_rays_where_the_mask_may_be_trusted_partially_and_its_share_is_bounded():
     on, off = EstimateOptions.gauss_newton(), EstimateOptions.gauss_newton(slide_share=0)
-    assert on.max_rays() > off.max_rays()
-    assert EstimateOptions.robust(slide_share=0.05).max_rays(False) > EstimateOptions.robust().max_rays(False)
+    assert on.max_rays() > off.max_rays()  # with a depth image "auto" may trust the mask partially
+    assert on.max_rays(depth=False) == off.max_rays(depth=False)  # without one it trusts it in full
+    partial = EstimateOptions.robust(mask_trust="partial")
+    assert replace(partial, slide_share=0.05).max_rays(False) > partial.max_rays(False)
     for bad in (-0.01, 0.3):
         with pytest.raises(EstimateInputError, match=re.escape("options.slide_share must be in [0, 0.25]")):
             EstimateOptions(slide_share=bad)
