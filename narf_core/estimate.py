@@ -1016,6 +1016,15 @@ class _Parameterisation:
     def thetas(self, p: Tensor) -> Tensor:
         return self.mid + self.half * torch.sin(p[:, 6:])
 
+    def moved(self, p: Tensor, shift: Tensor) -> Tensor:
+        """The rows ``p [R, 6 + k]`` with their poses moved by ``shift [R, 3]`` metres in the camera frame."""
+        T_shift = torch.eye(4, dtype=torch.float64).repeat(len(p), 1, 1)
+        T_shift[:, :3, 3] = shift
+        xi = se3_log(T_shift @ se3_exp(torch.cat([p[:, :3] * self.radius, p[:, 3:6]], -1)))  # the centre frame
+        out = p.clone()
+        out[:, :3], out[:, 3:6] = xi[:, :3] / self.radius, xi[:, 3:6]
+        return out
+
     def joints(self, model: NarfModel, theta: Tensor) -> dict[str, float]:
         """``θ [k]`` as ``{joint: value}``, rounding kept inside the limits."""
         inside = torch.minimum(torch.maximum(theta.detach(), self.mid - self.half), self.mid + self.half)
@@ -1308,12 +1317,7 @@ def _aligned(
     lateral = [(centre[:, i] / z + offset[:, i] / K[i, i]) * z_new - centre[:, i] for i in (0, 1)]  # the ray moves with it
     shift = torch.stack([*lateral, z_new - z], -1)
     shift = torch.where((drawn > 0.5)[:, None], shift, torch.zeros_like(shift))
-    moved = torch.eye(4, dtype=torch.float64).repeat(n_rows, 1, 1)
-    moved[:, :3, 3] = shift
-    xi = se3_log(moved @ se3_exp(torch.cat([rows[:, :3] * param.radius, rows[:, 3:6]], -1)))  # the centre frame
-    out = rows.clone()
-    out[:, :3], out[:, 3:6] = xi[:, :3] / param.radius, xi[:, 3:6]
-    return out
+    return param.moved(rows, shift)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1846,12 +1850,7 @@ def _slid_rows(model: NarfModel, param: _Parameterisation, row: Tensor, share: f
     axis = int(extent.argmax())
     steps = torch.tensor([-2.0, -1.0, 1.0, 2.0], dtype=torch.float64) * share * float(extent[axis])
     R = param.poses(row)[0, :3, :3]
-    moved = torch.eye(4, dtype=torch.float64).repeat(len(steps), 1, 1)
-    moved[:, :3, 3] = steps[:, None] * R[:, axis]  # the object's axis in the camera frame
-    xi = se3_log(moved @ se3_exp(torch.cat([row[:, :3] * param.radius, row[:, 3:6]], -1)))  # the centre frame
-    out = row.repeat(len(steps), 1)
-    out[:, :3], out[:, 3:6] = xi[:, :3] / param.radius, xi[:, 3:6]
-    return out
+    return param.moved(row.repeat(len(steps), 1), steps[:, None] * R[:, axis])  # the object's axis in the camera frame
 
 
 def _slid_refinement(
