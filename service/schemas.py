@@ -241,8 +241,8 @@ _REFINE_OPTIONS: dict[str, tuple[str, dict[str, float]]] = {
     "outside_weight": ("Partial trust: weight of the rays outside the mask", {}),
     "pose_starts": ("Pose starts scored before refining (1 = the given pose only)", {}),
     "pose_spread_deg": ("Degrees the other pose starts are turned by", {}),
-    "slide_share": ("Refine once more from the estimate slid along the object's longest axis by this share of its "
-                    "length (and twice it) where a slid copy scores lower; 0 = off", {}),
+    "slide_share": ("Where the mask is trusted partially: refine once more from the estimate slid along the object's "
+                    "longest axis by this share of its length (and twice it) where a slid copy scores lower; 0 = off", {}),
     "adam_iterations": ("gauss-newton: Adam iterations first", {"le": 100_000}),
     "uncertainty": ("Return the covariance of the estimate", {}),
     "sigma_floor_position": ("Model error added to Σ, metres", {"le": 10}),
