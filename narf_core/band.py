@@ -79,28 +79,68 @@ def depth_band(
     z = points_cam[..., 2]
     if N == 0 or not bool((z > 1e-3).all()) or not bool(torch.isfinite(points_cam).all()):
         return None
+    grid = _CellGrid(points_cam, camera, spacing_m)
+    h, w = grid.shape
     K = camera.K.detach().double().cpu()
-    f = float(max(K[0, 0], K[1, 1]))
-    cell = max(1.0, spacing_m * f / float(z.min()))  # pixels per cell: the points' spacing at the nearest point
-    uv = (points_cam @ K.T)[..., :2] / z[..., None]  # [S, N, 2]
     d = rays_cam.directions.detach().double().cpu()
     ray_uv = (d @ K.T)[:, :2] / d[:, 2:3]  # [n, 2]
-    ci = torch.floor(uv / cell).long()  # [S, N, 2] cell (column, row) of every point
-    lo = ci.amin(dim=(0, 1)) - 1
-    hi = ci.amax(dim=(0, 1)) + 1
-    w, h = int(hi[0] - lo[0]) + 1, int(hi[1] - lo[1]) + 1
-    flat = (torch.arange(S)[:, None] * (h * w) + (ci[..., 1] - lo[1]) * w + (ci[..., 0] - lo[0])).reshape(-1)
-    z_min = torch.full((S * h * w,), math.inf, dtype=torch.float64).scatter_reduce(0, flat, z.reshape(-1), "amin")
-    z_max = torch.full((S * h * w,), -math.inf, dtype=torch.float64).scatter_reduce(0, flat, z.reshape(-1), "amax")
-    z_min = -F.max_pool2d(-z_min.reshape(S, 1, h, w), 3, stride=1, padding=1).reshape(S, h * w)
-    z_max = F.max_pool2d(z_max.reshape(S, 1, h, w), 3, stride=1, padding=1).reshape(S, h * w)
-    rc = torch.floor(ray_uv / cell).long() - lo  # [n, 2]
+    z_min = grid.nearest(z, torch.ones_like(z, dtype=torch.bool))
+    z_max = -grid.nearest(-z, torch.ones_like(z, dtype=torch.bool))
+    rc = torch.floor(ray_uv / grid.cell).long() - grid.lo  # [n, 2]
     inside = (rc[:, 0] >= 0) & (rc[:, 0] < w) & (rc[:, 1] >= 0) & (rc[:, 1] < h) & (d[:, 2] > 0)
     at = (rc[:, 1].clamp(0, h - 1) * w + rc[:, 0].clamp(0, w - 1))[None].expand(S, -1)
     near, far = z_min.gather(1, at) - margin, z_max.gather(1, at) + margin
     hit = inside[None] & torch.isfinite(near) & torch.isfinite(far)
     zero = torch.zeros_like(near)
     return torch.where(hit, near.clamp_min(0), zero), torch.where(hit, far, zero)
+
+
+class _CellGrid:
+    """The image cut into square cells of the points' spacing ``spacing_m`` on the surface as seen at the
+    nearest of the points ``points_cam [S, N, 3]`` (camera frame, every z > 0), one grid per pose, with a
+    border of one cell."""
+
+    def __init__(self, points_cam: Tensor, camera: Pinhole, spacing_m: float):
+        S, N = points_cam.shape[:2]
+        z = points_cam[..., 2]
+        K = camera.K.detach().double().cpu()
+        f = float(max(K[0, 0], K[1, 1]))
+        self.cell = max(1.0, spacing_m * f / float(z.min()))  # pixels per cell
+        uv = (points_cam @ K.T)[..., :2] / z[..., None]  # [S, N, 2]
+        ci = torch.floor(uv / self.cell).long()  # [S, N, 2] cell (column, row) of every point
+        self.lo = ci.amin(dim=(0, 1)) - 1
+        hi = ci.amax(dim=(0, 1)) + 1
+        w, h = int(hi[0] - self.lo[0]) + 1, int(hi[1] - self.lo[1]) + 1
+        self.shape, self.poses = (h, w), S
+        self.flat = (torch.arange(S)[:, None] * (h * w) + (ci[..., 1] - self.lo[1]) * w + (ci[..., 0] - self.lo[0]))
+
+    def nearest(self, value: Tensor, use: Tensor, pool: int = 3) -> Tensor:
+        """``[S, h*w]``: per cell the least ``value [S, N]`` of the points ``use [S, N]`` (bool) in the
+        ``pool`` x ``pool`` cells around it (``inf`` where there are none)."""
+        (h, w), S = self.shape, self.poses
+        least = torch.full((S * h * w,), math.inf, dtype=torch.float64)
+        least = least.scatter_reduce(0, self.flat[use], value[use].double(), "amin")
+        return -F.max_pool2d(-least.reshape(S, 1, h, w), pool, stride=1, padding=pool // 2).reshape(S, h * w)
+
+
+def hidden_points(points_cam: Tensor, camera: Pinhole, spacing_m: float, occluders: Tensor) -> Tensor:
+    """``[k, N]`` bool: for each of the ``k`` sets of ``occluders [k, N]`` (bool) among the surface points
+    ``points_cam [N, 3]`` (camera frame), whether a point of the set lies more than ``spacing_m`` nearer
+    the camera in a point's own cell (cells as in :func:`depth_band`): the point is behind another part.
+    Not the neighbouring cells too: those would hide the sliver of a part that shows past another's edge
+    (a drawer's front under the one above, pulled out). Points behind the camera's plane neither hide nor
+    are hidden."""
+    k, N = occluders.shape
+    front = points_cam[:, 2] > 1e-3
+    out = torch.zeros(k, N, dtype=torch.bool)
+    if not bool(front.any()) or spacing_m <= 0:
+        return out
+    grid = _CellGrid(points_cam[front][None], camera, spacing_m)
+    z = points_cam[front, 2]
+    for j in range(k):
+        nearest = grid.nearest(z[None], occluders[j, front][None], pool=1)[0]
+        out[j, front] = nearest[grid.flat[0]] < z - spacing_m
+    return out
 
 
 def ray_band(

@@ -678,7 +678,7 @@ def unobserved_joints(model: NarfModel, uncertainty: Uncertainty | None) -> list
         sigma, half = joint_sigma[joint.name], (hi - lo) / 2
         if half > 0 and sigma >= UNOBSERVED_SHARE * half:
             scale, unit = (1000.0, "mm") if joint.type == "prismatic" else (180.0 / math.pi, "deg")
-            why = (f"the mask shows under {HIDDEN_SHARE:.0%} of the part it moves" if unseen is not None
+            why = (f"the mask shows under {HIDDEN_SHARE:.0%} of the part it moves, or another part hides it" if unseen is not None
                    and unseen[6 + i] > 0 else "the view hardly constrains it")
             out.append(f"{UNOBSERVED_CODE}: {joint.name}: {why} (σ {sigma * scale:.1f} {unit} "
                        f"over a range of {2 * half * scale:.1f} {unit}); its value is a guess within that range")
@@ -1959,20 +1959,27 @@ def _uncertainty(
                                        dict(zip(names, view, strict=True)), colour, unseen.numpy().copy())
 
 
-# A joint the mask hardly shows: under this share of the surface points of the links it moves project inside
-# the mask at the estimate (a visible part's fall 94-98 % inside an exact mask; points another part hides
-# still fall inside). What the view says of it is then a render against a mask that leaves the part out (an
-# occluder over it, a segmenter's missed blob, the image's border), not where the part is, and the estimate
-# may put it anywhere out of sight: its σ grows by its prior's, the half range, and it is reported unobserved
-# (docs/benchmarks.md, session 42).
+# A joint the mask hardly shows: under this share of the surface points of the links it moves that no other
+# link hides project inside the mask at the estimate (a visible part's fall 94-98 % inside an exact mask), or
+# the model itself hides that part (:data:`SHOWN_POINTS_SHARE`). What the view says of it is then a render
+# against a mask that leaves the part out (an occluder over it, a segmenter's missed blob, the image's border,
+# a door in front of a drawer), not where the part is, and the estimate may put it anywhere out of sight: its
+# σ grows by its prior's, the half range, and it is reported unobserved (docs/benchmarks.md, sessions 42 and
+# 50).
 HIDDEN_SHARE = 0.5
+# Under this share of a joint's surface points not hidden by another link: the part is behind the others.
+# A closed drawer shows only its front's face, 1.4-20 % of its points on the cabinet's views; one behind an
+# open door none.
+SHOWN_POINTS_SHARE = 0.005
 
 
 def joint_mask_shares(model: NarfModel, camera: Pinhole, T: Tensor, theta: Tensor, obs: _Observation) -> Tensor:
     """``[k]`` float64: per joint, the share of the model's surface points on the links it moves that project
-    inside the mask of ``obs`` (its finest level over 0.5) at the pose ``T [4,4]`` and ``θ [k]``; 1 for a joint
-    that moves no point (nothing to judge)."""
-    from narf_core.band import surface_points
+    inside the mask of ``obs`` (its finest level over 0.5) at the pose ``T [4,4]`` and ``θ [k]``, among those
+    no other link hides (:func:`~narf_core.band.hidden_points`: a mask cannot show a part behind another, so
+    those points say nothing of the mask); 0 where under :data:`SHOWN_POINTS_SHARE` of them are not hidden (a
+    drawer behind an open door); 1 for a joint that moves no point (nothing to judge)."""
+    from narf_core.band import hidden_points, point_spacing, surface_points
 
     points = getattr(model, "sample_points", None) or {}
     moved = model.kinematics.moved_points(points, theta.detach().cpu())  # [k, N]
@@ -1989,9 +1996,12 @@ def joint_mask_shares(model: NarfModel, camera: Pinhole, T: Tensor, theta: Tenso
     box_mask = obs.levels[-1].mask.detach().cpu().reshape(h, w) > 0.5
     in_mask = torch.zeros_like(inside)
     in_mask[inside] = box_mask[row[inside], col[inside]]
-    counts = moved.sum(1)
-    hits = (moved & in_mask[None]).sum(1)
-    return torch.where(counts > 0, hits.double() / counts.clamp_min(1), shares)
+    shown = moved & ~hidden_points(xyz, camera, point_spacing(model), ~moved)  # [k, N]
+    counts, shown_counts = moved.sum(1), shown.sum(1)
+    hits = (shown & in_mask[None]).sum(1)
+    behind = shown_counts < SHOWN_POINTS_SHARE * counts
+    share = torch.where(behind, 0.0, hits.double() / shown_counts.clamp_min(1))
+    return torch.where(counts > 0, share, shares)
 
 
 # The model's error, which the residuals cannot see: the field renders the object a little
