@@ -84,8 +84,7 @@ def depth_band(
     K = camera.K.detach().double().cpu()
     d = rays_cam.directions.detach().double().cpu()
     ray_uv = (d @ K.T)[:, :2] / d[:, 2:3]  # [n, 2]
-    z_min = grid.nearest(z, torch.ones_like(z, dtype=torch.bool))
-    z_max = -grid.nearest(-z, torch.ones_like(z, dtype=torch.bool))
+    z_min, z_max = grid.nearest(z), -grid.nearest(-z)
     rc = torch.floor(ray_uv / grid.cell).long() - grid.lo  # [n, 2]
     inside = (rc[:, 0] >= 0) & (rc[:, 0] < w) & (rc[:, 1] >= 0) & (rc[:, 1] < h) & (d[:, 2] > 0)
     at = (rc[:, 1].clamp(0, h - 1) * w + rc[:, 0].clamp(0, w - 1))[None].expand(S, -1)
@@ -114,12 +113,13 @@ class _CellGrid:
         self.shape, self.poses = (h, w), S
         self.flat = (torch.arange(S)[:, None] * (h * w) + (ci[..., 1] - self.lo[1]) * w + (ci[..., 0] - self.lo[0]))
 
-    def nearest(self, value: Tensor, use: Tensor, pool: int = 3) -> Tensor:
-        """``[S, h*w]``: per cell the least ``value [S, N]`` of the points ``use [S, N]`` (bool) in the
-        ``pool`` x ``pool`` cells around it (``inf`` where there are none)."""
+    def nearest(self, value: Tensor, use: Tensor | None = None, pool: int = 3) -> Tensor:
+        """``[S, h*w]``: per cell the least ``value [S, N]`` of the points ``use [S, N]`` (bool; None: all) in
+        the ``pool`` x ``pool`` cells around it (``inf`` where there are none)."""
         (h, w), S = self.shape, self.poses
+        flat, value = (self.flat, value) if use is None else (self.flat[use], value[use])
         least = torch.full((S * h * w,), math.inf, dtype=torch.float64)
-        least = least.scatter_reduce(0, self.flat[use], value[use].double(), "amin")
+        least = least.scatter_reduce(0, flat.reshape(-1), value.reshape(-1).double(), "amin")
         return -F.max_pool2d(-least.reshape(S, 1, h, w), pool, stride=1, padding=pool // 2).reshape(S, h * w)
 
 
