@@ -100,7 +100,7 @@ class _CellGrid:
     border of one cell."""
 
     def __init__(self, points_cam: Tensor, camera: Pinhole, spacing_m: float):
-        S, N = points_cam.shape[:2]
+        S = points_cam.shape[0]
         z = points_cam[..., 2]
         K = camera.K.detach().double().cpu()
         f = float(max(K[0, 0], K[1, 1]))
