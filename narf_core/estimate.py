@@ -686,6 +686,28 @@ def unobserved_joints(model: NarfModel, uncertainty: Uncertainty | None) -> list
     return out
 
 
+# Without depth the distance is read off the size of the object's outline in the image, and a field trained
+# on views coarser than the camera's draws that outline less exactly at the camera's pixels: over this ratio
+# of focal lengths (the camera's over the training views') a view without depth is warned (docs/benchmarks.md,
+# sessions 48 and 51: the pliers on path-traced 640x480 views, trained on 160x120, 320x240 and 640x480 views).
+COARSE_MODEL_RATIO = 2.0
+COARSE_MODEL_CODE = "coarse_model"  # the warning's code
+
+
+def coarse_model(model: NarfModel, camera: Pinhole) -> list[str]:
+    """One warning ``"coarse_model: ..."`` (:data:`COARSE_MODEL_CODE`) where ``camera``'s focal length is over
+    :data:`COARSE_MODEL_RATIO` times that of the views ``model`` was trained on (:func:`training_fx`), else
+    none. For a view without depth only (the caller's test): with depth the distance does not hang on the
+    outline."""
+    ratio = float(camera.K[0, 0]) / training_fx(model)
+    if ratio <= COARSE_MODEL_RATIO:
+        return []
+    width, height = camera.width, camera.height
+    return [f"{COARSE_MODEL_CODE}: the model was trained on views {ratio:.1f}x coarser than this "
+            f"{width}x{height} camera's; without depth the distance follows the model's outline, which a model "
+            f"trained on views of the camera's size draws more exactly (narf synth --size {width} {height})"]
+
+
 def local_error(
     T_est: np.ndarray, theta_est: Mapping[str, float], T_true: np.ndarray, theta_true: Mapping[str, float], model: NarfModel
 ) -> np.ndarray:
@@ -1584,6 +1606,8 @@ def refine(
     T0 = torch.from_numpy(check_pose(T_init, "T_init", error=EstimateInputError))
     warnings = check_observation(image, mask, depth, camera, expected_depth_m=float(T0[2, 3]))
     depth = usable_depth(depth, warnings)  # a depth in the wrong unit or off the mask is dropped, and said so
+    if depth is None:
+        warnings += coarse_model(model, camera)
     theta0 = model.kinematics.joint_vector(joints_init, field="joints_init", error=EstimateInputError)
     truth = None
     if ground_truth is not None:

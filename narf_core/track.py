@@ -739,7 +739,7 @@ def refine_frame(
     from narf_core.compositing import composite
     from narf_core.estimate import (
         ROBUST_BOX_PX, _box_scale, _check_observation, _Loss, _mask_box, _object_rays, _observation, _overlaps,
-        _Parameterisation, _partial_trust, _ray_index, _uncertainty,
+        _Parameterisation, _partial_trust, _ray_index, _uncertainty, coarse_model,
     )
     from narf_core.gauss_newton import GaussNewtonRun, Problem, cluster_sample
     from narf_core.geometry import pose_to_position_quaternion
@@ -750,6 +750,8 @@ def refine_frame(
     warnings = (list(checks) if checks is not None
                 else check_observation(image, mask, depth, camera, expected_depth_m=float(T0[2, 3])))
     depth = usable_depth(depth, warnings)
+    if depth is None:
+        warnings += coarse_model(model, camera)
     theta0 = model.kinematics.joint_vector(joints_pred, field="joints_init", error=EstimateInputError)
     device = model.aabb.device
     camera = Pinhole(camera.K.detach().to(device, torch.float32), camera.width, camera.height)

@@ -160,6 +160,45 @@ def test_refine_reports_warnings_and_drops_a_depth_in_millimetres() -> None:
 
 
 @needs_model
+def test_a_view_without_depth_finer_than_the_training_views_is_warned() -> None:
+    """``coarse_model``: without depth the distance follows the model's outline, which a field trained on coarser
+    views draws less exactly at the camera's pixels. Over ``COARSE_MODEL_RATIO`` (the bundled clamp records no
+    training camera: the reference 160x120 one's focal length) a view without depth is warned, by the refiner and
+    by the tracker's warm-started frame; with depth, at the ratio or for a model trained at the camera's size not."""
+    from narf_core.estimate import COARSE_MODEL_RATIO, REFERENCE_TRAINING_FX, EstimateOptions, coarse_model, refine
+    from narf_core.track import refine_frame
+
+    model, image, mask, depth, camera, T = _clamp_view()  # 80x60: fx 67 px, half the training views'
+    assert coarse_model(model, camera) == []
+    fine = Pinhole.primesense(640, 480)  # 4x the training views' focal length
+    (warning,) = coarse_model(model, fine)
+    assert _codes([warning]) == ["coarse_model"] and "4.0x coarser than this 640x480" in warning
+    assert "narf synth --size 640 480" in warning
+    assert coarse_model(model, Pinhole.primesense(320, 240)) == []  # 2.0x: not over the ratio
+    assert COARSE_MODEL_RATIO == 2.0 and float(Pinhole.primesense(320, 240).K[0, 0]) == 2 * REFERENCE_TRAINING_FX
+    own = model.metadata.get("training_camera")
+    model.metadata["training_camera"] = {"fx": float(fine.K[0, 0])}
+    try:
+        assert coarse_model(model, fine) == []  # trained on views of this camera's size
+    finally:
+        if own is None:
+            model.metadata.pop("training_camera")
+        else:
+            model.metadata["training_camera"] = own
+    # the same view through a camera 2.5x finer than the training views, the clamp 5x further away
+    K = camera.K.clone()
+    K[0, 0], K[1, 1] = 2.5 * REFERENCE_TRAINING_FX, 2.5 * REFERENCE_TRAINING_FX
+    far, T_far = Pinhole(K, camera.width, camera.height), T.copy()
+    T_far[2, 3] += 4 * 0.8
+    options = EstimateOptions.preset("robust", iterations=2, rgb_polish=0)
+    without = refine(model, image, mask, far, T_far, options=options)
+    assert _codes(without.warnings) == ["coarse_model"] and "2.5x coarser" in without.warnings[0]
+    assert refine(model, image, mask, far, T_far, depth=depth + 4 * 0.8 * (depth > 0), options=options).warnings == []
+    frame = refine_frame(model, far, image, mask, None, T_far, {}, EstimateOptions.gauss_newton(iterations=1))
+    assert _codes(frame.warnings) == ["coarse_model"]
+
+
+@needs_model
 def test_cli_estimate_prints_the_warnings(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from narf_core.cli import main
     from narf_core.data.dataset import write_png_depth
