@@ -191,8 +191,9 @@ def _add_synth(commands: argparse._SubParsersAction) -> None:
         help="clamp, lineman-a, lineman-b, longnose, lamp, gripper, cabinet or a URDF")
     arg("--out", required=True, type=Path, metavar="DIR", help="dataset folder to create (new or empty)")
     arg("--size", nargs=2, type=_positive_int, default=(160, 120), metavar=("W", "H"),
-        help="default: 160 120; for a finer camera without depth, views nearer its size sharpen the model's "
-        "outline (320 240 for 640x480: docs/benchmarks.md, session 48)")
+        help="default: 160 120; for a finer camera without depth, views of its own size sharpen the model's "
+        "outline, which sets the distance there (640 480 for a 640x480 camera: docs/benchmarks.md, sessions 48 "
+        "and 51)")
     arg("--views", type=_positive_int, default=200, metavar="N", help="train images (default: %(default)s); "
         "test and novel get max(17, N // 4) each")
     arg("--seed", type=_non_negative_int, default=0, help="random seed (default: %(default)s)")
