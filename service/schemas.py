@@ -345,8 +345,9 @@ class EstimateResponse(BaseModel):
     warnings: list[str] = Field(
         default_factory=list,
         description="Doubts about the input and the answer, as '<code>: <message>' (codes: clipped, mask_border, "
-                    "depth_unit, depth_overlap, unobserved_joint); after depth_unit or depth_overlap the depth was "
-                    "not used; unobserved_joint: the view hardly constrains that joint, its value is a guess",
+                    "depth_unit, depth_overlap, coarse_model, unobserved_joint); after depth_unit or depth_overlap "
+                    "the depth was not used; coarse_model: without depth, a camera over twice as fine as the model's "
+                    "training views; unobserved_joint: the view hardly constrains that joint, its value is a guess",
     )
     mode: RenderMode = Field(description=_MODE_OUT)
     mode_reason: str = Field(description=_MODE_REASON)
