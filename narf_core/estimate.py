@@ -694,11 +694,13 @@ COARSE_MODEL_RATIO = 2.0
 COARSE_MODEL_CODE = "coarse_model"  # the warning's code
 
 
-def coarse_model(model: NarfModel, camera: Pinhole) -> list[str]:
-    """One warning ``"coarse_model: ..."`` (:data:`COARSE_MODEL_CODE`) where ``camera``'s focal length is over
+def coarse_model(model: NarfModel, camera: Pinhole, depth: np.ndarray | None) -> list[str]:
+    """One warning ``"coarse_model: ..."`` (:data:`COARSE_MODEL_CODE`) for a view without ``depth`` (the depth
+    the refiner uses: ``None`` also where the input checks dropped it) whose ``camera``'s focal length is over
     :data:`COARSE_MODEL_RATIO` times that of the views ``model`` was trained on (:func:`training_fx`), else
-    none. For a view without depth only (the caller's test): with depth the distance does not hang on the
-    outline."""
+    none: with depth the distance does not hang on the outline."""
+    if depth is not None:
+        return []
     ratio = float(camera.K[0, 0]) / training_fx(model)
     if ratio <= COARSE_MODEL_RATIO:
         return []
@@ -1606,8 +1608,7 @@ def refine(
     T0 = torch.from_numpy(check_pose(T_init, "T_init", error=EstimateInputError))
     warnings = check_observation(image, mask, depth, camera, expected_depth_m=float(T0[2, 3]))
     depth = usable_depth(depth, warnings)  # a depth in the wrong unit or off the mask is dropped, and said so
-    if depth is None:
-        warnings += coarse_model(model, camera)
+    warnings += coarse_model(model, camera, depth)
     theta0 = model.kinematics.joint_vector(joints_init, field="joints_init", error=EstimateInputError)
     truth = None
     if ground_truth is not None:

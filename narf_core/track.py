@@ -750,8 +750,7 @@ def refine_frame(
     warnings = (list(checks) if checks is not None
                 else check_observation(image, mask, depth, camera, expected_depth_m=float(T0[2, 3])))
     depth = usable_depth(depth, warnings)
-    if depth is None:
-        warnings += coarse_model(model, camera)
+    warnings += coarse_model(model, camera, depth)
     theta0 = model.kinematics.joint_vector(joints_pred, field="joints_init", error=EstimateInputError)
     device = model.aabb.device
     camera = Pinhole(camera.K.detach().to(device, torch.float32), camera.width, camera.height)

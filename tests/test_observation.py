@@ -169,17 +169,18 @@ def test_a_view_without_depth_finer_than_the_training_views_is_warned() -> None:
     from narf_core.track import refine_frame
 
     model, image, mask, depth, camera, T = _clamp_view()  # 80x60: fx 67 px, half the training views'
-    assert coarse_model(model, camera) == []
+    assert coarse_model(model, camera, None) == []
     fine = Pinhole.primesense(640, 480)  # 4x the training views' focal length
-    (warning,) = coarse_model(model, fine)
+    (warning,) = coarse_model(model, fine, None)
     assert _codes([warning]) == ["coarse_model"] and "4.0x coarser than this 640x480" in warning
     assert "narf synth --size 640 480" in warning
-    assert coarse_model(model, Pinhole.primesense(320, 240)) == []  # 2.0x: not over the ratio
+    assert coarse_model(model, fine, depth) == []  # with the depth the refiner uses
+    assert coarse_model(model, Pinhole.primesense(320, 240), None) == []  # 2.0x: not over the ratio
     assert COARSE_MODEL_RATIO == 2.0 and float(Pinhole.primesense(320, 240).K[0, 0]) == 2 * REFERENCE_TRAINING_FX
     own = model.metadata.get("training_camera")
     model.metadata["training_camera"] = {"fx": float(fine.K[0, 0])}
     try:
-        assert coarse_model(model, fine) == []  # trained on views of this camera's size
+        assert coarse_model(model, fine, None) == []  # trained on views of this camera's size
     finally:
         if own is None:
             model.metadata.pop("training_camera")
