@@ -5,10 +5,13 @@ on scenes the benchmarks do not use, and print the NEES coverage they give there
 
 Data: ``narf bench estimate``'s protocol (10 deg / 2 cm perturbation, θ at mid-range) on a 160x120
 dataset of seed 1 (its ``test`` and ``novel`` splits, every preset with the depth image and
-without), and ``narf bench track``'s tracker on a 60-frame sequence of seed 1; the benchmarks use
-seed 0. Per scene or frame it keeps the true local error ``e`` (:func:`~narf_core.estimate.local_error`),
-the statistical covariance at the estimate (no model error), the mean squared colour residual ``v``,
-the pixel footprint at the object and the line of sight to it. The model error's σ is
+without); the benchmarks use seed 0. ``--pool-track`` adds ``narf bench track``'s tracker on a 60-frame
+sequence of seed 1, as :data:`~narf_core.estimate.MODEL_ERROR`'s defaults were fitted; the tracker has had
+its own factor on σ since (``--tracker``, fitted after these constants on the bundle that holds them), so
+by default its frames are left out and the single images alone set the classes they share with it. Per
+scene or frame it keeps the true local error ``e`` (:func:`~narf_core.estimate.local_error`), the
+statistical covariance at the estimate (no model error), the mean squared colour residual ``v``, the
+pixel footprint at the object and the line of sight to it. The model error's σ is
 ``pixels · footprint · v / reference_variance`` (``exponent`` 1; without depth longer along the line
 of sight: :func:`~narf_core.estimate.model_error_covariance`), ``reference_variance`` the median
 ``v`` of the ``shape`` class, and ``pixels`` per class of :func:`~narf_core.estimate._error_class`
@@ -198,12 +201,16 @@ def main(argv: list[str] | None = None) -> int:
                         help="a labelled dataset of the model's object (its test and novel splits) instead of "
                              "synthesised data: an object of your own; then the tracker's frames are not used")
     parser.add_argument("--scenes", type=int, default=17, help="per split")
-    parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument("--frames", type=int, default=60, help="of --pool-track's and --tracker's sequences")
     parser.add_argument("--seed", type=int, default=1, help="of the data (the benchmarks use 0)")
     parser.add_argument("--inputs", nargs="+", choices=("rgbd", "rgb"), default=["rgbd", "rgb"],
                         help="the estimates fitted: with the depth image, without; only the classes these "
                              "reach are fitted (the others and the reference stay MODEL_ERROR's)")
     parser.add_argument("--write-bundle", type=Path, help="store the constants in this bundle's metadata")
+    parser.add_argument("--pool-track", action="store_true",
+                        help="pool the tracker's frames on a --frames sequence of --seed with the single images "
+                             "(with rgbd; how MODEL_ERROR's defaults were fitted): by default left out, the "
+                             "tracker's own factor being fitted after with --tracker")
     parser.add_argument("--tracker", action="store_true",
                         help="fit only the tracker's factors on σ, on smooth sequences of --track-seeds")
     parser.add_argument("--track-seeds", type=int, nargs="+", default=[1, 2, 3, 4],
@@ -226,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
         if not (root / "scene.json").exists():
             synthesize(args.tool, root, size=(160, 120), views=24, seed=args.seed)
         rows = scene_rows(model, Dataset.open(root), args.scenes, tuple(args.inputs))
-        if "rgbd" in args.inputs:
+        if args.pool_track and "rgbd" in args.inputs:
             rows += track_rows(model, Dataset.open(sequence(args.work, args.tool, (160, 120), args.frames, False,
                                                             seed=args.seed)))
     calibration = fit(rows, None if len(args.inputs) == 2 else tuple(sorted({r["class"] for r in rows})))

@@ -77,3 +77,23 @@ def test_calibration_fits_a_bundle_on_a_labelled_dataset_of_its_own(tiny_bundle,
     error = capsys.readouterr().err.strip().splitlines()[-1]
     assert error.endswith(f"error: --data {tmp_path / 'missing'}: {tmp_path / 'missing'}: not a dataset folder "
                           "(no such directory)")
+
+
+def test_calibration_on_synthesised_data_pools_the_tracker_only_when_asked(tiny_bundle, tiny_dataset, tmp_path, capsys):
+    """The synthesised seed-1 data: the single images alone by default (the tracker's frames have their own
+    factor, fitted after with ``--tracker``); ``--pool-track`` adds a tracked sequence's frames. No single
+    images here (``--scenes 0``; the test above fits them), so what is fitted is the tracker's frames or nothing."""
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "longnose-160x120-seed1").symlink_to(tiny_dataset)  # present: not synthesised again
+    argv = ["--work", str(work), "--model", str(tiny_bundle), "--tool", "longnose", "--inputs", "rgbd", "--scenes", "0"]
+    assert main(argv) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["rows"] == 0 and printed["coverage_95_on_fit_data"] == {}
+    assert printed["calibration"]["pixels"] == MODEL_ERROR["pixels"]  # nothing to fit: the defaults
+    assert not (work / "sequences").exists()
+    assert main(argv + ["--pool-track", "--frames", "3"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert 1 <= printed["rows"] <= 3  # the frames the tracker did not lose
+    assert set(printed["coverage_95_on_fit_data"]) == {"track"}
+    assert printed["calibration"]["pixels"]["shape-gauss-newton"] != MODEL_ERROR["pixels"]["shape-gauss-newton"]
