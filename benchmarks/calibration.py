@@ -216,6 +216,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--track-seeds", type=int, nargs="+", default=[1, 2, 3, 4],
                         help="of the sequences (the benchmark uses 0)")
     args = parser.parse_args(argv)
+    if args.pool_track:
+        clash = "--data" if args.data is not None else "--tracker" if args.tracker else (
+            None if "rgbd" in args.inputs else "--inputs rgb")
+        if clash:
+            parser.error(f"--pool-track: not with {clash} (it pools a synthesised track's RGB-D frames with the "
+                         "single images)")
     model = load_bundle(args.model)
     if args.tracker:
         factors = calibrate_tracker(model, args.tool, (160, 120), args.work / "track", args.track_seeds, args.frames)

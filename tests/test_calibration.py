@@ -97,3 +97,8 @@ def test_calibration_on_synthesised_data_pools_the_tracker_only_when_asked(tiny_
     assert 1 <= printed["rows"] <= 3  # the frames the tracker did not lose
     assert set(printed["coverage_95_on_fit_data"]) == {"track"}
     assert printed["calibration"]["pixels"]["shape-gauss-newton"] != MODEL_ERROR["pixels"]["shape-gauss-newton"]
+    for clash, extra in (("--data", ["--data", str(tiny_dataset)]), ("--inputs rgb", ["--inputs", "rgb"])):
+        with pytest.raises(SystemExit):
+            main(argv + ["--pool-track"] + extra)
+        assert capsys.readouterr().err.strip().splitlines()[-1].endswith(
+            f"error: --pool-track: not with {clash} (it pools a synthesised track's RGB-D frames with the single images)")
