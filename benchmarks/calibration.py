@@ -239,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
         if not (root / "scene.json").exists():
             synthesize(args.tool, root, size=(160, 120), views=24, seed=args.seed)
         rows = scene_rows(model, Dataset.open(root), args.scenes, tuple(args.inputs))
-        if args.pool_track and "rgbd" in args.inputs:
+        if args.pool_track:  # (with rgbd: checked above)
             rows += track_rows(model, Dataset.open(sequence(args.work, args.tool, (160, 120), args.frames, False,
                                                             seed=args.seed)))
     calibration = fit(rows, None if len(args.inputs) == 2 else tuple(sorted({r["class"] for r in rows})))
