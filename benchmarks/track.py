@@ -180,7 +180,7 @@ def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, m
     for modality in modalities:
         step = options.step_options(modality == "rgbd", device)
         per_frame[modality] = {"solver": options.solver_for(modality == "rgbd"), "iterations": step.iterations,
-                               "rays_per_iteration": step.rays_per_iteration}
+                               "rays_per_iteration": step.rays_per_iteration, "jacobian": step.jacobian}
     result = {"frames": frames, "seeds": list(seeds), "ray_seeds": list(ray_seeds), "options": options.__dict__,
               "per_frame": per_frame, "runs": runs, "over_tracks": over_tracks(runs),
               "machine": machine(models.values())}
@@ -235,7 +235,9 @@ def markdown(result: dict) -> str:
         f"from the first frame's label "
         f"({'as exact' if o.get('first_frame') == 'warm' else 'refined by the multi-start refiner'}); per frame "
         + "; ".join(f"{'with depth' if m == 'rgbd' else 'RGB only'} {p['iterations']} {p['solver']} iterations of "
-                    f"{p['rays_per_iteration']} rays" for m, p in result.get("per_frame", {}).items())
+                    f"{p['rays_per_iteration']} rays"
+                    + (f" (Jacobian by {p['jacobian']})" if p["solver"] == "gauss-newton" and "jacobian" in p else "")
+                    for m, p in result.get("per_frame", {}).items())
         + f", {band}"
         + ("" if o.get("depth_align", True) else ", the prediction not aligned to the depth")
         + ("" if o.get("outside_weight_rgb", 1.0) >= 1 else
@@ -311,7 +313,7 @@ def _joint_cell(run: dict) -> str:
 def main(args: argparse.Namespace) -> int:
     """``narf bench track``: ``args`` has ``work``, ``models``, ``tools``, ``frames``, ``sizes``,
     ``modalities``, ``events``, ``seed`` (a list), ``ray_seeds``, ``images``, ``spp``, ``iterations``, ``rays``,
-    ``solver``, ``band_m``, ``march``, ``depth_align``, ``service_clients``, ``json``."""
+    ``solver``, ``band_m``, ``march``, ``depth_align``, ``jacobian``, ``service_clients``, ``json``."""
     tools = args.tools or sorted(p.stem for p in args.models.glob("*.narf"))
     models, missing = {}, []
     for tool in tools:
@@ -328,6 +330,7 @@ def main(args: argparse.Namespace) -> int:
     overrides = {"iterations": args.iterations, "rays_per_iteration": getattr(args, "rays", None),
                  "solver": getattr(args, "solver", None), "band_m": getattr(args, "band_m", None),
                  "march": getattr(args, "march", None), "depth_align": getattr(args, "depth_align", None),
+                 "jacobian": getattr(args, "jacobian", None), "jacobian_rgb": getattr(args, "jacobian", None),
                  "outside_weight_rgb": getattr(args, "outside_weight_rgb", None)}
     options = TrackOptions(first_frame="warm", **{k: v for k, v in overrides.items() if v is not None})
     result = run(models, args.work, frames=args.frames, sizes=sizes, modalities=tuple(args.modalities),

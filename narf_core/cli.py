@@ -44,6 +44,8 @@ PRESET_NAMES = ("auto", "paper", "robust", "gauss-newton")  # narf_core.estimate
 TRACK_SOLVER_CHOICES = ("auto", "adam", "gauss-newton")  # narf_core.track.TRACK_SOLVERS, likewise
 TRACK_ITERATIONS = "2 gauss-newton (3 without depth), 6 adam"  # narf_core.track.budget_text(), likewise
 TRACK_AUTO_SOLVER = "gauss-newton, with depth and without"  # narf_core.track.auto_solver_text(), likewise
+JACOBIANS = ("derivatives", "differences")  # narf_core.estimate.JACOBIANS, likewise
+TRACK_JACOBIAN = "differences with depth, derivatives without"  # narf_core.track.jacobian_text(), likewise
 MODE_HELP = ("render mode: narf (the configuration field), parts (the composed part fields) or auto (default: "
              "the better one by the measurement training recorded in the bundle)")
 
@@ -1041,6 +1043,9 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
                           "(default: the tracker's, frame)")
     sub.add_argument("--outside-weight-rgb", type=_non_negative_float, metavar="W",
                      help=OUTSIDE_WEIGHT_HELP)
+    sub.add_argument("--jacobian", choices=JACOBIANS, default=None,
+                     help="a Gauss-Newton frame's Jacobian: the field's derivatives at the samples or central "
+                          f"differences of the render over about a sample spacing (default: {TRACK_JACOBIAN})")
     sub.add_argument("--no-depth-align", dest="depth_align", action="store_false",
                      help="with depth, do not first move the prediction along the line of sight onto the observed "
                           "depth (TrackOptions.depth_align; to compare)")

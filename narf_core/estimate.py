@@ -133,6 +133,7 @@ PRESETS = ("paper", "robust", "gauss-newton")  # the named sets of options
 PRESET_NAMES = ("auto", *PRESETS)  # what a caller may ask for: "auto" is resolved per view (choose_preset)
 SOLVERS = ("adam", "gauss-newton")
 ROBUST_LOSSES = ("none", "huber", "cauchy")
+JACOBIANS = ("derivatives", "differences")  # how gauss-newton finds its Jacobian (EstimateOptions.jacobian)
 RAY_SAMPLINGS = ("uniform", "stratified", "edges", "auto")
 MASK_TRUSTS = ("full", "partial", "auto")
 MIN_MASK_PIXELS = 4
@@ -222,6 +223,12 @@ class EstimateOptions:
     robust_loss: str = "none"  # per-residual "none", "huber" or "cauchy" (gauss-newton)
     robust_scale: float = 0.1  # where the robust loss bends, in residual units (colour in [0, 1])
     damping: float = 1e-3  # first Levenberg-Marquardt λ (relative to diag JᵀWJ)
+    # How gauss-newton's Jacobian is found: "derivatives", the field's own at the render's samples (one
+    # batched pass), or "differences", central differences of the render over about one sample spacing
+    # (2 (6 + k) more rows in one batch). The derivatives see a sharp surface only through the density's
+    # slope between two samples, so they are noisy, and the steps they give can stall where several
+    # parameters move one outline together (a lamp's joints and its pose, docs/benchmarks.md, session 53).
+    jacobian: str = "derivatives"
     photometric_compensation: bool = False  # per-channel gain and bias, closed form each iteration
     # Otherwise the render's colour times this gain per channel before it is compared: a known change of the
     # camera's exposure, white balance or light from the training views' (the tracker carries one; in GAIN_RANGE).
@@ -346,6 +353,7 @@ class EstimateOptions:
         need(self.robust_loss in ROBUST_LOSSES, "robust_loss", f"must be one of {', '.join(ROBUST_LOSSES)}")
         need(self.robust_scale > 0, "robust_scale", "must be > 0")
         need(0 <= self.damping <= 1e6, "damping", "must be in [0, 1e6]")
+        need(self.jacobian in JACOBIANS, "jacobian", f"must be one of {', '.join(JACOBIANS)}")
         need(self.occlusion_margin >= 0, "occlusion_margin", "must be >= 0")
         need(self.depth_sigma >= 0, "depth_sigma", "must be >= 0")
         need(self.mask_trust in MASK_TRUSTS, "mask_trust", f"must be one of {', '.join(MASK_TRUSTS)}")

@@ -36,6 +36,14 @@ sample's value and derivatives in ``(x, θ)`` itself, by forward differences in 
 all in one batched evaluation without a graph (``ArticulatedField.jacobian``, ``KPlanesField.jacobian``),
 and the compositing is differentiated in closed form (:func:`narf_core.compositing.composite_jacobian`;
 where the samples run on behind the surface, only at those a ray still sees: the field's values come first).
+``options.jacobian = "differences"`` instead renders every row and its ``2 (6 + k)`` copies shifted by
+``±h`` in one parameter each (:data:`_DIFFERENCE_STEPS`: about one sample spacing of the surface's motion) in
+one batch and takes central differences (:meth:`Problem.difference_residuals`): ``2 (6 + k)`` renders without
+a graph, where the derivatives are one pass, but the slope they give is the render's over a sample spacing, not
+the density's between two samples. The derivatives of a sharp surface are noisy at that scale (so ``JᵀWJ`` is
+too large, the LM step too short and turned), and where several parameters move one outline together (a
+lamp's joints and its pose) the steps stall; the tracker's frames with depth take the differences
+(narf_core/track.py).
 
 Step. Levenberg-Marquardt on the iteratively reweighted normal equations ``(JᵀWJ + λ diag(JᵀWJ)) δ
 = -JᵀWr``, with Huber or Cauchy weights ``W`` (``robust_loss``, scale ``robust_scale`` in residual
@@ -98,6 +106,11 @@ _LAMBDA_UP_GROWTH = 2.0  # each further rejection in a row multiplies λ by this
 _LAMBDA_MIN, _LAMBDA_MAX = 1e-6, 1e8
 _FD_THETA = 1e-3  # forward-difference step for θ in parts mode, as a fraction of the joint's range
 _FD_POSE = 1e-5  # central-difference step of the pose columns (object radii, radians)
+# The steps of a Jacobian by differences (options.jacobian "differences"): the box centre's translation (object
+# radii), the rotation about it (radians), u of the joints (θ = mid + half sin u). A hundredth of a radius moves
+# the surface by about one sample spacing of a model's lattice (its box's diagonal over a few hundred samples);
+# a joint's step moves its part about as far or a little further out along its lever.
+_DIFFERENCE_STEPS = (0.01, 0.01, 0.03)
 _MAX_FAILURES = 8
 _FIELD_JACOBIAN = True  # the field's own derivatives where the samples are fixed (module docstring); False: reverse mode
 _STEP_FACTORS = (1.0, 2.0, 4.0)  # multiples of the LM step tried, in order, while the cost keeps falling
@@ -349,6 +362,26 @@ class Problem:
         r = (M @ P[..., None])[..., 0] - y
         J = None if dP is None else M @ dP
         return Residuals(r, J, used)
+
+    def difference_residuals(
+        self, chain: Chain, p: Tensor, rays_cam: Rays, target: _Target, index: Tensor, group: int = 1
+    ) -> Residuals:
+        """:meth:`residuals` with the Jacobian from central differences of the render over about one sample
+        spacing (:data:`_DIFFERENCE_STEPS`; ``options.jacobian = "differences"``): every row of ``p [S, d]``
+        and its ``2d`` shifted copies rendered in one batch, the rows' linear map ``M`` taken at the row itself
+        and held for its copies (as the derivatives' Jacobian holds it)."""
+        S, d = p.shape
+        steps = torch.tensor([_DIFFERENCE_STEPS[0]] * 3 + [_DIFFERENCE_STEPS[1]] * 3 + [_DIFFERENCE_STEPS[2]] * (d - 6),
+                             dtype=p.dtype)
+        shift = torch.diag(steps)
+        rows = torch.cat([p[:, None], p[:, None] + shift, p[:, None] - shift], dim=1).reshape(-1, d)  # [S (1 + 2d), d]
+        P, _ = self.predictions(rays_cam, invert_pose(chain.poses(rows)), chain.thetas(rows), False)
+        if group > 1:
+            P = P.reshape(len(rows), -1, group, _CHANNELS).mean(2)
+        P = P.reshape(S, 1 + 2 * d, -1, _CHANNELS)
+        dP = ((P[:, 1:d + 1] - P[:, d + 1:]) / (2 * steps)[None, :, None, None]).permute(0, 2, 3, 1)  # [S, n, 5, d]
+        M, y, used = self._linear_map(P[:, 0], target, index)
+        return Residuals((M @ P[:, 0, ..., None])[..., 0] - y, M @ dP, used)
 
     def _linear_map(self, P: Tensor, target: _Target, index: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``M [S, n, 5, 5]``, ``y [S, n, 5]`` and ``used [S, n, 5]`` with ``r = M P - y``."""
@@ -646,7 +679,10 @@ class GaussNewtonRun:
         last = self.linearised
         if last is not None and last[0] is index and torch.equal(last[1], self.params):
             return last[2]
-        res = self.problem.residuals(self.chain, self.params, rays, target, index, True, group, along_ray)
+        if self.opts.jacobian == "differences":  # the along-ray change over a sample is in the differences already
+            res = self.problem.difference_residuals(self.chain, self.params, rays, target, index, group)
+        else:
+            res = self.problem.residuals(self.chain, self.params, rays, target, index, True, group, along_ray)
         finite = bool(torch.isfinite(res.r).all()) and bool(torch.isfinite(res.J).all())
         self.linearised = (index, self.params.clone(), res) if finite else None
         return res

@@ -47,7 +47,7 @@ from torch import Tensor
 
 from narf_core.checks import check_number, check_option_types, check_pose, option_rule
 from narf_core.estimate import (
-    GAIN_RANGE, MIN_MASK_PIXELS, SOLVERS, UNOBSERVED_CODE, EstimateInputError, EstimateOptions, EstimateResult,
+    GAIN_RANGE, JACOBIANS, MIN_MASK_PIXELS, SOLVERS, UNOBSERVED_CODE, EstimateInputError, EstimateOptions, EstimateResult,
     Uncertainty, _object_rays, colour_gain, line_of_sight, refine, training_fx, unobserved_joints,
 )
 from narf_core.gauss_newton import Problem
@@ -123,6 +123,13 @@ def budget_text(which: int = 0) -> str:
     return ", ".join(text(solver, budget) for solver, budget in sorted(BUDGETS.items(), reverse=True))
 
 
+def jacobian_text() -> str:
+    """The default frame Jacobian in words, with depth and without (for the CLI's help)."""
+    o = TrackOptions()
+    return (f"{o.jacobian} with depth, {o.jacobian_rgb} without" if o.jacobian != o.jacobian_rgb
+            else f"{o.jacobian}, with depth and without")
+
+
 def auto_solver_text() -> str:
     """:data:`AUTO_SOLVER` for help texts: "gauss-newton, with depth and without"."""
     if AUTO_SOLVER["rgbd"] == AUTO_SOLVER["rgb"]:
@@ -150,6 +157,11 @@ class TrackOptions:
     """
 
     solver: str = "auto"
+    # A Gauss-Newton frame's Jacobian (EstimateOptions.jacobian), with depth and without: by differences, the
+    # lamp's track followed its three joints (the field's derivatives stalled, and the track ran off by
+    # centimetres), and a model whose thin jaw the derivatives lost was held (docs/benchmarks.md, session 53).
+    jacobian: str = "differences"
+    jacobian_rgb: str = "derivatives"
     iterations: int = 0
     rays_per_iteration: int = 0
     lr_pose: float = 0.003  # Adam moves every parameter by about its rate per step: small, from a close start
@@ -300,6 +312,8 @@ class TrackOptions:
              "must satisfy 0 <= lost_overlap <= uncertain_overlap <= 1")
         need(0 <= self.reinit_partial_overlap <= 1, "reinit_partial_overlap", "must be in [0, 1]")
         need(self.solver in TRACK_SOLVERS, "solver", f"must be one of {', '.join(TRACK_SOLVERS)}")
+        for name in ("jacobian", "jacobian_rgb"):
+            need(getattr(self, name) in JACOBIANS, name, f"must be one of {', '.join(JACOBIANS)}")
         need(self.reinit_solver in ("robust", "gauss-newton"), "reinit_solver", "must be 'robust' or 'gauss-newton'")
         need(self.uncertainty_rays >= 0, "uncertainty_rays", "must be >= 0")
         need(self.sigma_scale >= 0, "sigma_scale", "must be >= 0 (0 = the model's own)")
@@ -342,7 +356,8 @@ class TrackOptions:
                   "uncertainty_usual_silhouette": self.usual_silhouette if depth else 0.0,
                   "uncertainty_trained_footprint": depth,
                   "occlusion_margin": self.occlusion_margin, "refinements": 0, "rgb_refinements": 0, "rgb_polish": 0,
-                  "pose_starts": 1, "search_theta_starts": 0, "slide_share": 0.0}
+                  "pose_starts": 1, "search_theta_starts": 0, "slide_share": 0.0,
+                  "jacobian": self.jacobian if depth else self.jacobian_rgb}
         if depth:
             common.update(mask_trust=DEPTH_MASK_TRUST)
         elif self.outside_weight_rgb < 1:
@@ -885,7 +900,9 @@ class FrameProblem(Problem):
     """Gauss-Newton's residuals on a warm-started frame (:func:`refine_frame`) without marching: the rays
     through the box pixels ``index`` take their lattice samples between ``near`` and ``far`` (the frame's
     band, per box pixel), those the posed grid holds at the pose asked (:func:`occupied`) and, for a
-    Jacobian where ``prune``, those light reaches (:func:`visible`): the Adam frame's samples. One start."""
+    Jacobian where ``prune``, those light reaches (:func:`visible`): the Adam frame's samples. One start, or
+    several rows of it (a Jacobian by differences: the same rays at shifted poses), each taking the band's
+    samples its own grid holds, all of them (a render without a graph: pruning first would save little)."""
 
     near: Tensor | None = None
     far: Tensor | None = None
@@ -898,20 +915,29 @@ class FrameProblem(Problem):
         self.index = index
         return super().residuals(chain, p, rays_cam, target, index, jacobian, group, along_ray)
 
+    def difference_residuals(self, chain, p, rays_cam, target, index, group=1):
+        self.index = index
+        return super().difference_residuals(chain, p, rays_cam, target, index, group)
+
     def _samples_run_behind(self) -> bool:
         """The band's lattice samples run through the object unless pruned to those light reaches."""
         return not self.prune
 
     def _fixed_samples(self, rays: Rays, theta: Tensor, jacobian: bool, band=None) -> tuple[object, Samples]:
-        n = len(rays)
-        if self.index is None or len(self.index) != n:
-            raise ValueError("FrameProblem renders one start's rays through the box pixels of its index")
-        th = theta[0].detach()
+        n = 0 if self.index is None else len(self.index)
+        if n == 0 or len(rays) % n:
+            raise ValueError("FrameProblem renders rows of rays through the box pixels of its index")
+        rows = len(rays) // n
         fixed = Rays(rays.origins.detach(), rays.directions.detach(), rays.z_per_t)
-        samples = occupied(self.grid, fixed, frame_band(self.near[self.index], self.far[self.index], self.model.step), th)
-        if jacobian and self.prune:
-            samples = visible(self.field, fixed, samples, th)
-        return self.field, samples
+        lattice = frame_band(self.near[self.index], self.far[self.index], self.model.step)
+        if rows == 1:
+            th = theta[0].detach()
+            samples = occupied(self.grid, fixed, lattice, th)
+            return self.field, visible(self.field, fixed, samples, th) if jacobian and self.prune else samples
+        held = [occupied_mask(self.grid, fixed[r * n:(r + 1) * n], lattice, theta[r * n]) for r in range(rows)]
+        ray = torch.cat([lattice.ray[h] + r * n for r, h in enumerate(held)])
+        return self.field, Samples(ray, torch.cat([lattice.t[h] for h in held]),
+                                   torch.cat([lattice.delta[h] for h in held]))
 
 
 def visible(field, rays_obj: Rays, samples: Samples, theta: Tensor, eps: float = 1e-5) -> Samples:
@@ -957,10 +983,18 @@ def occupied(grid, rays_obj: Rays, samples: Samples, theta: Tensor) -> Samples:
     """The ``samples`` of ``rays_obj`` in occupied cells of ``grid`` at ``θ [k]`` (all without a grid)."""
     if grid is None or len(samples) == 0:
         return samples
+    keep = occupied_mask(grid, rays_obj, samples, theta)
+    return Samples(samples.ray[keep], samples.t[keep], samples.delta[keep])
+
+
+def occupied_mask(grid, rays_obj: Rays, samples: Samples, theta: Tensor) -> Tensor:
+    """``[len(samples)]`` bool: which of the ``samples`` of ``rays_obj`` lie in occupied cells of ``grid`` at ``θ [k]``
+    (all without a grid)."""
+    if grid is None or len(samples) == 0:
+        return torch.ones(len(samples), dtype=torch.bool, device=samples.ray.device)
     with torch.no_grad():
         x = rays_obj.origins[samples.ray] + samples.t[:, None].to(rays_obj.origins) * rays_obj.directions[samples.ray]
-        keep = grid.occupied(x, theta.detach())
-    return Samples(samples.ray[keep], samples.t[keep], samples.delta[keep])
+        return grid.occupied(x, theta.detach())
 
 
 # --------------------------------------------------------------------------------------------

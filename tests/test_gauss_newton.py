@@ -60,6 +60,57 @@ def test_gauss_newton_recovers_the_toy_from_10deg_2cm(model):
     json.dumps(result.to_dict(), allow_nan=False)
 
 
+def test_gauss_newton_by_differences_recovers_the_toy_too(model):
+    """``jacobian = "differences"`` (central differences of the render in every parameter) reaches the same
+    answer as the field's derivatives from 10° / 2 cm off."""
+    T = view()
+    image, mask, depth = observe(model, T, TRUTH)
+    options = EstimateOptions.preset("gauss-newton", jacobian="differences", **GN)
+    result = refine(model, image, mask, CAMERA, perturbed(T, 10, 0.02, seed=1), depth=depth, options=options,
+                    ground_truth=(T, TRUTH))
+    assert result.metrics["add"] < 0.006, result.metrics
+    assert result.metrics["joint_error/slide"] < 0.004
+    with pytest.raises(EstimateInputError, match="jacobian"):
+        EstimateOptions(jacobian="secant")
+
+
+def test_the_difference_jacobian_is_the_renders_central_differences(model):
+    """``Problem.difference_residuals``: every row's residuals as :meth:`Problem.residuals` gives them, and
+    column ``j`` of its Jacobian the residuals of the row moved by ``+h`` and ``-h`` in parameter ``j``
+    (``_DIFFERENCE_STEPS``) over ``2h``, for two rows at once (the shifted copies of each row kept apart);
+    where the toy's surface is smooth at that scale, close to the field's derivatives."""
+    from narf_core.estimate import _observation, _mask_box, _Parameterisation
+
+    T = torch.as_tensor(view(), dtype=torch.float64)
+    image, mask, depth = observe(model, view(), TRUTH)
+    options = EstimateOptions.preset("gauss-newton", mode="narf")
+    param = _Parameterisation.around(T, model)
+    chain = gauss_newton.Chain.of(param)
+    problem = gauss_newton.Problem(model, options, param.radius, True)
+    obs = _observation(image, mask, depth, _mask_box(mask, options.box_margin), 1, "cpu")
+    index = torch.arange(0, obs.pixels.shape[0], 7)
+    rays = CAMERA.rays(obs.pixels[index].to(torch.float32))
+    target = obs.levels[-1]
+    theta = param.u_of(model.joint_vector(TRUTH).double()[None])
+    p = torch.cat([torch.tensor([[0.0] * 6, [0.01, -0.02, 0.0, 0.01, 0.0, -0.02]], dtype=torch.float64),
+                   theta.expand(2, -1)], dim=1)
+    diff = problem.difference_residuals(chain, p, rays, target, index)
+    plain = problem.residuals(chain, p, rays, target, index, False)
+    torch.testing.assert_close(diff.r, plain.r)
+    assert torch.equal(diff.used, plain.used)
+    steps = [gauss_newton._DIFFERENCE_STEPS[0]] * 3 + [gauss_newton._DIFFERENCE_STEPS[1]] * 3 + [
+        gauss_newton._DIFFERENCE_STEPS[2]] * (p.shape[1] - 6)
+    for j, h in enumerate(steps):
+        e = torch.zeros_like(p)
+        e[:, j] = h
+        ahead, behind = (problem.residuals(chain, p + s * e, rays, target, index, False).r for s in (1, -1))
+        torch.testing.assert_close(diff.J[..., j], (ahead - behind) / (2 * h), rtol=1e-6, atol=1e-6)
+    derivatives = problem.residuals(chain, p, rays, target, index, True).J
+    cosines = [float(a @ b / (a.norm() * b.norm())) for a, b in
+               ((diff.J[..., j].flatten(), derivatives[..., j].flatten()) for j in range(p.shape[1]))]
+    assert min(cosines) > 0.7 and sum(cosines) / len(cosines) > 0.85, cosines  # the toy's surface seen between samples
+
+
 def test_adam_warm_start_then_gauss_newton(model):
     """``adam_iterations``: Adam first (all θ starts), then Gauss-Newton on the fine level; the record
     counts both."""
