@@ -1117,6 +1117,34 @@ def test_bench_track_can_leave_the_depth_alignment_off() -> None:
         assert ("outside the mask weighing 0.3" in table) is (weight < 1)
 
 
+def test_bench_track_takes_the_frames_jacobian() -> None:
+    """``narf bench track --jacobian`` sets a Gauss-Newton frame's Jacobian with depth and without (to compare),
+    and the table names it; the CLI offers the refiner's choices and names the tracker's defaults (without
+    importing torch for ``--help``)."""
+    from narf_benchmarks.track import markdown
+    from narf_core import cli
+    from narf_core.estimate import JACOBIANS
+    from narf_core.track import TrackInputError, TrackOptions, jacobian_text
+
+    assert cli.JACOBIANS == JACOBIANS and cli.TRACK_JACOBIAN == jacobian_text()
+    assert _bench_track_args(["--jacobian", "derivatives"]).jacobian == "derivatives"
+    assert _bench_track_args([]).jacobian is None  # the tracker's own
+    for jacobian in JACOBIANS:
+        options = TrackOptions(jacobian=jacobian, jacobian_rgb=jacobian)
+        per_frame = {m: {"solver": "gauss-newton", "iterations": 2, "rays_per_iteration": 768,
+                         "jacobian": options.step_options(m == "rgbd").jacobian} for m in ("rgbd", "rgb")}
+        table = markdown({"frames": 3, "runs": [], "options": options.__dict__, "per_frame": per_frame})
+        assert table.count(f"(Jacobian by {jacobian})") == 2
+    with pytest.raises(TrackInputError, match="jacobian_rgb"):
+        TrackOptions(jacobian_rgb="secant")
+
+
+def _bench_track_args(extra: list[str]):
+    from narf_core.cli import build_parser
+
+    return build_parser().parse_args(["bench", "track", *extra])
+
+
 def _bench_sequence(work: str) -> str:
     from narf_benchmarks.track import sequence
 
