@@ -901,8 +901,8 @@ class FrameProblem(Problem):
     through the box pixels ``index`` take their lattice samples between ``near`` and ``far`` (the frame's
     band, per box pixel), those the posed grid holds at the pose asked (:func:`occupied`) and, for a
     Jacobian where ``prune``, those light reaches (:func:`visible`): the Adam frame's samples. One start, or
-    several rows of it (a Jacobian by differences: the same rays at shifted poses), each taking the band's
-    samples its own grid holds, all of them (a render without a graph: pruning first would save little)."""
+    several rows of it (a Jacobian by differences: the same rays at shifted poses, rendered without a graph),
+    each taking the band's samples its own grid holds and, where ``prune``, those its light reaches."""
 
     near: Tensor | None = None
     far: Tensor | None = None
@@ -936,14 +936,14 @@ class FrameProblem(Problem):
             return self.field, visible(self.field, fixed, samples, th) if jacobian and self.prune else samples
         held = [occupied_mask(self.grid, fixed[r * n:(r + 1) * n], lattice, theta[r * n]) for r in range(rows)]
         ray = torch.cat([lattice.ray[h] + r * n for r, h in enumerate(held)])
-        return self.field, Samples(ray, torch.cat([lattice.t[h] for h in held]),
-                                   torch.cat([lattice.delta[h] for h in held]))
+        samples = Samples(ray, torch.cat([lattice.t[h] for h in held]), torch.cat([lattice.delta[h] for h in held]))
+        return self.field, visible(self.field, fixed, samples, theta) if self.prune else samples
 
 
 def visible(field, rays_obj: Rays, samples: Samples, theta: Tensor, eps: float = 1e-5) -> Samples:
     """The ``samples`` (ray-major, ascending ``t``) that light reaches: those before which the ray's
-    transmittance at ``θ [k]`` is still at least about ``eps`` (the march's early stop, after the
-    fact), so that a render with a graph evaluates the field only where it counts. The optical
+    transmittance at ``θ [k]`` (or one ``θ`` per ray, ``[n, k]``) is still at least about ``eps`` (the
+    march's early stop, after the fact), so that a render evaluates the field only where it counts. The optical
     depth comes from one field evaluation without a graph at every other sample of a ray (each
     standing for two): half the cost, and ``eps`` small enough that what is dropped weighs a few
     thousandths at most in any render (tests/test_track.py)."""
@@ -959,8 +959,9 @@ def visible(field, rays_obj: Rays, samples: Samples, theta: Tensor, eps: float =
         pick = (index - start) % 2 == 0
         ray, t = samples.ray[pick], samples.t[pick]
         x = rays_obj.origins[ray] + t[:, None].to(rays_obj.origins) * rays_obj.directions[ray]
+        th = theta.detach() if theta.dim() == 1 else theta.detach()[ray]  # shared, or one per ray
         tau = torch.zeros(len(samples), dtype=torch.float64, device=samples.ray.device)
-        tau[pick] = density_fn(field)(x, theta.detach()).double() * samples.delta[pick].double() * 2
+        tau[pick] = density_fn(field)(x, th).double() * samples.delta[pick].double() * 2
         total = torch.cumsum(tau, 0)
         before = total - tau - (total[start] - tau[start])  # the optical depth in front of each sample
         keep = before < -math.log(eps)

@@ -385,7 +385,8 @@ def test_visible_samples_render_what_every_sample_renders(clamp, clamp_sequence:
 
 def test_a_frames_shifted_rows_render_as_each_row_alone(clamp, clamp_sequence: Path) -> None:
     """A Jacobian by differences renders a frame's rays at several poses a sample spacing or so apart in one
-    batch (``FrameProblem``, several rows): every row as the row's own band renders it alone."""
+    batch (``FrameProblem``, several rows): every row as the row's own band renders it alone (to a few
+    thousandths: each row's samples light reaches, as test_visible_samples_render_what_every_sample_renders)."""
     import torch
 
     from narf_core.compositing import composite
@@ -410,7 +411,7 @@ def test_a_frames_shifted_rows_render_as_each_row_alone(clamp, clamp_sequence: P
                               outputs=outputs)
             P = torch.cat([alone.rgb, alone.opacity[:, None], alone.depth[:, None]], -1)
             assert float(P[:, 3].max()) > 0.99
-            torch.testing.assert_close(batch[row], P, rtol=0, atol=1e-5)
+            assert float((batch[row] - P).abs().max()) < 5e-3, row
         assert float((batch[1] - batch[0]).abs().max()) > 0.1  # the rows differ
 
 
