@@ -18,7 +18,9 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field, create_model, field_validator, model_validator
 
 from narf_core.checks import ROTATION_TOLERANCE, check_pose
-from narf_core.estimate import MASK_TRUSTS, MODES, PRESET_NAMES, PRESETS, RAY_SAMPLINGS, ROBUST_LOSSES, SOLVERS, EstimateOptions
+from narf_core.estimate import (
+    JACOBIANS, MASK_TRUSTS, MODES, PRESET_NAMES, PRESETS, RAY_SAMPLINGS, ROBUST_LOSSES, SOLVERS, EstimateOptions,
+)
 from narf_core.geometry import pose_from_position_quaternion, pose_to_position_quaternion
 from narf_core.modes import RENDER_MODES
 from narf_core.track import TrackOptions, auto_solver_text, budget_text
@@ -250,7 +252,7 @@ _REFINE_OPTIONS: dict[str, tuple[str, dict[str, float]]] = {
     "sigma_floor_joint": ("Model error added to Σ, joint range fraction", {"le": 10}),
 }
 _OPTION_CHOICES = {"mode": MODES, "solver": SOLVERS, "robust_loss": ROBUST_LOSSES, "ray_sampling": RAY_SAMPLINGS,
-                   "mask_trust": MASK_TRUSTS}
+                   "mask_trust": MASK_TRUSTS, "jacobian": JACOBIANS}
 _OPTION_TYPES = {"int": int, "float": float, "bool": bool}
 
 
@@ -401,6 +403,9 @@ _TRACK_OPTIONS: dict[str, tuple[str, dict[str, float]]] = {
     "rays_per_iteration": (f"Rays rendered per iteration (left out: the solver's own, {budget_text(1)})",
                            {"ge": 16, "le": 8192}),
     "solver": (f"The per-frame solver: gauss-newton, adam, or auto ({auto_solver_text()})", {}),
+    "jacobian": ("A Gauss-Newton frame's Jacobian with depth: differences (central differences of the render, "
+                 "2 (6 + k) renders) or derivatives (the field's own, one pass: about twice the rate where they "
+                 "suffice)", {}),
     "mode": (_MODE_MEANING, {}),
 }
 

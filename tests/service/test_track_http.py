@@ -194,6 +194,11 @@ def test_track_bad_input_over_http(server: str, frames) -> None:
         with pytest.raises(InvalidInput) as info:
             narf.track_step(sent[3], K, model="clamp", state=token, options={"iterations": -1})
         assert info.value.field.startswith("request.options")
+        with pytest.raises(InvalidInput) as info:  # a Jacobian the tracker does not know
+            narf.track_step(sent[3], K, model="clamp", state=token, options={**FAST, "jacobian": "secant"})
+        assert info.value.field == "request.options.jacobian"
+        fast = narf.track_step(sent[3], K, model="clamp", state=token, options={**FAST, "jacobian": "derivatives"})
+        assert fast.status in ("tracking", "uncertain")
 
 
 @pytest.mark.slow
