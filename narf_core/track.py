@@ -930,14 +930,12 @@ class FrameProblem(Problem):
         rows = len(rays) // n
         fixed = Rays(rays.origins.detach(), rays.directions.detach(), rays.z_per_t)
         lattice = frame_band(self.near[self.index], self.far[self.index], self.model.step)
-        if rows == 1:
-            th = theta[0].detach()
-            samples = occupied(self.grid, fixed, lattice, th)
-            return self.field, visible(self.field, fixed, samples, th) if jacobian and self.prune else samples
         held = [occupied_mask(self.grid, fixed[r * n:(r + 1) * n], lattice, theta[r * n]) for r in range(rows)]
         ray = torch.cat([lattice.ray[h] + r * n for r, h in enumerate(held)])
         samples = Samples(ray, torch.cat([lattice.t[h] for h in held]), torch.cat([lattice.delta[h] for h in held]))
-        return self.field, visible(self.field, fixed, samples, theta) if self.prune else samples
+        if not (self.prune and (jacobian or rows > 1)):  # one row's render without a graph: every sample
+            return self.field, samples
+        return self.field, visible(self.field, fixed, samples, theta[0] if rows == 1 else theta)
 
 
 def visible(field, rays_obj: Rays, samples: Samples, theta: Tensor, eps: float = 1e-5) -> Samples:
