@@ -106,6 +106,42 @@ def test_a_cached_sequence_with_events_but_no_bar_record_is_drawn_again(tmp_path
         assert events is False or all(p["occluder"] is not None for p in again["sequence"]["per_frame"])
 
 
+WITHOUT_GENERATOR = """
+import sys
+from pathlib import Path
+for name in ("pybullet", "pybullet_utils", "shapely", "mapbox_earcut"):
+    sys.modules[name] = None  # as where the synth extra is not installed (a GPU machine, the service's image)
+from narf_core.data.synth.sequence import sequence_once
+try:
+    print(sequence_once("clamp", Path(sys.argv[1]), 3, size=(32, 24), events=False))
+except ImportError as e:
+    print("ImportError", e.name)
+"""
+
+
+def test_a_cached_sequence_reads_without_the_generators_packages(tmp_path: Path) -> None:
+    """``narf bench track`` on sequences drawn elsewhere (carried to a machine without pybullet or shapely):
+    ``sequence_once`` finds a whole sequence without importing the generator, and asks for it only to draw one."""
+    pytest.importorskip("pybullet")
+    import subprocess
+    import sys
+
+    from narf_core.data.synth.sequence import sequence_once
+
+    out = sequence_once("clamp", tmp_path / "seq", 3, size=(32, 24), events=False)
+    scene = (out / "scene.json").read_bytes()
+
+    def probe(folder: Path) -> str:
+        run = subprocess.run([sys.executable, "-c", WITHOUT_GENERATOR, str(folder)], capture_output=True, text=True,
+                             timeout=120, cwd=Path(__file__).resolve().parent.parent)
+        assert run.returncode == 0, run.stderr
+        return run.stdout.strip().splitlines()[-1]
+
+    assert probe(out) == str(out)
+    assert (out / "scene.json").read_bytes() == scene  # read, not drawn again
+    assert probe(tmp_path / "missing") in {"ImportError shapely", "ImportError pybullet"}  # drawing one needs them
+
+
 def test_a_large_object_is_framed_as_its_single_views_are(tmp_path: Path) -> None:
     """The cabinet, whose views have camera distances of their own (it overflows the rig's at 0.4 m), is
     seen from as much farther in a sequence: whole in every frame, where the tools' 0.55 m cut it off

@@ -38,8 +38,6 @@ from tqdm import tqdm
 
 from narf_core.data.dataset import DatasetWriter
 from narf_core.data.synth.bar import bar_depth, occlude
-from narf_core.data.synth.generate import ViewSampling, _versions, default_sampling, resolve_tool
-from narf_core.data.synth.render import BulletScene
 from narf_core.geometry import Pinhole, invert_pose, look_at, so3_log
 
 DEFAULT_FPS = 30.0
@@ -115,6 +113,8 @@ def framed_path(tool: str | Path, path: SequencePath) -> SequencePath:
     its distances scaled as the object's camera distances are the rig's (by the nearest), so that an object
     too large for the rig's stays in view as the tools do; and, for an object seen from some azimuths only,
     its orbit kept to them and its elevation swaying inside the object's range."""
+    from narf_core.data.synth.generate import ViewSampling, default_sampling
+
     own, rig = default_sampling(tool), ViewSampling()
     k = own.distance[0] / rig.distance[0]
     if k != 1:
@@ -243,6 +243,10 @@ def synthesize_sequence(
         raise ValueError(f"a sequence needs at least 2 frames, got {frames}")
     if not (math.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be a positive number, got {fps}")
+    # the generator's packages (pybullet, shapely) only where a sequence is drawn: reading one needs none
+    from narf_core.data.synth.generate import _versions, resolve_tool
+    from narf_core.data.synth.render import BulletScene
+
     camera = Pinhole.primesense(width, height)
     rng = np.random.default_rng(seed)
     out = Path(out)
