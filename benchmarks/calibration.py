@@ -224,7 +224,8 @@ def main(argv: list[str] | None = None) -> int:
                          "single images)")
     model = load_bundle(args.model)
     if args.tracker:
-        factors = calibrate_tracker(model, args.tool, (160, 120), args.work / "track", args.track_seeds, args.frames)
+        factors = calibrate_tracker(model, args.tool, (160, 120), args.work / f"track-{Path(args.tool).stem}",
+                                    args.track_seeds, args.frames)  # one folder per object: its own sequences
         print(json.dumps({"track": factors}, indent=1))
         if args.write_bundle:
             write_calibration(args.write_bundle, "track", factors)

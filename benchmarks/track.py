@@ -179,8 +179,11 @@ def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, m
     device = next(iter(models.values())).aabb.device if models else "cpu"  # the frames' budget depends on it
     for modality in modalities:
         step = options.step_options(modality == "rgbd", device)
+        own = {tool: j for tool, model in models.items() if (j := options.jacobian_for(modality == "rgbd", model))
+               != step.jacobian}  # a model's calibration chose another (TrackOptions.jacobian_rgb "auto")
         per_frame[modality] = {"solver": options.solver_for(modality == "rgbd"), "iterations": step.iterations,
-                               "rays_per_iteration": step.rays_per_iteration, "jacobian": step.jacobian}
+                               "rays_per_iteration": step.rays_per_iteration, "jacobian": step.jacobian,
+                               "jacobian_own": own}
     result = {"frames": frames, "seeds": list(seeds), "ray_seeds": list(ray_seeds), "options": options.__dict__,
               "per_frame": per_frame, "runs": runs, "over_tracks": over_tracks(runs),
               "machine": machine(models.values())}
@@ -236,7 +239,7 @@ def markdown(result: dict) -> str:
         f"({'as exact' if o.get('first_frame') == 'warm' else 'refined by the multi-start refiner'}); per frame "
         + "; ".join(f"{'with depth' if m == 'rgbd' else 'RGB only'} {p['iterations']} {p['solver']} iterations of "
                     f"{p['rays_per_iteration']} rays"
-                    + (f" (Jacobian by {p['jacobian']})" if p["solver"] == "gauss-newton" and "jacobian" in p else "")
+                    + (_jacobian_text(p) if p["solver"] == "gauss-newton" and "jacobian" in p else "")
                     for m, p in result.get("per_frame", {}).items())
         + f", {band}"
         + ("" if o.get("depth_align", True) else ", the prediction not aligned to the depth")
@@ -286,6 +289,16 @@ def markdown(result: dict) -> str:
                       + ", ".join(f"{c['frame_seconds_mean'] * 1000:.0f} ({c['tracker_seconds_mean'] * 1000:.0f})"
                                   for c in service["per_client"] if "error" not in c)]
     return "\n".join(lines)
+
+
+def _jacobian_text(per_frame: dict) -> str:
+    """" (Jacobian by derivatives; by differences for lamp, its calibration's choice)"."""
+    own: dict = {}
+    for tool, jacobian in (per_frame.get("jacobian_own") or {}).items():
+        own.setdefault(jacobian, []).append(tool)
+    return (f" (Jacobian by {per_frame['jacobian']}"
+            + "".join(f"; by {j} for {', '.join(tools)}, {'its' if len(tools) == 1 else 'their'} calibration's choice"
+                      for j, tools in own.items()) + ")")
 
 
 def _repeat_cell(run: dict, result: dict) -> str:

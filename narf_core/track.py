@@ -111,6 +111,12 @@ RGB_ITERATIONS = {"gauss-newton": 3}
 # its kernel launches', about the same for 768 rays as for 6144, and 4x the rays halve the track's error
 # (docs/benchmarks.md, session 29).
 GPU_RAYS = {"gauss-newton": 3072}
+# A Gauss-Newton frame's Jacobian without depth where TrackOptions.jacobian_rgb is "auto" and the model's tracker
+# calibration chose none: the field's derivatives (one pass, where the differences take 2 (6 + k) renders).
+JACOBIAN_RGB = "derivatives"
+# The calibration takes the differences without depth only where they lower the mean ADD of its sequences'
+# frames below this share of the derivatives' (on the CPU they cost 2-3x the time).
+DIFFERENCES_GAIN = 0.8
 
 
 def budget_text(which: int = 0) -> str:
@@ -126,8 +132,17 @@ def budget_text(which: int = 0) -> str:
 def jacobian_text() -> str:
     """The default frame Jacobian in words, with depth and without (for the CLI's help)."""
     o = TrackOptions()
-    return (f"{o.jacobian} with depth, {o.jacobian_rgb} without" if o.jacobian != o.jacobian_rgb
-            else f"{o.jacobian}, with depth and without")
+    rgb = (f"{JACOBIAN_RGB} without, or what the model's tracker calibration chose" if o.jacobian_rgb == "auto"
+           else f"{o.jacobian_rgb} without")
+    return f"{o.jacobian}, with depth and without" if o.jacobian == o.jacobian_rgb else f"{o.jacobian} with depth, {rgb}"
+
+
+def calibrated_jacobian(model: NarfModel, key: str) -> str | None:
+    """The frame Jacobian the model's tracker calibration chose for frames with depth (``key`` "rgbd") or
+    without ("rgb"), measured on sequences of its object (:func:`narf_core.train.track_sigma.track_calibration`);
+    None where it chose none (a bundle calibrated before the choice, or never)."""
+    track = (model.metadata.get("uncertainty") or {}).get("track") or {}
+    return (track.get("jacobians") or {}).get(key)
 
 
 def auto_solver_text() -> str:
@@ -161,7 +176,10 @@ class TrackOptions:
     # lamp's track followed its three joints (the field's derivatives stalled, and the track ran off by
     # centimetres), and a model whose thin jaw the derivatives lost was held (docs/benchmarks.md, session 53).
     jacobian: str = "differences"
-    jacobian_rgb: str = "derivatives"
+    # Without depth neither wins everywhere (the lamp's track needs the differences; the clamp's and the pliers' fare
+    # worse with them): "auto" takes what the model's tracker calibration measured on its own sequences
+    # (:func:`calibrated_jacobian`), else :data:`JACOBIAN_RGB`.
+    jacobian_rgb: str = "auto"
     iterations: int = 0
     rays_per_iteration: int = 0
     lr_pose: float = 0.003  # Adam moves every parameter by about its rate per step: small, from a close start
@@ -312,8 +330,8 @@ class TrackOptions:
              "must satisfy 0 <= lost_overlap <= uncertain_overlap <= 1")
         need(0 <= self.reinit_partial_overlap <= 1, "reinit_partial_overlap", "must be in [0, 1]")
         need(self.solver in TRACK_SOLVERS, "solver", f"must be one of {', '.join(TRACK_SOLVERS)}")
-        for name in ("jacobian", "jacobian_rgb"):
-            need(getattr(self, name) in JACOBIANS, name, f"must be one of {', '.join(JACOBIANS)}")
+        need(self.jacobian in JACOBIANS, "jacobian", f"must be one of {', '.join(JACOBIANS)}")
+        need(self.jacobian_rgb in ("auto", *JACOBIANS), "jacobian_rgb", f"must be one of auto, {', '.join(JACOBIANS)}")
         need(self.reinit_solver in ("robust", "gauss-newton"), "reinit_solver", "must be 'robust' or 'gauss-newton'")
         need(self.uncertainty_rays >= 0, "uncertainty_rays", "must be >= 0")
         need(self.sigma_scale >= 0, "sigma_scale", "must be >= 0 (0 = the model's own)")
@@ -336,8 +354,18 @@ class TrackOptions:
         """A warm-started frame's solver, with ``depth`` or without."""
         return AUTO_SOLVER["rgbd" if depth else "rgb"] if self.solver == "auto" else self.solver
 
-    def step_options(self, depth: bool, device: torch.device | str = "cpu") -> EstimateOptions:
-        """The refiner's options for a warm-started frame on a model on ``device`` (from the prediction
+    def jacobian_for(self, depth: bool, model: NarfModel | None = None) -> str:
+        """A Gauss-Newton frame's Jacobian with ``depth`` or without, on ``model`` (``jacobian_rgb`` "auto": its
+        calibration's choice, else :data:`JACOBIAN_RGB`)."""
+        if depth:
+            return self.jacobian
+        if self.jacobian_rgb != "auto":
+            return self.jacobian_rgb
+        return (calibrated_jacobian(model, "rgb") if model is not None else None) or JACOBIAN_RGB
+
+    def step_options(self, depth: bool, device: torch.device | str = "cpu",
+                     model: NarfModel | None = None) -> EstimateOptions:
+        """The refiner's options for a warm-started frame on ``model`` on ``device`` (from the prediction
         alone: a frame that misses is the re-initialisation's to find, so no pose starts and no slide along
         the object's axis)."""
         solver = self.solver_for(depth)
@@ -357,7 +385,7 @@ class TrackOptions:
                   "uncertainty_trained_footprint": depth,
                   "occlusion_margin": self.occlusion_margin, "refinements": 0, "rgb_refinements": 0, "rgb_polish": 0,
                   "pose_starts": 1, "search_theta_starts": 0, "slide_share": 0.0,
-                  "jacobian": self.jacobian if depth else self.jacobian_rgb}
+                  "jacobian": self.jacobian_for(depth, model)}
         if depth:
             common.update(mask_trust=DEPTH_MASK_TRUST)
         elif self.outside_weight_rgb < 1:
@@ -1055,13 +1083,17 @@ def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool, camera: Pi
     fitted at, is multiplied by their ratio to the power :data:`SIGMA_SCALE_FINER`, or, for an own factor
     also fitted at a finer camera (``fine``: its ``fx`` and factors), to the power that joins the two
     fits (and the finer fit's as it is for a camera finer still); an own factor that does not name its
-    camera is taken as it is."""
+    camera is taken as it is. An own factor fitted with another frame Jacobian (``jacobians``) than the
+    frame's is not the frame's: Σ comes from the field's derivatives either way, and its misfit differs."""
     key, solver = "rgbd" if depth else "rgb", options.solver_for(depth)
     chosen = options.sigma_scale if depth else options.sigma_scale_rgb
     if chosen:
         return float(chosen)
     track = (model.metadata.get("uncertainty") or {}).get("track") or {}
     own = track.get(key) if (track.get("solvers") or {}).get(key, "adam") == solver else None
+    fitted_with = (track.get("jacobians") or {}).get(key)
+    if own and solver == "gauss-newton" and fitted_with and fitted_with != options.jacobian_for(depth, model):
+        own = None
     factor, fitted_fx = (own, track.get("fx")) if own else (SIGMA_SCALE[solver][key], training_fx(model))
     if camera is None or not fitted_fx:
         return float(factor)
@@ -1080,7 +1112,7 @@ def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.
     """A warm-started frame's iterations from ``T`` and ``joints``: :func:`refine_frame` (narf mode,
     ``march = "frame"``, no band; given the frame's input ``checks``) or :func:`refine` (any other mode or
     march); the render's colour compared times ``colour`` where given."""
-    step_options = _coloured(opts.step_options(depth is not None, model.aabb.device), colour)
+    step_options = _coloured(opts.step_options(depth is not None, model.aabb.device, model), colour)
     if (opts.march == "frame" and opts.band_m == 0
             and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf"):
         position, rotation = ((opts.frame_prior_position_m, opts.frame_prior_rotation_deg) if depth is not None

@@ -1176,6 +1176,38 @@ def test_bench_track_takes_the_frames_jacobian() -> None:
         TrackOptions(jacobian_rgb="secant")
 
 
+def test_a_frame_without_depth_takes_the_jacobian_its_models_calibration_chose(clamp) -> None:
+    """``TrackOptions.jacobian_rgb`` "auto" (the default) takes the Jacobian the model's tracker calibration chose
+    without depth (``uncertainty.track.jacobians``), else the derivatives; a set one overrides it, and the frames
+    with depth keep ``jacobian``. A factor fitted with another Jacobian than the frame's is not the model's own."""
+    import copy
+
+    from narf_benchmarks.track import markdown
+    from narf_core.track import JACOBIAN_RGB, SIGMA_SCALE, TrackOptions, calibrated_jacobian, sigma_scale
+
+    auto = TrackOptions()
+    assert auto.jacobian_rgb == "auto" and calibrated_jacobian(clamp, "rgb") is None
+    assert auto.step_options(False, "cpu", clamp).jacobian == JACOBIAN_RGB == "derivatives"
+    chose = copy.copy(clamp)
+    chose.metadata = copy.deepcopy(clamp.metadata)
+    chose.metadata.setdefault("uncertainty", {})["track"] = {
+        "rgbd": 0.5, "rgb": 2.0, "solvers": {"rgbd": "gauss-newton", "rgb": "gauss-newton"},
+        "jacobians": {"rgbd": "differences", "rgb": "differences"}}
+    assert calibrated_jacobian(chose, "rgb") == "differences"
+    assert auto.step_options(False, "cpu", chose).jacobian == "differences"
+    assert auto.step_options(True, "cpu", chose).jacobian == auto.jacobian == "differences"
+    assert TrackOptions(jacobian_rgb="derivatives").step_options(False, "cpu", chose).jacobian == "derivatives"
+    # the model's factor where the frame takes the Jacobian it was fitted with, else the pooled one
+    assert sigma_scale(chose, auto, False) == 2.0 and sigma_scale(chose, auto, True) == 0.5
+    assert sigma_scale(chose, TrackOptions(jacobian_rgb="derivatives"), False) == SIGMA_SCALE["gauss-newton"]["rgb"]
+    assert sigma_scale(chose, TrackOptions(jacobian="derivatives"), True) == SIGMA_SCALE["gauss-newton"]["rgbd"]
+    # the benchmark's table names a model's own choice
+    per_frame = {"rgb": {"solver": "gauss-newton", "iterations": 3, "rays_per_iteration": 768,
+                         "jacobian": "derivatives", "jacobian_own": {"lamp": "differences"}}}
+    table = markdown({"frames": 3, "runs": [], "options": auto.__dict__, "per_frame": per_frame})
+    assert "(Jacobian by derivatives; by differences for lamp, its calibration's choice)" in table
+
+
 def _bench_track_args(extra: list[str]):
     from narf_core.cli import build_parser
 

@@ -78,7 +78,8 @@ def test_training_fits_the_trackers_own_factor_on_sequences_of_its_object(tiny_d
     import shutil
 
     from narf_core.geometry import Pinhole
-    from narf_core.track import SIGMA_SCALE, TrackOptions, sigma_scale
+    from narf_core.estimate import JACOBIANS
+    from narf_core.track import DIFFERENCES_GAIN, SIGMA_SCALE, TrackOptions, sigma_scale
     from narf_core.train.track_sigma import calibrate_tracker, dataset_tool, fine_size, fit_track_scale, track_nees
 
     config = tiny_config(part_steps=40, distill_steps=40, field="articulated", track_sequences=1)
@@ -91,6 +92,12 @@ def test_training_fits_the_trackers_own_factor_on_sequences_of_its_object(tiny_d
     for fit in (fitted, fitted["fine"]):
         assert fit["rgbd_frames"] > 30 and fit["rgb_frames"] > 30  # most of the 60 frames held
     assert fitted["solvers"] == {"rgbd": TrackOptions().solver_for(True), "rgb": TrackOptions().solver_for(False)}
+    # without depth, the Jacobian whose frames came out nearer (the differences only by DIFFERENCES_GAIN)
+    means = fitted["rgb_add_m"]
+    assert set(means) == set(JACOBIANS) and all(0 < m < math.inf for m in means.values())
+    assert fitted["jacobians"] == {"rgbd": TrackOptions().jacobian, "rgb": "differences" if means["differences"]
+                                   < DIFFERENCES_GAIN * means["derivatives"] else "derivatives"}
+    assert TrackOptions().jacobian_for(False, model) == fitted["jacobians"]["rgb"]
     assert "track_sigma_s" in model.metadata["provenance"]["timings_s"]
     assert not (tmp_path / "m.narf.work").exists()
     # The factor is the fit of the frames' NEES on the same sequence (drawn again: the same frames).

@@ -7,7 +7,10 @@ is covered more or less than 95 % by them. Where the dataset says which object i
 tool or a URDF: ``generator.tool``), training draws ``sequences`` smooth sequences of it (seeds 1, 2,
 ...; the benchmarks' is seed 0) at the dataset's camera, tracks them from their first label with the
 default tracker, RGB-D and RGB only, and keeps per modality the smallest factor (0.01 steps) whose
-regions hold 95 % of the pooled frames' errors: ``metadata["uncertainty"]["track"]``; the same again at
+regions hold 95 % of the pooled frames' errors: ``metadata["uncertainty"]["track"]``. Without depth it tracks
+them with both Jacobians first and keeps the one the tracker should take for this model (``jacobians``: the
+differences where they lower the frames' mean ADD below :data:`~narf_core.track.DIFFERENCES_GAIN` of the
+derivatives', ``rgb_add_m`` both means); the same again at
 a camera's native 640x480 (four times finer than 160x120 views), where a model's σ need not follow the
 pooled factor's growth with the camera's fineness.
 
@@ -33,25 +36,36 @@ SEQUENCE_FRAMES = 60
 FINE_WIDTH = 640
 
 
-def track_nees(model: NarfModel, dataset: Dataset, rgb_only: bool, seed: int = 0) -> list[float]:
+def track_nees(model: NarfModel, dataset: Dataset, rgb_only: bool, seed: int = 0,
+               jacobian_rgb: str | None = None) -> list[float]:
     """The default tracker over the sequence ``dataset`` from its first label; per frame with a
     covariance, the NEES of its true error under the frame's Σ before the tracker's factor (``sigma_scale``
     1: the NEES at the factor used times its square)."""
+    return track_errors(model, dataset, rgb_only, seed, jacobian_rgb)[0]
+
+
+def track_errors(model: NarfModel, dataset: Dataset, rgb_only: bool, seed: int = 0,
+                 jacobian_rgb: str | None = None) -> tuple[list[float], list[float]]:
+    """:func:`track_nees` and, per frame not lost, the ADD (m); without depth with the frame Jacobian
+    ``jacobian_rgb`` (None: the default tracker's for this model)."""
     from narf_core.estimate import local_error
     from narf_core.track import SIGMA_SCALE, TrackOptions, track
-    from narf_core.track_io import load_frames, sequence_frames
+    from narf_core.track_io import load_frames, score, sequence_frames
 
     pooled = {key: SIGMA_SCALE[TrackOptions().solver_for(key == "rgbd")][key] for key in ("rgbd", "rgb")}
     scale = pooled["rgb" if rgb_only else "rgbd"]  # the pooled factor: the track does not see a model's own
-    options = TrackOptions(first_frame="warm", seed=seed, sigma_scale=pooled["rgbd"], sigma_scale_rgb=pooled["rgb"])
+    options = TrackOptions(first_frame="warm", seed=seed, sigma_scale=pooled["rgbd"], sigma_scale_rgb=pooled["rgb"],
+                           **({"jacobian_rgb": jacobian_rgb} if jacobian_rgb else {}))
     frames = sequence_frames(dataset)
-    nees = []
+    nees, adds = [], []
     for frame, result in zip(frames, track(model, load_frames(dataset, frames, rgb_only=rgb_only), dataset.camera,
                                            frames[0].T_cam_obj, frames[0].joints, options)):
+        if result.status != "lost":
+            adds.append(score(model, frame, result)["add_m"])
         if result.status != "lost" and result.covariance is not None:
             e = local_error(result.T_cam_obj, result.joints, frame.T_cam_obj, frame.joints, model)
             nees.append(float(e @ np.linalg.pinv(result.covariance, hermitian=True) @ e) * scale**2)
-    return nees
+    return nees, adds
 
 
 def fit_track_scale(nees: list[float], dof: int, share: float = COVERAGE) -> float:
@@ -66,19 +80,39 @@ def fit_track_scale(nees: list[float], dof: int, share: float = COVERAGE) -> flo
     return max(0.01, math.ceil(round(100 * math.sqrt(needed / chi2_quantile(COVERAGE, dof)), 9)) / 100)
 
 
-def track_calibration(model: NarfModel, datasets: list[Dataset], modalities=("rgbd", "rgb")) -> dict:
+def track_calibration(model: NarfModel, datasets: list[Dataset], modalities=("rgbd", "rgb"),
+                      jacobians: dict[str, str] | None = None) -> dict:
     """``metadata["uncertainty"]["track"]``: per modality the factor on a warm-started frame's σ
     (:func:`narf_core.track.sigma_scale`) fitted on the pooled frames of ``datasets``' sequences (one
-    camera, its focal length ``fx`` in pixels), and the solver it was fitted with (``solvers``: the
-    default tracker's for that modality)."""
-    from narf_core.track import TrackOptions
+    camera, its focal length ``fx`` in pixels), and the solver and the frame Jacobian it was fitted with
+    (``solvers``: the default tracker's for that modality; ``jacobians``: given, else with depth the default
+    tracker's and without, where its ``jacobian_rgb`` is "auto", the one whose frames' mean ADD is lower by
+    :data:`~narf_core.track.DIFFERENCES_GAIN`, both means under ``rgb_add_m``)."""
+    from narf_core.estimate import JACOBIANS
+    from narf_core.track import DIFFERENCES_GAIN, TrackOptions
 
-    out: dict = {"solvers": {}, "fx": float(datasets[0].camera.K[0, 0])}
+    def pooled(rgb_only: bool, jacobian: str) -> tuple[list[float], list[float]]:
+        runs = [track_errors(model, dataset, rgb_only, jacobian_rgb=jacobian) for dataset in datasets]
+        return [n for nees, _ in runs for n in nees], [a for _, adds in runs for a in adds]
+
+    default = TrackOptions()
+    out: dict = {"solvers": {}, "jacobians": {}, "fx": float(datasets[0].camera.K[0, 0])}
     for modality in modalities:
-        nees = [n for dataset in datasets for n in track_nees(model, dataset, modality == "rgb")]
+        depth = modality == "rgbd"
+        chosen = (jacobians or {}).get(modality) or default.jacobian_for(depth)
+        if (not depth and not (jacobians or {}).get(modality) and default.jacobian_rgb == "auto"
+                and default.solver_for(False) == "gauss-newton"):
+            runs = {j: pooled(True, j) for j in JACOBIANS}
+            mean = {j: float(np.mean(adds)) if adds else math.inf for j, (_, adds) in runs.items()}
+            chosen = "differences" if mean["differences"] < DIFFERENCES_GAIN * mean["derivatives"] else "derivatives"
+            nees = runs[chosen][0]
+            out["rgb_add_m"] = mean
+        else:
+            nees = pooled(not depth, chosen)[0]
         out[modality] = fit_track_scale(nees, 6 + len(model.joints))
         out[f"{modality}_frames"] = len(nees)
-        out["solvers"][modality] = TrackOptions().solver_for(modality == "rgbd")
+        out["solvers"][modality] = default.solver_for(depth)
+        out["jacobians"][modality] = chosen
     return out
 
 
@@ -138,12 +172,14 @@ def calibrate_tracker(model: NarfModel, tool: str, size: tuple[int, int], work: 
     def fitted(at: tuple[int, int]) -> dict:
         datasets = [Dataset.open(f) for f in sequence_folders(tool, at, work, seeds, frames)]
         with torch_threads(1):  # as the tracker runs by default (small work): the fit does not follow the machine
-            return track_calibration(model, datasets)
+            return track_calibration(model, datasets, jacobians=jacobians)
 
+    jacobians = None
     out = {**fitted(size), "seeds": list(seeds)}
     fine = fine_size(size)
-    if fine is not None:
-        out["fine"] = {k: v for k, v in fitted(fine).items() if k != "solvers"}
+    if fine is not None:  # the Jacobians chosen at the views' camera
+        jacobians = out["jacobians"]
+        out["fine"] = {k: v for k, v in fitted(fine).items() if k not in ("solvers", "jacobians")}
     return out
 
 
