@@ -561,6 +561,10 @@ def _print_track_sigma(model: NarfModel) -> None:
         if fit:
             print(f"  tracker's factor on σ at fx {fit['fx']:g} px: RGB-D {fit['rgbd']:g}, RGB only {fit['rgb']:g} "
                   f"(fitted on {fit['rgbd_frames']} / {fit['rgb_frames']} frames of {len(fitted['seeds'])} sequences)")
+    means = (fitted or {}).get("rgb_add_m")
+    if means:  # the frame Jacobian without depth it measured (TrackOptions.jacobian_rgb "auto" takes it)
+        print(f"  tracker's Jacobian without depth: {fitted['jacobians']['rgb']} (mean ADD on those frames "
+              + ", ".join(f"{m * 100:.2f} cm by {j}" for j, m in means.items()) + ")")
 
 
 def _print_auto_mode(model: NarfModel) -> None:

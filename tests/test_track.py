@@ -1176,7 +1176,7 @@ def test_bench_track_takes_the_frames_jacobian() -> None:
         TrackOptions(jacobian_rgb="secant")
 
 
-def test_a_frame_without_depth_takes_the_jacobian_its_models_calibration_chose(clamp) -> None:
+def test_a_frame_without_depth_takes_the_jacobian_its_models_calibration_chose(clamp, capsys) -> None:
     """``TrackOptions.jacobian_rgb`` "auto" (the default) takes the Jacobian the model's tracker calibration chose
     without depth (``uncertainty.track.jacobians``), else the derivatives; a set one overrides it, and the frames
     with depth keep ``jacobian``. A factor fitted with another Jacobian than the frame's is not the model's own."""
@@ -1206,6 +1206,14 @@ def test_a_frame_without_depth_takes_the_jacobian_its_models_calibration_chose(c
                          "jacobian": "derivatives", "jacobian_own": {"lamp": "differences"}}}
     table = markdown({"frames": 3, "runs": [], "options": auto.__dict__, "per_frame": per_frame})
     assert "(Jacobian by derivatives; by differences for lamp, its calibration's choice)" in table
+    # and `narf train` prints what its calibration measured
+    from narf_core.cli import _print_track_sigma
+
+    chose.metadata["uncertainty"]["track"].update(fx=134.0, rgbd_frames=180, rgb_frames=179, seeds=[1, 2, 3],
+                                                  rgb_add_m={"derivatives": 0.052, "differences": 0.0107})
+    _print_track_sigma(chose)
+    assert ("tracker's Jacobian without depth: differences (mean ADD on those frames 5.20 cm by derivatives, "
+            "1.07 cm by differences)") in capsys.readouterr().out
 
 
 def _bench_track_args(extra: list[str]):
