@@ -218,6 +218,9 @@ _REFINE_OPTIONS: dict[str, tuple[str, dict[str, float]]] = {
     "lr_decay": ("Final over first learning rate", {}),
     "rays_per_iteration": ("Rays rendered per iteration", {"ge": 16, "le": 65536}),
     "mode": (_MODE_MEANING, {}),
+    "jacobian": ("gauss-newton's Jacobian: derivatives (the field's own, one pass) or differences (central "
+                 "differences of the render, 2 (6 + k) renders: nearer on objects with several joints, 1.7-2x the "
+                 "time)", {}),
     "silhouette_weight": ("Weight of the silhouette term (opacity - mask)^2", {"le": 1e3}),
     "depth_weight": ("Weight of the depth term; used when a depth part is sent", {"le": 1e3}),
     "theta_starts": ("Configurations tried at first", {"le": 16}),

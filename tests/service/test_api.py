@@ -423,10 +423,13 @@ def test_the_preset_auto_is_resolved_per_view_and_named_in_the_response(service_
         without = c.post("/v1/estimate", files=estimate_parts(observation)).json()
         paper = c.post("/v1/estimate", files=estimate_parts(
             observation, estimate_request(options={"preset": "paper"}), depth=depth)).json()
+        differences = c.post("/v1/estimate", files=estimate_parts(
+            observation, estimate_request(options={"jacobian": "differences"}), depth=depth)).json()
     assert (with_depth["preset"], without["preset"], paper["preset"]) == ("gauss-newton", "robust", "paper")
+    assert differences["preset"] == "gauss-newton" and seen[3].jacobian == "differences" != seen[0].jacobian
     assert "depth" in with_depth["preset_reason"] and "no depth" in without["preset_reason"]
     assert paper["preset_reason"] == "requested"
-    assert [o.solver for o in seen] == ["gauss-newton", "adam", "adam"]
+    assert [o.solver for o in seen] == ["gauss-newton", "adam", "adam", "gauss-newton"]
     assert seen[0].depth_weight == EstimateOptions.preset("gauss-newton").depth_weight and seen[1].rgb_polish == EstimateOptions.preset("robust").rgb_polish > 0
     assert seen[2] == EstimateOptions.preset("paper", iterations=5)
 
@@ -505,6 +508,7 @@ def test_estimate_bad_request_part(client, observation, service_model) -> None:
         (json.dumps(estimate_request(options={"learning_rate": 1})), 422, "request.options.learning_rate", "Extra"),
         (json.dumps(estimate_request(options={"preset": "fast"})), 422, "request.options.preset", "paper"),
         (json.dumps(estimate_request(options={"slide_share": 0.5})), 422, "request.options.slide_share", "[0, 0.25]"),
+        (json.dumps(estimate_request(options={"jacobian": "secant"})), 422, "request.options.jacobian", "differences"),
         (json.dumps(estimate_request(ground_truth={"pose": pose_json()})), 422, "request.ground_truth.joints", "missing"),
         (json.dumps(estimate_request(camera=camera_json(4096, 4096))), 413, "request.camera", "pixels"),
         (json.dumps(estimate_request(initial_pose={"matrix": [[1, 0, 0, 0]] * 4})), 422, "request.initial_pose.matrix", ""),
