@@ -8,7 +8,7 @@ tool or a URDF: ``generator.tool``), training draws ``sequences`` smooth sequenc
 ...; the benchmarks' is seed 0) at the dataset's camera, tracks them from their first label with the
 default tracker, RGB-D and RGB only, and keeps per modality the smallest factor (0.01 steps) whose
 regions hold 95 % of the pooled frames' errors: ``metadata["uncertainty"]["track"]``. Without depth it tracks
-them with both Jacobians first and keeps the one the tracker should take for this model (``jacobians``: the
+the first with both Jacobians and keeps the one the tracker should take for this model (``jacobians``: the
 differences where they lower the frames' mean ADD below :data:`~narf_core.track.DIFFERENCES_GAIN` of the
 derivatives', ``rgb_add_m`` both means); the same again at
 a camera's native 640x480 (four times finer than 160x120 views), where a model's σ need not follow the
@@ -86,14 +86,14 @@ def track_calibration(model: NarfModel, datasets: list[Dataset], modalities=("rg
     (:func:`narf_core.track.sigma_scale`) fitted on the pooled frames of ``datasets``' sequences (one
     camera, its focal length ``fx`` in pixels), and the solver and the frame Jacobian it was fitted with
     (``solvers``: the default tracker's for that modality; ``jacobians``: given, else with depth the default
-    tracker's and without, where its ``jacobian_rgb`` is "auto", the one whose frames' mean ADD is lower by
-    :data:`~narf_core.track.DIFFERENCES_GAIN`, both means under ``rgb_add_m``)."""
+    tracker's and without, where its ``jacobian_rgb`` is "auto", the one whose frames' mean ADD on the first
+    sequence is lower by :data:`~narf_core.track.DIFFERENCES_GAIN`, both means under ``rgb_add_m``: one track more
+    than the fit itself, training's time being the issue's too)."""
     from narf_core.estimate import JACOBIANS
     from narf_core.track import DIFFERENCES_GAIN, TrackOptions
 
-    def pooled(rgb_only: bool, jacobian: str) -> tuple[list[float], list[float]]:
-        runs = [track_errors(model, dataset, rgb_only, jacobian_rgb=jacobian) for dataset in datasets]
-        return [n for nees, _ in runs for n in nees], [a for _, adds in runs for a in adds]
+    def pooled(rgb_only: bool, jacobian: str, sets: list[Dataset]) -> list[float]:
+        return [n for dataset in sets for n in track_errors(model, dataset, rgb_only, jacobian_rgb=jacobian)[0]]
 
     default = TrackOptions()
     out: dict = {"solvers": {}, "jacobians": {}, "fx": float(datasets[0].camera.K[0, 0])}
@@ -101,14 +101,14 @@ def track_calibration(model: NarfModel, datasets: list[Dataset], modalities=("rg
         depth = modality == "rgbd"
         chosen = (jacobians or {}).get(modality) or default.jacobian_for(depth)
         if (not depth and not (jacobians or {}).get(modality) and default.jacobian_rgb == "auto"
-                and default.solver_for(False) == "gauss-newton"):
-            runs = {j: pooled(True, j) for j in JACOBIANS}
-            mean = {j: float(np.mean(adds)) if adds else math.inf for j, (_, adds) in runs.items()}
+                and default.solver_for(False) == "gauss-newton"):  # both on the first sequence (one more track)
+            first = {j: track_errors(model, datasets[0], True, jacobian_rgb=j) for j in JACOBIANS}
+            mean = {j: float(np.mean(adds)) if adds else math.inf for j, (_, adds) in first.items()}
             chosen = "differences" if mean["differences"] < DIFFERENCES_GAIN * mean["derivatives"] else "derivatives"
-            nees = runs[chosen][0]
+            nees = first[chosen][0] + pooled(True, chosen, datasets[1:])
             out["rgb_add_m"] = mean
         else:
-            nees = pooled(not depth, chosen)[0]
+            nees = pooled(not depth, chosen, datasets)
         out[modality] = fit_track_scale(nees, 6 + len(model.joints))
         out[f"{modality}_frames"] = len(nees)
         out["solvers"][modality] = default.solver_for(depth)
