@@ -45,7 +45,8 @@ TRACK_SOLVER_CHOICES = ("auto", "adam", "gauss-newton")  # narf_core.track.TRACK
 TRACK_ITERATIONS = "2 gauss-newton (3 without depth), 6 adam"  # narf_core.track.budget_text(), likewise
 TRACK_AUTO_SOLVER = "gauss-newton, with depth and without"  # narf_core.track.auto_solver_text(), likewise
 JACOBIANS = ("derivatives", "differences")  # narf_core.estimate.JACOBIANS, likewise
-TRACK_JACOBIAN = "differences with depth, derivatives without, or what the model's tracker calibration chose"  # narf_core.track.jacobian_text(), likewise
+# narf_core.track.jacobian_text(), likewise
+TRACK_JACOBIAN = "differences with depth, derivatives without, or what the model's tracker calibration chose"
 MODE_HELP = ("render mode: narf (the configuration field), parts (the composed part fields) or auto (default: "
              "the better one by the measurement training recorded in the bundle)")
 
