@@ -1091,7 +1091,7 @@ def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool, camera: Pi
         return float(chosen)
     track = (model.metadata.get("uncertainty") or {}).get("track") or {}
     own = track.get(key) if (track.get("solvers") or {}).get(key, "adam") == solver else None
-    fitted_with = (track.get("jacobians") or {}).get(key)
+    fitted_with = calibrated_jacobian(model, key)
     if own and solver == "gauss-newton" and fitted_with and fitted_with != options.jacobian_for(depth, model):
         own = None
     factor, fitted_fx = (own, track.get("fx")) if own else (SIGMA_SCALE[solver][key], training_fx(model))

@@ -98,9 +98,8 @@ def track_calibration(model: NarfModel, datasets: list[Dataset], modalities=("rg
     default = TrackOptions()
     out: dict = {"solvers": {}, "jacobians": {}, "fx": float(datasets[0].camera.K[0, 0])}
     for modality in modalities:
-        depth = modality == "rgbd"
-        chosen = (jacobians or {}).get(modality) or default.jacobian_for(depth)
-        if (not depth and not (jacobians or {}).get(modality) and default.jacobian_rgb == "auto"
+        depth, given = modality == "rgbd", (jacobians or {}).get(modality)
+        if (given is None and not depth and default.jacobian_rgb == "auto"
                 and default.solver_for(False) == "gauss-newton"):  # both on the first sequence (one more track)
             first = {j: track_errors(model, datasets[0], True, jacobian_rgb=j) for j in JACOBIANS}
             mean = {j: float(np.mean(adds)) if adds else math.inf for j, (_, adds) in first.items()}
@@ -108,6 +107,7 @@ def track_calibration(model: NarfModel, datasets: list[Dataset], modalities=("rg
             nees = first[chosen][0] + pooled(True, chosen, datasets[1:])
             out["rgb_add_m"] = mean
         else:
+            chosen = given or default.jacobian_for(depth)
             nees = pooled(not depth, chosen, datasets)
         out[modality] = fit_track_scale(nees, 6 + len(model.joints))
         out[f"{modality}_frames"] = len(nees)
@@ -169,17 +169,15 @@ def calibrate_tracker(model: NarfModel, tool: str, size: tuple[int, int], work: 
     ``seeds`` at ``size`` (its views' camera) and, under ``fine``, at :func:`fine_size` (where
     :func:`narf_core.track.sigma_scale` interpolates between the two cameras), drawn into ``work``; with
     the ``seeds``. A ``ValueError`` where a modality held no frame."""
-    def fitted(at: tuple[int, int]) -> dict:
+    def fitted(at: tuple[int, int], jacobians: dict[str, str] | None = None) -> dict:
         datasets = [Dataset.open(f) for f in sequence_folders(tool, at, work, seeds, frames)]
         with torch_threads(1):  # as the tracker runs by default (small work): the fit does not follow the machine
             return track_calibration(model, datasets, jacobians=jacobians)
 
-    jacobians = None
     out = {**fitted(size), "seeds": list(seeds)}
     fine = fine_size(size)
-    if fine is not None:  # the Jacobians chosen at the views' camera
-        jacobians = out["jacobians"]
-        out["fine"] = {k: v for k, v in fitted(fine).items() if k not in ("solvers", "jacobians")}
+    if fine is not None:  # with the Jacobians chosen at the views' camera
+        out["fine"] = {k: v for k, v in fitted(fine, out["jacobians"]).items() if k not in ("solvers", "jacobians")}
     return out
 
 
