@@ -14,6 +14,7 @@ lengths are >= 0 by construction; opacity is ``-expm1(-total optical depth)``. A
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -135,6 +136,71 @@ def composite(
         depth_out if "depth" in outputs else None,
         opacity if "opacity" in outputs else None,
         int(ray.shape[0]),
+    )
+
+
+# The optical depth in front of a sample beyond which composite_in_rounds leaves it out (transmittance 1e-5, the
+# cut of narf_core.track.visible).
+ROUNDS_TAU_STOP = -math.log(1e-5)
+
+
+@torch.no_grad()
+def composite_in_rounds(
+    field: Field,
+    rays: Rays,
+    samples: Samples,
+    reach: Tensor,
+    *,
+    theta: Tensor | None = None,
+    outputs: Sequence[str] = ("rgb",),
+    background: float | Tensor = 0.0,
+    keep: Callable[[Tensor, Tensor | None], Tensor] | None = None,
+    tau_stop: float = ROUNDS_TAU_STOP,
+) -> RenderOutput:
+    """:func:`composite` of ``samples`` (ray-major, ascending ``t``) without a graph, in two rounds: each ray's
+    samples up to the distance ``reach [n]`` (a guess of where it turns opaque, from a render nearby), then
+    the rest of those rays whose optical depth so far is under ``tau_stop``. A ray that turns opaque by its
+    ``reach`` costs its samples in front of the surface; one that does not costs what :func:`composite` would.
+    ``keep(x [s, 3], θ [s, k] | None) -> [s]`` (an occupancy's ``occupied``): each round evaluates only the
+    samples it holds, the others empty. The result is :func:`composite`'s of the samples ``keep`` holds, but
+    for those behind an opaque ray's ``reach`` (together under ``exp(-tau_stop)``)."""
+    outputs = check_outputs(outputs)
+    theta, per_ray = ray_theta(theta, len(rays))
+    n, dtype = len(rays), rays.origins.dtype
+    ray = samples.ray
+    tau_before = rays.origins.new_zeros(n)
+    rgb_out, depth_out = rays.origins.new_zeros(n, 3), rays.origins.new_zeros(n)
+    evaluated = 0
+    opening = samples.t <= reach.to(samples.t)[ray]
+    for later in (False, True):  # then the rest of the rays light still crosses
+        chosen = ~opening & (tau_before < tau_stop)[ray] if later else opening
+        pick = chosen.nonzero()[:, 0]
+        r, t = ray[pick], samples.t[pick].to(dtype)
+        x = rays.origins[r] + t[:, None] * rays.directions[r]
+        th = sample_theta(theta, per_ray, r)
+        if keep is not None and pick.numel():
+            held = keep(x, th)
+            pick, r, t, x = pick[held], r[held], t[held], x[held]
+            th = None if th is None else th[held]
+        if pick.numel() == 0:
+            continue
+        sigma, rgb = field(x, rays.directions[r], th) if "rgb" in outputs else (density_fn(field)(x, th), None)
+        tau = sigma.to(dtype) * samples.delta[pick].to(dtype)
+        hit, row, counts = torch.unique_consecutive(r, return_inverse=True, return_counts=True)
+        slot = torch.arange(r.shape[0], device=r.device) - (counts.cumsum(0) - counts)[row]
+        w = _packed_weights(tau, row, slot, hit.shape[0], tau_before[hit])
+        if "rgb" in outputs:
+            rgb_out = rgb_out.index_add(0, r, w[:, None] * rgb.to(dtype))
+        if "depth" in outputs:
+            depth_out = depth_out.index_add(0, r, w * t * rays.z_per_t[r].to(dtype))
+        tau_before = tau_before.index_add(0, r, tau)
+        evaluated += int(pick.numel())
+    opacity = -torch.expm1(-tau_before)
+    return RenderOutput(
+        _over_background(rgb_out, opacity, background) if "rgb" in outputs else None,
+        depth_out if "depth" in outputs else None,
+        opacity if "opacity" in outputs else None,
+        evaluated,
     )
 
 

@@ -938,6 +938,8 @@ class FrameProblem(Problem):
     grid: object = None
     prune: bool = False
     index: Tensor | None = None  # the box pixels of the rays being rendered (set by residuals)
+    # (index, [n] distance): how far each ray of the last Jacobian by differences saw at its linearisation point
+    reach: tuple[Tensor, Tensor] | None = None
 
     def residuals(self, chain, p, rays_cam, target, index, jacobian, group=1, along_ray=False):
         self.index = index
@@ -950,6 +952,42 @@ class FrameProblem(Problem):
     def _samples_run_behind(self) -> bool:
         """The band's lattice samples run through the object unless pruned to those light reaches."""
         return not self.prune
+
+    def _render(self, rays, theta, S, n, outputs, band, fixed=None):
+        """Where pruned, a render without a graph goes in two rounds (:meth:`_render_in_rounds`): a Jacobian's
+        rows by differences, and a trial step's row on the rays of the last such Jacobian."""
+        rows = len(rays) // max(len(self.index), 1)
+        own = self.reach is not None and self.reach[0] is self.index
+        if fixed is not None or not self.prune or torch.is_grad_enabled() or not (rows > 1 or own):
+            return super()._render(rays, theta, S, n, outputs, band, fixed)
+        out = self._render_in_rounds(rays, theta, rows, outputs)
+        return torch.cat([out.rgb, out.opacity[:, None], out.depth[:, None]], -1)
+
+    def _render_in_rounds(self, rays: Rays, theta: Tensor, rows: int, outputs) -> object:
+        """``rows`` rows of the box pixels' rays (object frame, ``θ [rows n, k]`` per ray; several: a Jacobian by
+        differences, row 0 at its linearisation point) composited in two rounds (:func:`composite_in_rounds`): each
+        ray's samples up to where it turned opaque at the linearisation point (its :attr:`reach`, found here
+        from row 0 where there are several), then the rest where light still crosses; each round evaluates the
+        samples its row's own grid holds. So light's reach is not found again for every row (:func:`visible`: an
+        evaluation at every other sample), nor the grid asked about every sample of the band for every row: with
+        several rows only the band's samples near an occupied cell at row 0 (``occupied_near``, a block of cells
+        or more) are asked about, which hold every row's occupied samples while the rows are moved less than that
+        (a Jacobian's shifts move the surface about a sample spacing)."""
+        from narf_core.compositing import composite_in_rounds
+
+        n = len(self.index)
+        fixed = Rays(rays.origins.detach(), rays.directions.detach(), rays.z_per_t)
+        lattice = frame_band(self.near[self.index], self.far[self.index], self.model.step)
+        if rows > 1:
+            first = fixed[:n]
+            self.reach = (self.index, _reach(self.field, self.grid, first, lattice, theta[0], self.model.step))
+            near = getattr(self.grid, "occupied_near", None)
+            held = near(_points(first, lattice), theta[0]) if near is not None and len(lattice) else slice(None)
+            lattice = Samples(torch.cat([lattice.ray[held] + r * n for r in range(rows)]), lattice.t[held].repeat(rows),
+                              lattice.delta[held].repeat(rows))
+        grid = self.grid
+        return composite_in_rounds(self.field, fixed, lattice, self.reach[1].repeat(rows), theta=theta, outputs=outputs,
+                                   keep=None if grid is None else grid.occupied)
 
     def _fixed_samples(self, rays: Rays, theta: Tensor, jacobian: bool, band=None) -> tuple[object, Samples]:
         n = 0 if self.index is None else len(self.index)
@@ -994,6 +1032,25 @@ def visible(field, rays_obj: Rays, samples: Samples, theta: Tensor, eps: float =
     return Samples(samples.ray[keep], samples.t[keep], samples.delta[keep])
 
 
+# A ray's reach (FrameProblem's first round) runs this many sample spacings beyond the last sample its light reached
+# at the linearisation point: about the surface's move in a Jacobian's shifted rows.
+REACH_STEPS = 2
+
+
+def _reach(field, grid, rays_obj: Rays, lattice: Samples, theta: Tensor, step: float) -> Tensor:
+    """``[n]``: the distance of the last of the ``lattice`` samples of ``rays_obj`` that light reaches at ``θ [k]``
+    (:func:`occupied`, then :func:`visible`), plus :data:`REACH_STEPS` sample spacings; ``-inf`` on a ray it
+    reaches none of."""
+    seen = visible(field, rays_obj, occupied(grid, rays_obj, lattice, theta), theta)
+    far = torch.full((len(rays_obj),), -math.inf, dtype=lattice.t.dtype, device=lattice.t.device)
+    return far.scatter_reduce(0, seen.ray, seen.t, "amax") + REACH_STEPS * step
+
+
+def _points(rays_obj: Rays, samples: Samples) -> Tensor:
+    """``[s, 3]``: the positions of the ``samples`` of ``rays_obj``."""
+    return rays_obj.origins[samples.ray] + samples.t[:, None].to(rays_obj.origins) * rays_obj.directions[samples.ray]
+
+
 def frame_band(near: Tensor, far: Tensor, step: float) -> Samples:
     """The lattice samples (interval ``step``, anchored at ``t = 0`` like the march's, each at its
     interval's middle) of rays between the distances ``near [n]`` and ``far [n]`` (none where
@@ -1020,8 +1077,7 @@ def occupied_mask(grid, rays_obj: Rays, samples: Samples, theta: Tensor) -> Tens
     if grid is None or len(samples) == 0:
         return torch.ones(len(samples), dtype=torch.bool, device=samples.ray.device)
     with torch.no_grad():
-        x = rays_obj.origins[samples.ray] + samples.t[:, None].to(rays_obj.origins) * rays_obj.directions[samples.ray]
-        return grid.occupied(x, theta.detach())
+        return grid.occupied(_points(rays_obj, samples), theta.detach())
 
 
 # --------------------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from narf_core.compositing import composite, composite_jacobian, volume_render_weights
+from narf_core.compositing import composite, composite_in_rounds, composite_jacobian, volume_render_weights
 from narf_core.fields.composed import compose_parts, composed_aabb
 from narf_core.geometry import Pinhole, Rays, invert_pose, look_at, make_pose, se3_exp, so3_exp
 from narf_core.occupancy import OccupancyGrid
@@ -263,6 +263,45 @@ def test_composite_of_the_march_equals_the_one_pass_render():
     for a, b in zip((one_pass.rgb, one_pass.depth, one_pass.opacity), (two_pass.rgb, two_pass.depth, two_pass.opacity)):
         torch.testing.assert_close(a, b)
     assert one_pass.n_samples == two_pass.n_samples > 0
+
+
+def test_composite_in_rounds_renders_what_composite_renders_evaluating_only_what_light_reaches():
+    """:func:`composite_in_rounds` gives :func:`composite`'s result of the samples its ``keep`` holds, whatever the
+    first round's reach (short of the surface, beyond it, none): the second round takes the rest of every ray
+    light still crosses. With a reach just past the surface it evaluates the samples in front of it and
+    little more; each ray's configuration is its own."""
+    field = Sphere(center=(0.01, 0.0, 0.02), sigma=1e4, growth=0.1)
+    rays = rays_along_z(torch.rand(60, 2, generator=torch.Generator().manual_seed(5)) * 0.2 - 0.1, dtype=torch.float64)
+    t = torch.arange(0.9, 1.1, STEP, dtype=torch.float64) + STEP / 2  # the box's lattice, as a tracked frame's band
+    n = len(rays)
+    samples = Samples(torch.arange(n).repeat_interleave(len(t)), t.repeat(n), torch.full((n * len(t),), STEP, dtype=torch.float64))
+    theta = torch.linspace(-0.2, 0.2, n, dtype=torch.float64)[:, None]
+
+    def keep(x, th):  # an occupancy: only the box |x|, |y| < 0.06 is held
+        assert th.shape == (x.shape[0], 1)
+        return (x[:, :2].abs() < 0.06).all(-1)
+
+    outputs = ("rgb", "depth", "opacity")
+    with torch.no_grad():
+        x = rays.origins[samples.ray] + samples.t[:, None] * rays.directions[samples.ray]
+        held = keep(x, theta[samples.ray])
+        expected = composite(field, rays, Samples(samples.ray[held], samples.t[held], samples.delta[held]), theta=theta,
+                             outputs=outputs)
+    hit = expected.opacity > 0.999
+    assert 10 < int(hit.sum()) < n - 10  # rays through the sphere and rays past it
+    front = torch.where(hit, expected.depth / expected.opacity.clamp_min(1e-9), torch.full_like(expected.depth, -math.inf))
+    short = front + 2 * STEP
+    in_front = int((held & ((samples.t <= short[samples.ray]) | ~hit[samples.ray])).sum())  # the rays past it: all
+    assert in_front < 0.75 * expected.n_samples
+    for reach, evaluated in ((short, in_front), (front - 20 * STEP, expected.n_samples),
+                             (torch.full((n,), -math.inf, dtype=torch.float64), expected.n_samples)):
+        field.points.clear()
+        out = composite_in_rounds(field, rays, samples, reach, theta=theta, outputs=outputs, keep=keep)
+        for name in outputs:
+            torch.testing.assert_close(getattr(out, name), getattr(expected, name), atol=1e-4, rtol=0)
+        assert out.n_samples == field.n_evaluated == evaluated
+    assert composite_in_rounds(field, rays, Samples(samples.ray[:0], t[:0], t[:0]), front, theta=theta,
+                               outputs=("opacity",)).opacity.abs().max() == 0
 
 
 def test_composite_is_differentiable_in_theta_and_the_rays():
@@ -840,3 +879,28 @@ def test_an_articulated_field_from_the_clamps_parts_renders_like_parts_mode_with
         gradients[mode] = torch.cat([xi.grad, th.grad])
     assert gradients["parts"].abs().max() > 0
     torch.testing.assert_close(gradients["narf"], gradients["parts"], rtol=0.02, atol=1e-3 * float(gradients["parts"].abs().max()))
+
+
+def test_an_articulated_fields_occupied_near_holds_every_point_within_a_block_of_an_occupied_one(clamp):
+    """``PosedGrids.occupied_near`` (a tracked frame's samples near an occupied cell, narf_core.track): every point
+    ``occupied`` holds, every point moved from one by less than a block (``_BLOCK`` cells of its part's grid)
+    along an axis of that grid, and far fewer points of the box than it holds not."""
+    from narf_core.fields import ArticulatedField
+    from narf_core.fields.articulated import _BLOCK
+
+    field = ArticulatedField.from_parts(clamp.kinematics, clamp.part_fields, clamp.part_grids, clamp.aabb)
+    theta = (clamp.lower + clamp.upper) / 2
+    grids = field.occupancy(theta)
+    g = torch.Generator().manual_seed(3)
+    x = clamp.aabb[0] + torch.rand(200_000, 3, generator=g) * (clamp.aabb[1] - clamp.aabb[0])
+    occupied, near = grids.occupied(x), grids.occupied_near(x)
+    assert 1000 < int(occupied.sum()) and bool(near[occupied].all())
+    assert int(near.sum()) < 0.5 * len(x)
+    # the smallest block of any part's grid: a move shorter than it along any direction in the object frame (the
+    # parts posed by FK at θ, turned) is shorter than a block along each axis of every part's grid
+    block = min(float(gr.cell_size.min()) for gr in field.part_grids()) * _BLOCK
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            moved = x[occupied].clone()
+            moved[:, axis] += sign * 0.95 * block
+            assert bool(grids.occupied_near(moved).all()), (axis, sign)

@@ -419,36 +419,59 @@ def test_visible_samples_render_what_every_sample_renders(clamp, clamp_sequence:
     assert len(visible(clamp.field, rays, empty, theta)) == 0
 
 
-def test_a_frames_shifted_rows_render_as_each_row_alone(clamp, clamp_sequence: Path) -> None:
+@pytest.mark.parametrize("field_kind", ["kplanes", "articulated"])
+def test_a_frames_shifted_rows_render_as_each_row_alone(clamp, clamp_sequence: Path, field_kind: str) -> None:
     """A Jacobian by differences renders a frame's rays at several poses a sample spacing or so apart in one
-    batch (``FrameProblem``, several rows): every row as the row's own band renders it alone (to a few
-    thousandths: each row's samples light reaches, as test_visible_samples_render_what_every_sample_renders)."""
+    batch (``FrameProblem``, several rows, in two rounds from row 0's reach; with an articulated field only the
+    band's samples near an occupied cell at row 0 are asked about): every row as the row's own band renders it
+    alone (to a few thousandths: each row's samples light reaches, as
+    test_visible_samples_render_what_every_sample_renders). A trial step's single row on the same rays goes in
+    rounds from that reach too, and renders as it alone does."""
+    import dataclasses
+
     import torch
 
     from narf_core.compositing import composite
     from narf_core.estimate import _object_rays
+    from narf_core.fields import ArticulatedField
     from narf_core.geometry import se3_exp
     from narf_core.track import FrameProblem, TrackOptions, frame_band, occupied
 
-    T, theta, rays_cam, near, far = _box_rays_and_band(clamp, clamp_sequence, 2)
-    field, grid = clamp._field_for("narf", theta)
-    problem = FrameProblem(clamp, TrackOptions().step_options(True), 0.1, True, near=near, far=far, field=field,
+    model = clamp
+    if field_kind == "articulated":  # the field narf train builds for an object of several parts
+        field = ArticulatedField.from_parts(clamp.kinematics, clamp.part_fields, clamp.part_grids, clamp.aabb)
+        model = dataclasses.replace(clamp, field=field.eval().requires_grad_(False))
+    T, theta, rays_cam, near, far = _box_rays_and_band(model, clamp_sequence, 2)
+    field, grid = model._field_for("narf", theta)
+    assert hasattr(grid, "occupied_near") is (field_kind == "articulated")
+    problem = FrameProblem(model, TrackOptions().step_options(True), 0.1, True, near=near, far=far, field=field,
                            grid=grid, prune=True)
     problem.index = torch.arange(len(rays_cam))
-    shifts = [torch.zeros(6), torch.tensor([0.0, 0.0, 0.0015, 0, 0, 0]), torch.tensor([0.001, 0, 0, 0, 0.01, 0])]
-    poses = torch.stack([se3_exp(x.double()) @ T for x in shifts])
+    # about as far as a Jacobian's rows move the object (TrackOptions' differences: a hundredth of its radius and
+    # of a radian about its centre), in its own frame
+    shifts = [torch.zeros(6), torch.tensor([0.0, 0.0, 0.0015, 0, 0, 0]), torch.tensor([0.001, 0, 0, 0, 0.01, 0]),
+              torch.tensor([0.0, -0.0015, 0.0, 0.01, 0, -0.01])]
+    poses = torch.stack([T @ se3_exp(x.double()) for x in shifts])
     rays = _object_rays(rays_cam, poses)  # row-major: every row's n rays in turn
-    n, outputs = len(rays_cam), ("rgb", "opacity", "depth")
+    n, rows, outputs = len(rays_cam), len(shifts), ("rgb", "opacity", "depth")
+
+    def alone(pose):
+        own = _object_rays(rays_cam, pose[None])
+        out = composite(field, own, occupied(grid, own, frame_band(near, far, model.step), theta), theta=theta,
+                        outputs=outputs)
+        return torch.cat([out.rgb, out.opacity[:, None], out.depth[:, None]], -1)
+
     with torch.no_grad():
-        batch = problem._render(rays, theta.expand(len(rays), -1), len(shifts), n, outputs, None).reshape(3, n, 5)
-        for row in range(len(shifts)):
-            own = _object_rays(rays_cam, poses[row:row + 1])
-            alone = composite(field, own, occupied(grid, own, frame_band(near, far, clamp.step), theta), theta=theta,
-                              outputs=outputs)
-            P = torch.cat([alone.rgb, alone.opacity[:, None], alone.depth[:, None]], -1)
+        batch = problem._render(rays, theta.expand(len(rays), -1), rows, n, outputs, None).reshape(rows, n, 5)
+        assert problem.reach is not None and problem.reach[0] is problem.index
+        for row in range(rows):
+            P = alone(poses[row])
             assert float(P[:, 3].max()) > 0.99
             assert float((batch[row] - P).abs().max()) < 5e-3, row
         assert float((batch[1] - batch[0]).abs().max()) > 0.1  # the rows differ
+        trial = se3_exp(torch.tensor([0.002, 0.001, -0.002, 0.02, 0.0, 0.01], dtype=torch.float64)) @ T
+        single = problem._render(_object_rays(rays_cam, trial[None]), theta.expand(n, -1), 1, n, outputs, None)
+        assert float((single - alone(trial)).abs().max()) < 5e-3
 
 
 def test_first_frame_warm_and_sigma_scale(clamp, clamp_sequence: Path) -> None:

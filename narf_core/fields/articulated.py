@@ -653,6 +653,16 @@ class PosedGrids:
         cells = self.field.lookup_coordinates(x, theta, slice(0, 3))  # cell units, as the field looks up
         return self.field.part_lookup().occupied_cells(cells).any(-1)
 
+    def occupied_near(self, x: Tensor, theta: Tensor | None = None) -> Tensor:
+        """``x [n,3]`` -> ``[n]`` bool: in an occupied block of the coarse part grids (``_BLOCK`` cells a side,
+        each dilated by a block): every point :meth:`occupied` holds, and every point within a block of one
+        along each axis of its part's grid."""
+        theta = self.theta if theta is None else theta.detach()
+        lookup = self.field.part_lookup()
+        ratio, offset = lookup.to_coarse
+        cells = self.field.lookup_coordinates(x, theta, slice(0, 3))
+        return lookup.coarse.occupied_cells(cells * ratio + offset).any(-1)
+
     def bounds(self, theta: Tensor | None = None) -> Tensor | None:
         """The object-frame box around the posed parts' tight boxes (over every ray's ``θ`` if per ray)."""
         shared = (self.theta if theta is None else theta).detach()
