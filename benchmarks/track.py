@@ -183,7 +183,7 @@ def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, m
                != step.jacobian}  # a model's calibration chose another (TrackOptions.jacobian_rgb "auto")
         per_frame[modality] = {"solver": options.solver_for(modality == "rgbd"), "iterations": step.iterations,
                                "rays_per_iteration": step.rays_per_iteration, "jacobian": step.jacobian,
-                               "jacobian_own": own}
+                               "jacobian_once": step.jacobian_once, "jacobian_own": own}
     result = {"frames": frames, "seeds": list(seeds), "ray_seeds": list(ray_seeds), "options": options.__dict__,
               "per_frame": per_frame, "runs": runs, "over_tracks": over_tracks(runs),
               "machine": machine(models.values())}
@@ -292,11 +292,12 @@ def markdown(result: dict) -> str:
 
 
 def _jacobian_text(per_frame: dict) -> str:
-    """" (Jacobian by derivatives; by differences for lamp, its calibration's choice)"."""
+    """" (Jacobian by derivatives; by differences for lamp, its calibration's choice)", " (Jacobian by differences,
+    once a frame)"."""
     own: dict = {}
     for tool, jacobian in (per_frame.get("jacobian_own") or {}).items():
         own.setdefault(jacobian, []).append(tool)
-    return (f" (Jacobian by {per_frame['jacobian']}"
+    return (f" (Jacobian by {per_frame['jacobian']}" + (", once a frame" if per_frame.get("jacobian_once") else "")
             + "".join(f"; by {j} for {', '.join(tools)}, {'its' if len(tools) == 1 else 'their'} calibration's choice"
                       for j, tools in own.items()) + ")")
 
@@ -326,7 +327,7 @@ def _joint_cell(run: dict) -> str:
 def main(args: argparse.Namespace) -> int:
     """``narf bench track``: ``args`` has ``work``, ``models``, ``tools``, ``frames``, ``sizes``,
     ``modalities``, ``events``, ``seed`` (a list), ``ray_seeds``, ``images``, ``spp``, ``iterations``, ``rays``,
-    ``solver``, ``band_m``, ``march``, ``depth_align``, ``jacobian``, ``service_clients``, ``json``."""
+    ``solver``, ``band_m``, ``march``, ``depth_align``, ``jacobian``, ``jacobian_once``, ``service_clients``, ``json``."""
     tools = args.tools or sorted(p.stem for p in args.models.glob("*.narf"))
     models, missing = {}, []
     for tool in tools:
@@ -344,7 +345,8 @@ def main(args: argparse.Namespace) -> int:
                  "solver": getattr(args, "solver", None), "band_m": getattr(args, "band_m", None),
                  "march": getattr(args, "march", None), "depth_align": getattr(args, "depth_align", None),
                  "jacobian": getattr(args, "jacobian", None), "jacobian_rgb": getattr(args, "jacobian", None),
-                 "outside_weight_rgb": getattr(args, "outside_weight_rgb", None)}
+                 "outside_weight_rgb": getattr(args, "outside_weight_rgb", None),
+                 "jacobian_once": getattr(args, "jacobian_once", None)}
     options = TrackOptions(first_frame="warm", **{k: v for k, v in overrides.items() if v is not None})
     result = run(models, args.work, frames=args.frames, sizes=sizes, modalities=tuple(args.modalities),
                  events=args.events, options=options, seeds=tuple(getattr(args, "seed", None) or (0,)),

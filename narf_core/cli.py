@@ -1051,6 +1051,9 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--jacobian", choices=JACOBIANS, default=None,
                      help="a Gauss-Newton frame's Jacobian: the field's derivatives at the samples or central "
                           f"differences of the render over about a sample spacing (default: {TRACK_JACOBIAN})")
+    sub.add_argument("--jacobian-every-iteration", dest="jacobian_once", action="store_const", const=False,
+                     default=None, help="with depth, take a Gauss-Newton frame's Jacobian again at every iteration "
+                                        "(TrackOptions.jacobian_once off: once a frame by default; to compare)")
     sub.add_argument("--no-depth-align", dest="depth_align", action="store_false",
                      help="with depth, do not first move the prediction along the line of sight onto the observed "
                           "depth (TrackOptions.depth_align; to compare)")

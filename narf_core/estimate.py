@@ -229,6 +229,12 @@ class EstimateOptions:
     # slope between two samples, so they are noisy, and the steps they give can stall where several
     # parameters move one outline together (a lamp's joints and its pose, docs/benchmarks.md, session 53).
     jacobian: str = "derivatives"
+    # Whether gauss-newton's later iterations on the same rays (one start, at the fine level) keep the first one's
+    # Jacobian with the residuals where the parameters are (the chord method: one linearisation, then a render
+    # per step), or take it again at each. A tracker's frame with depth, millimetres from its answer, keeps it
+    # (docs/benchmarks.md, session 55); a frame without depth drifts off with it, and a single image's
+    # iterations start centimetres off.
+    jacobian_once: bool = False
     photometric_compensation: bool = False  # per-channel gain and bias, closed form each iteration
     # Otherwise the render's colour times this gain per channel before it is compared: a known change of the
     # camera's exposure, white balance or light from the training views' (the tracker carries one; in GAIN_RANGE).

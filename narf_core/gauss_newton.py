@@ -553,6 +553,7 @@ class GaussNewtonRun:
         # The last linearisation ``(index, params, residuals)``: after a rejected step the fine level's
         # next iteration has the same rays and parameters, so its residuals and Jacobian are these.
         self.linearised: tuple[Tensor, Tensor, Residuals] | None = None
+        self.accepted_trial: tuple[Tensor, Residuals] | None = None  # the last trial step taken (jacobian_once)
         self.timing = {"jacobian_s": 0.0, "trial_s": 0.0, "solve_s": 0.0}
 
     def _rays(self, target: _Target, several: bool) -> tuple[Tensor, Rays, int]:
@@ -635,6 +636,8 @@ class GaussNewtonRun:
                 if self.prior_sigma is not None:
                     c = c + self._prior_cost(candidate)
                 take = torch.isfinite(c) & (c < trial_cost)
+                if opts.jacobian_once and bool(take.all()):
+                    self.accepted_trial = (candidate, trial)
                 trial_params = torch.where(take[:, None], candidate, trial_params)
                 trial_cost = torch.where(take, c, trial_cost)
                 if not bool(take.any()):
@@ -675,11 +678,18 @@ class GaussNewtonRun:
 
     def _linearise(self, rays: Rays, target: _Target, index: Tensor, group: int, along_ray: bool = False) -> Residuals:
         """The residuals and Jacobian at ``params`` on this iteration's rays; the last ones again where
-        neither changed (a rejected step at the fine level, whose rays are fixed: only ``λ`` differs)."""
+        neither changed (a rejected step at the fine level, whose rays are fixed: only ``λ`` differs). With
+        ``jacobian_once``, on the last one's rays the residuals where the parameters are now (the accepted trial
+        step's, not rendered again) with the last Jacobian."""
         last = self.linearised
         if last is not None and last[0] is index and torch.equal(last[1], self.params):
             return last[2]
-        if self.opts.jacobian == "differences":  # the along-ray change over a sample is in the differences already
+        if self.opts.jacobian_once and last is not None and last[0] is index and self.params.shape[0] == 1:
+            trial = self.accepted_trial
+            now = trial[1] if trial is not None and torch.equal(trial[0], self.params) else self.problem.residuals(
+                self.chain, self.params, rays, target, index, False, group)
+            res = Residuals(now.r, last[2].J, now.used)
+        elif self.opts.jacobian == "differences":  # the along-ray change over a sample is in the differences already
             res = self.problem.difference_residuals(self.chain, self.params, rays, target, index, group)
         else:
             res = self.problem.residuals(self.chain, self.params, rays, target, index, True, group, along_ray)

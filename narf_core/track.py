@@ -180,6 +180,10 @@ class TrackOptions:
     # worse with them): "auto" takes what the model's tracker calibration measured on its own sequences
     # (:func:`calibrated_jacobian`), else :data:`JACOBIAN_RGB`.
     jacobian_rgb: str = "auto"
+    # With depth, a Gauss-Newton frame's later iterations keep its first Jacobian (EstimateOptions.jacobian_once):
+    # one linearisation a frame, at the same error (docs/benchmarks.md, session 55); without depth the tracks
+    # drifted off with it.
+    jacobian_once: bool = True
     iterations: int = 0
     rays_per_iteration: int = 0
     lr_pose: float = 0.003  # Adam moves every parameter by about its rate per step: small, from a close start
@@ -385,7 +389,7 @@ class TrackOptions:
                   "uncertainty_trained_footprint": depth,
                   "occlusion_margin": self.occlusion_margin, "refinements": 0, "rgb_refinements": 0, "rgb_polish": 0,
                   "pose_starts": 1, "search_theta_starts": 0, "slide_share": 0.0,
-                  "jacobian": self.jacobian_for(depth, model)}
+                  "jacobian": self.jacobian_for(depth, model), "jacobian_once": self.jacobian_once and depth}
         if depth:
             common.update(mask_trust=DEPTH_MASK_TRUST)
         elif self.outside_weight_rgb < 1:

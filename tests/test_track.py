@@ -937,7 +937,9 @@ def test_tracker_aligns_the_prediction_to_the_depth(clamp, clamp_sequence: Path)
     """From a state 1.5 cm too far along the line of sight, one RGB-D frame lands within millimetres
     with ``depth_align`` (the default); without it, a frame whose Jacobian is the field's derivatives stays
     about a centimetre off (they see the depth's change along a ray only between two samples), one by
-    differences (the default) lands within millimetres too."""
+    differences (the default) lands within millimetres too: within 3 mm taken at every iteration, within 5 with
+    the frame's first kept (``jacobian_once``, the default; from a centimetre and a half off the chord's steps
+    come up shorter)."""
     from narf_core.data.dataset import Dataset
     from narf_core.track import TrackInputError, TrackOptions, TrackState, _centre, step
 
@@ -950,17 +952,19 @@ def test_tracker_aligns_the_prediction_to_the_depth(clamp, clamp_sequence: Path)
     start = truth.copy()
     start[:3, 3] += 0.015 * view
     along = {}
-    for align in (True, False):
-        for jacobian in ("differences", "derivatives"):
-            state = TrackState.initial(clamp, start, frame.joints, observed.time - 1 / 30, status="tracking")
-            options = TrackOptions(depth_align=align, uncertainty_rays=0, jacobian=jacobian)
-            result, _ = step(clamp, dataset.camera, observed, state, options)
-            assert result.status == "tracking"
-            centre_now = result.T_cam_obj[:3, :3] @ _centre(clamp) + result.T_cam_obj[:3, 3]
-            along[align, jacobian] = abs(float((centre_now - centre) @ view))
-    assert TrackOptions().jacobian == "differences"
-    assert along[True, "differences"] < 0.003 and along[True, "derivatives"] < 0.003, along
-    assert along[False, "differences"] < 0.003 and along[False, "derivatives"] > 0.008, along
+    for align, jacobian, once in ((True, "differences", True), (True, "derivatives", False),
+                                  (False, "differences", False), (False, "derivatives", False),
+                                  (False, "differences", True)):
+        state = TrackState.initial(clamp, start, frame.joints, observed.time - 1 / 30, status="tracking")
+        options = TrackOptions(depth_align=align, uncertainty_rays=0, jacobian=jacobian, jacobian_once=once)
+        result, _ = step(clamp, dataset.camera, observed, state, options)
+        assert result.status == "tracking"
+        centre_now = result.T_cam_obj[:3, :3] @ _centre(clamp) + result.T_cam_obj[:3, 3]
+        along[align, jacobian, once] = abs(float((centre_now - centre) @ view))
+    assert TrackOptions().jacobian == "differences" and TrackOptions().jacobian_once
+    assert along[True, "differences", True] < 0.003 and along[True, "derivatives", False] < 0.003, along
+    assert along[False, "differences", False] < 0.003 and along[False, "derivatives", False] > 0.008, along
+    assert along[False, "differences", True] < 0.005, along
     with pytest.raises(TrackInputError, match=r"options\.depth_align"):
         TrackOptions(depth_align="yes")
 
@@ -1189,12 +1193,17 @@ def test_bench_track_takes_the_frames_jacobian() -> None:
     assert cli.JACOBIANS == JACOBIANS and cli.TRACK_JACOBIAN == jacobian_text()
     assert _bench_track_args(["--jacobian", "derivatives"]).jacobian == "derivatives"
     assert _bench_track_args([]).jacobian is None  # the tracker's own
+    assert _bench_track_args([]).jacobian_once is None  # the tracker's own: once a frame with depth
+    assert _bench_track_args(["--jacobian-every-iteration"]).jacobian_once is False
     for jacobian in JACOBIANS:
-        options = TrackOptions(jacobian=jacobian, jacobian_rgb=jacobian)
-        per_frame = {m: {"solver": "gauss-newton", "iterations": 2, "rays_per_iteration": 768,
-                         "jacobian": options.step_options(m == "rgbd").jacobian} for m in ("rgbd", "rgb")}
-        table = markdown({"frames": 3, "runs": [], "options": options.__dict__, "per_frame": per_frame})
-        assert table.count(f"(Jacobian by {jacobian})") == 2
+        for once in (True, False):
+            options = TrackOptions(jacobian=jacobian, jacobian_rgb=jacobian, jacobian_once=once)
+            per_frame = {m: {"solver": "gauss-newton", "iterations": 2, "rays_per_iteration": 768,
+                             "jacobian": (step := options.step_options(m == "rgbd")).jacobian,
+                             "jacobian_once": step.jacobian_once} for m in ("rgbd", "rgb")}
+            table = markdown({"frames": 3, "runs": [], "options": options.__dict__, "per_frame": per_frame})
+            assert table.count(f"(Jacobian by {jacobian}, once a frame)") == int(once)  # with depth
+            assert table.count(f"(Jacobian by {jacobian})") == 2 - int(once)
     with pytest.raises(TrackInputError, match="jacobian_rgb"):
         TrackOptions(jacobian_rgb="secant")
 
@@ -1550,7 +1559,9 @@ def test_gauss_newton_frame_reaches_the_label_from_an_offset_without_marching(cl
     marching): from a start 3.5 mm and 0.8° off five iterations, not held to that start by the prior
     (test_with_depth_a_frame_is_held_to_the_prediction_by_its_own_looser_prior), land within half the
     start's error of the label, with a finite Σ (over a sequence, two per frame settle at about a millimetre:
-    test_track_follows_the_clamp and ``narf bench track``); one start only."""
+    test_track_follows_the_clamp and ``narf bench track``); one start only. The frame's Jacobian is taken once
+    (``jacobian_once``: the later iterations keep it, with the residuals where they are), or with
+    ``jacobian_once`` off at every iteration that starts from a new point; either way it lands there."""
     from types import SimpleNamespace
 
     import torch
@@ -1564,17 +1575,24 @@ def test_gauss_newton_frame_reaches_the_label_from_an_offset_without_marching(cl
     dataset = Dataset.open(clamp_sequence)
     frames = sequence_frames(dataset)
     off = se3_exp(torch.tensor([0.002, -0.0015, 0.0025, 0.01, -0.005, 0.0075], dtype=torch.float64)).numpy()
-    marched = []
+    marched, jacobians = [], []
     monkeypatch.setattr(sampling.Marcher, "rounds", lambda *a, **k: marched.append(1))
-    for i in (2, 5):
+    differences = FrameProblem.difference_residuals
+    monkeypatch.setattr(FrameProblem, "difference_residuals", lambda *a, **k: jacobians.append(1) or differences(*a, **k))
+    assert TrackOptions().jacobian_once and TrackOptions().step_options(True).jacobian_once
+    assert not TrackOptions().step_options(False).jacobian_once  # without depth: at every iteration
+    for i, once in ((2, True), (5, True), (5, False)):
         observed = _frames(dataset, frames[i:i + 1])[0]
         state = TrackState.initial(clamp, off @ frames[i].T_cam_obj, frames[i].joints, frames[i - 1].time,
                                    status="tracking")
         start = score(clamp, frames[i], SimpleNamespace(T_cam_obj=state.T_cam_obj, joints=state.joints))["add_m"]
-        result, _ = step(clamp, dataset.camera, observed, state, TrackOptions(iterations=5, frame_prior_position_m=0.0))
+        jacobians.clear()
+        result, _ = step(clamp, dataset.camera, observed, state,
+                         TrackOptions(iterations=5, frame_prior_position_m=0.0, jacobian_once=once))
         assert result.status == "tracking" and result.iterations == 5
         assert score(clamp, frames[i], result)["add_m"] < 0.5 * start, (i, start)
         assert np.isfinite(result.covariance).all()
+        assert (len(jacobians) == 1) if once else (3 <= len(jacobians) <= 5), (i, once, len(jacobians))
     assert not marched
     problem = FrameProblem(clamp, TrackOptions().step_options(True), 0.1, True)
     with pytest.raises(ValueError, match="box pixels"):  # no box pixels set: no rays of its own
