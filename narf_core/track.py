@@ -975,8 +975,11 @@ class FrameProblem(Problem):
         samples its row's own grid holds. So light's reach is not found again for every row (:func:`visible`: an
         evaluation at every other sample), nor the grid asked about every sample of the band for every row: with
         several rows only the band's samples near an occupied cell at row 0 (``occupied_near``, a block of cells
-        or more) are asked about, which hold every row's occupied samples while the rows are moved less than that
-        (a Jacobian's shifts move the surface about a sample spacing)."""
+        or more) are asked about: every row's occupied samples where the row moves them less than that. A
+        Jacobian's shifts move the surface about a sample spacing, but a turn's moves the far end of a long object
+        more than a block of a fine grid, and the samples such a row moves into occupied cells beyond it are left
+        out (checking each row's bound took the rows back to the whole band and the rate's gain with them, at the
+        same errors: docs/benchmarks.md, session 55)."""
         from narf_core.compositing import composite_in_rounds
 
         n = len(self.index)
