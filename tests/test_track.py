@@ -1913,3 +1913,17 @@ def test_without_depth_a_frame_may_trust_the_mask_outside_itself_less() -> None:
     assert (with_depth.mask_trust, with_depth.outside_weight) == (DEPTH_MASK_TRUST, preset.outside_weight)
     with pytest.raises(TrackInputError, match="outside_weight_rgb"):
         TrackOptions(outside_weight_rgb=1.5)
+
+
+def test_bench_track_service_clients_track_at_once_through_a_real_server(clamp_sequence: Path) -> None:
+    """``narf bench track --service-clients N``: N clients track the sequence at once through ``POST /v1/track`` on a
+    server started on loopback as deployed; each gets an answer for every frame, scored against the labels, with its
+    rate beside the server's tracker time."""
+    from narf_benchmarks.track import service_run
+    from narf_core.data.dataset import Dataset
+
+    result = service_run(CLAMP, Dataset.open(clamp_sequence), 2, 4)
+    assert result["clients"] == 2 and result["failed_clients"] == 0, result
+    for client in result["per_client"]:
+        assert client["lost"] == 0 and client["add_mean_m"] < 0.005, client
+        assert client["frames_per_second"] > 0 and 0 < client["tracker_seconds_mean"] < client["frame_seconds_mean"]
