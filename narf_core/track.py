@@ -58,6 +58,7 @@ from narf_core.sampling import Samples
 
 if TYPE_CHECKING:
     from narf_core.bundle import NarfModel
+    from narf_core.compositing import RenderOutput
 
 STATUSES = ("tracking", "uncertain", "lost", "reinitialised")
 MARCHES = ("frame", "iteration")
@@ -967,7 +968,7 @@ class FrameProblem(Problem):
         out = self._render_in_rounds(rays, theta, rows, outputs)
         return torch.cat([out.rgb, out.opacity[:, None], out.depth[:, None]], -1)
 
-    def _render_in_rounds(self, rays: Rays, theta: Tensor, rows: int, outputs) -> object:
+    def _render_in_rounds(self, rays: Rays, theta: Tensor, rows: int, outputs) -> RenderOutput:
         """``rows`` rows of the box pixels' rays (object frame, ``θ [rows n, k]`` per ray; several: a Jacobian by
         differences, row 0 at its linearisation point) composited in two rounds (:func:`composite_in_rounds`): each
         ray's samples up to where it turned opaque at the linearisation point (its :attr:`reach`, found here
