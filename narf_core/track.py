@@ -935,7 +935,8 @@ class FrameProblem(Problem):
     band, per box pixel), those the posed grid holds at the pose asked (:func:`occupied`) and, for a
     Jacobian where ``prune``, those light reaches (:func:`visible`): the Adam frame's samples. One start, or
     several rows of it (a Jacobian by differences: the same rays at shifted poses, rendered without a graph),
-    each taking the band's samples its own grid holds and, where ``prune``, those its light reaches."""
+    each taking the band's samples its own grid holds; where ``prune``, renders without a graph go in two rounds
+    from where the rays saw at the linearisation point (:meth:`_render_in_rounds`)."""
 
     near: Tensor | None = None
     far: Tensor | None = None
@@ -1007,7 +1008,7 @@ class FrameProblem(Problem):
         held = [occupied_mask(self.grid, fixed[r * n:(r + 1) * n], lattice, theta[r * n]) for r in range(rows)]
         ray = torch.cat([lattice.ray[h] + r * n for r, h in enumerate(held)])
         samples = Samples(ray, torch.cat([lattice.t[h] for h in held]), torch.cat([lattice.delta[h] for h in held]))
-        if not (self.prune and (jacobian or rows > 1)):  # one row's render without a graph: every sample
+        if not (self.prune and jacobian):  # a render without a graph: every sample (pruned: _render's rounds)
             return self.field, samples
         return self.field, visible(self.field, fixed, samples, theta[0] if rows == 1 else theta)
 
