@@ -1057,6 +1057,9 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--no-depth-align", dest="depth_align", action="store_false",
                      help="with depth, do not first move the prediction along the line of sight onto the observed "
                           "depth (TrackOptions.depth_align; to compare)")
+    sub.add_argument("--no-occluder-test", dest="occluder_test", action="store_const", const=False, default=None,
+                     help="with depth, trust the mask in full, also where the depth shows an occluder in front of the "
+                          "render outside it (TrackOptions.occluder_test; to compare)")
     sub.add_argument("--service-clients", type=_non_negative_int, default=0, metavar="N",
                      help="also N clients tracking at once through POST /v1/track on a loopback server")
     _add_json_flag(sub)

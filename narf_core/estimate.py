@@ -68,8 +68,9 @@ is compared with the unmasked image where it draws the object (a render over a p
 colour costs; the unknown background does not). ``outside_weight`` weighs the rays outside the
 mask less (a render of the object there may be right: an occluder or a missed blob), except where
 the observed depth lies behind the rendered surface (1) or in front of it (0: an occluder's ray is
-no evidence). Both act on the Adam solver's fine level; ``partial_theta_starts`` raises the
-configuration starts there (a hidden part lets a wrong configuration fit from more places).
+no evidence; so at ``outside_weight`` 1 with a depth image, only an occluder's rays lose their
+weight). Both act on the Adam solver's fine level; ``partial_theta_starts`` raises the configuration
+starts there (a hidden part lets a wrong configuration fit from more places).
 ``mask_trust = "auto"`` trusts the mask partially where the depth contradicts it
 (:func:`narf_core.observation.mask_evidence`: an occluder beside it, its edge on a continuous surface).
 
@@ -246,7 +247,8 @@ class EstimateOptions:
     # silhouette, masked-colour or depth residual within mask_band_px pixels of the mask's boundary
     # (its edge is uncertain by a few pixels; there the render is compared with the unmasked image
     # where it draws the object), and the rays outside the mask weigh outside_weight (an occluder or
-    # a blob the mask missed may hide the object there) unless the observed depth lies behind the render.
+    # a blob the mask missed may hide the object there) unless the observed depth lies behind the render,
+    # and not at all where it lies in front (an occluder's ray; with a depth image, at outside_weight 1 too).
     mask_trust: str = "full"
     mask_band_px: int = 3
     outside_weight: float = 0.3
@@ -1419,7 +1421,7 @@ class _Loss:
         edge = None if target.band is None or target.image is None else target.band[index]
         if edge is not None:  # the render against the unmasked image where it draws the object; no mask there
             observed = torch.where(edge[:, None], opacity[..., None] * target.image[index], observed)
-        if opts.mask_trust == "partial" and opts.outside_weight < 1:
+        if weighs_outside(opts, depth):
             used = used * _outside_weight(mask, edge, depth, rendered_depth, opacity, opts.outside_weight)
         count = used.sum(-1).clamp_min(1)
         colour = _robust((rgb - observed) ** 2, opts.robust_loss, opts.robust_scale).mean(-1)
@@ -1490,6 +1492,12 @@ def _occluded(depth: Tensor, rendered_depth: Tensor, opacity: Tensor, margin: fl
     else is in front of the object there, so the ray is no evidence about it."""
     surface = rendered_depth.detach() / opacity.detach().clamp_min(1e-6)
     return (depth > 0) & (opacity.detach() > 0.5) & (depth < surface - margin)
+
+
+def weighs_outside(opts: EstimateOptions, depth: Tensor | None) -> bool:
+    """Whether the rays outside a partially trusted mask are weighed (:func:`_outside_weight`): below the full
+    weight, or at it with a depth image, which tells an occluder's rays (no evidence) from the background's."""
+    return opts.mask_trust == "partial" and (opts.outside_weight < 1 or depth is not None)
 
 
 def _outside_weight(

@@ -428,9 +428,9 @@ class Problem:
             M[..., 4, 4] = w
             M[..., 4, 3] = -w * depth
             used[..., 4] = valid
-        if opts.mask_trust == "partial" and opts.outside_weight < 1:
-            from narf_core.estimate import _outside_weight
+        from narf_core.estimate import _outside_weight, weighs_outside
 
+        if weighs_outside(opts, depth):
             weight = _outside_weight(mask_t, edge, depth, P[..., 4], opacity, opts.outside_weight).sqrt()  # [S, n]
             M, y = M * weight[..., None, None], y * weight[..., None]
             keep = keep & (weight > 0)

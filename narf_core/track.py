@@ -94,13 +94,15 @@ RETRY_SIGMA_SCALE = {"gauss-newton": 0.4, "adam": 3.0}
 # and without (a few iterations reach the bottom that Adam's fixed steps trail behind; without depth its
 # steps along the line of sight follow the silhouette's scale, where Adam's drift: docs/benchmarks.md).
 AUTO_SOLVER = {"rgbd": "gauss-newton", "rgb": "gauss-newton"}
-# How a warm-started frame with a depth image trusts its mask (EstimateOptions.mask_trust). A single image's
-# "auto" trusts it partially where the depth contradicts it (an occluder, a segmenter's edge): its rays
-# outside the mask weigh less, none behind an occluder, and a band along the mask's edge carries no
-# silhouette. A frame starts a few millimetres from its answer, where that band takes away the outline that
-# holds a thin part and the pliers' tracks under a segmenter's faults drift off: in full (docs/benchmarks.md,
-# session 42).
-DEPTH_MASK_TRUST = "full"
+# How a warm-started frame with a depth image trusts its mask (EstimateOptions.mask_trust, mask_band_px,
+# outside_weight). A single image's "auto" trusts it partially where the depth contradicts it (an occluder, a
+# segmenter's edge): its rays outside the mask weigh less, none behind an occluder, and a band along the mask's
+# edge carries no silhouette. A frame starts a few millimetres from its answer, where that band takes away the
+# outline that holds a thin part and the pliers' tracks under a segmenter's faults drift off (docs/benchmarks.md,
+# session 42): no band, and the rays outside the mask weigh in full but for those where the observed depth stands
+# in front of the render (an occluder, which the mask leaves out with the part it hides: a render of that part
+# there is no evidence against it; TrackOptions.occluder_test, session 56).
+DEPTH_MASK_TRUST = {"mask_trust": "partial", "mask_band_px": 0, "outside_weight": 1.0, "partial_theta_starts": 0}
 # A frame's iterations and rays per iteration per solver, where TrackOptions leaves them at 0.
 BUDGETS = {"adam": (6, 768), "gauss-newton": (2, 768)}
 # A frame's iterations without depth, per solver, where TrackOptions leaves them at 0 (else BUDGETS'): there
@@ -272,6 +274,9 @@ class TrackOptions:
     # 1.1-2.3), but costs the clamp and a segmenter's faulty masks (docs/benchmarks.md, session 38): for a view
     # where a hand or a fixture stays in front of the tool. 1 (the default) = the mask trusted in full.
     outside_weight_rgb: float = 1.0
+    # With depth, a frame's rays outside the mask where the observed depth stands in front of the render (an
+    # occluder) carry no residual (DEPTH_MASK_TRUST); off: the mask trusted in full (to compare).
+    occluder_test: bool = True
     max_gap_s: float = 0.25  # longer since the last estimate: no prediction, re-initialise
     # Longer since the last estimate (or lost after an `uncertain` or `reinitialised` frame): re-initialise
     # by detection (every orientation scored, the best refined; narf_core/detect.py) instead of the
@@ -392,7 +397,7 @@ class TrackOptions:
                   "pose_starts": 1, "search_theta_starts": 0, "slide_share": 0.0,
                   "jacobian": self.jacobian_for(depth, model), "jacobian_once": self.jacobian_once and depth}
         if depth:
-            common.update(mask_trust=DEPTH_MASK_TRUST)
+            common.update(DEPTH_MASK_TRUST if self.occluder_test else {"mask_trust": "full"})
         elif self.outside_weight_rgb < 1:
             common.update(mask_trust="partial", mask_band_px=0, outside_weight=self.outside_weight_rgb,
                           partial_theta_starts=0)
@@ -781,7 +786,7 @@ def refine_frame(
     GaussNewtonRun.hold_to`; the joints are free). ``checks``: the frame's input checks, already made
     (the tracker's step makes them before it aligns its prediction): not made again. ``options.mask_trust``
     "auto" means what it means to :func:`refine` (partial where the depth contradicts the mask, with its
-    edge band); the tracker's own frames pass :data:`DEPTH_MASK_TRUST` with depth.
+    edge band); the tracker's own frames pass :data:`DEPTH_MASK_TRUST`'s options with depth.
     """
     from narf_core.band import ray_band
     from narf_core.compositing import composite

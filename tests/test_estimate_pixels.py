@@ -5,6 +5,8 @@ Adam refiner's loss; on the analytic toy clamp of tests/test_estimate.py."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -23,6 +25,7 @@ from narf_core.estimate import (
     _robust,
     _stratified,
     refine,
+    weighs_outside,
 )
 from tests.test_estimate import ASSETS, CAMERA, TRUTH, SliderField, make_model, observe, perturbed, view
 
@@ -198,6 +201,12 @@ def test_rays_outside_the_mask_weigh_less_unless_depth_sees_past_the_object():
     w = _outside_weight(mask, edge, depth, rendered, opacity, 0.25)
     assert w.tolist() == [[1.0, 1.0, 0.25, 0.0, 0.25, 1.0, 1.0, 1.0]]
     assert _outside_weight(mask, None, None, None, opacity, 0.25).tolist() == [[1.0] + [0.25] * 5 + [1.0, 0.25]]
+    # at the full weight only an occluder's ray loses it, so the rule applies there only with a depth image
+    assert _outside_weight(mask, edge, depth, rendered, opacity, 1.0).tolist() == [[1.0] * 3 + [0.0] + [1.0] * 4]
+    partial = EstimateOptions(mask_trust="partial", outside_weight=1.0)
+    assert weighs_outside(partial, depth) and not weighs_outside(partial, None)
+    assert weighs_outside(replace(partial, outside_weight=0.3), None)
+    assert not weighs_outside(replace(partial, mask_trust="full"), depth)
     with pytest.raises(EstimateInputError, match="options.outside_weight"):
         EstimateOptions(outside_weight=1.5)
     with pytest.raises(EstimateInputError, match="options.mask_band_px"):

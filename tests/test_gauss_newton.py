@@ -360,6 +360,13 @@ def test_a_partly_trusted_mask_weighs_the_residuals_as_adams_loss_does():
     assert r[1:, 4].abs().max() == 0  # no depth residual on the edge nor outside the mask
     assert used.tolist() == [[True] * 5, [True, True, True, False, False], [True, True, True, True, False],
                              [False] * 5, [True, True, True, True, False]]
+    # at the full weight outside the mask, with depth, only the occluder's ray (in front of the render) loses it
+    whole = gauss_newton.Problem(None, replace(opts, outside_weight=1.0), radius, uses_depth=True)
+    M, y, used = whole._linear_map(P, target, torch.arange(5))
+    r1 = ((M @ P[..., None])[..., 0] - y)[0]
+    occluder_weight = torch.tensor([1.0, 1, 1, 0, 1], dtype=torch.float64)
+    torch.testing.assert_close(r1[:, :3], expected_colour * occluder_weight[:, None])
+    assert used[0, :, 3].tolist() == [True, False, True, False, True]
     full = gauss_newton.Problem(None, replace(opts, mask_trust="full"), radius, uses_depth=True)
     M, y, used = full._linear_map(P, _Target(rgb, mask, depth, 1), torch.arange(5))
     assert bool(used[0, :, :4].all()) and used[0, :, 4].tolist() == [True, False, False, False, False]

@@ -514,14 +514,17 @@ def test_first_frame_warm_and_sigma_scale(clamp, clamp_sequence: Path) -> None:
 
 def test_a_frame_with_depth_trusts_the_mask_as_its_options_say(clamp, clamp_sequence: Path, monkeypatch) -> None:
     """``refine_frame`` resolves ``mask_trust`` "auto" as ``refine`` does: in full under an exact mask, partially
-    (with the preset's edge band) where the depth shows an occluder in front of what the mask leaves out; the
-    tracker's own frames with depth pass :data:`~narf_core.track.DEPTH_MASK_TRUST` (in full: no band either way),
-    and the same frame then ends where the "full" options end it."""
+    (with the preset's edge band) where the depth shows an occluder in front of what the mask leaves out. The
+    tracker's own frames with depth pass :data:`~narf_core.track.DEPTH_MASK_TRUST`'s options (no band, the rays
+    outside the mask at full weight but an occluder's): a hand over half the clamp, the mask its visible part,
+    leaves that frame at the label, where the mask trusted in full (``occluder_test`` off) pulls the hidden end
+    out from under the hand."""
     from dataclasses import replace
 
     from narf_core import estimate
     from narf_core.data.dataset import Dataset
     from narf_core.track import DEPTH_MASK_TRUST, TrackOptions, refine_frame
+    from narf_core.track_io import score
 
     dataset = Dataset.open(clamp_sequence)
     frame = dataset.frames()[1]
@@ -529,23 +532,28 @@ def test_a_frame_with_depth_trusts_the_mask_as_its_options_say(clamp, clamp_sequ
     mask = images.labels > 0
     cols = np.nonzero(mask.any(0))[0]
     hand = np.zeros_like(mask)
-    hand[:, cols[int(0.7 * len(cols))]:] = True  # a hand over the last 30 % of the clamp's columns
+    hand[:, cols[int(0.5 * len(cols))]:] = True  # a hand over the last half of the clamp's columns
     occluded = images.depth.copy()
     occluded[hand & (occluded > 0)] = float(images.depth[mask].min()) - 0.05
     bands = []
     real = estimate._observation
     monkeypatch.setattr(estimate, "_observation", lambda *a: bands.append(a[-1]) or real(*a))
-    tracker = TrackOptions(iterations=2, rays_per_iteration=64, uncertainty_rays=0).step_options(True)
-    assert DEPTH_MASK_TRUST == "full" and tracker.mask_trust == DEPTH_MASK_TRUST
-    auto = replace(tracker, mask_trust="auto")
+    options = TrackOptions(rays_per_iteration=256, uncertainty_rays=0)
+    tracker, in_full = options.step_options(True), replace(options, occluder_test=False).step_options(True)
+    assert (tracker.mask_trust, tracker.mask_band_px, tracker.outside_weight) == ("partial", 0, 1.0)
+    assert DEPTH_MASK_TRUST["mask_trust"] == "partial" and in_full.mask_trust == "full"
+    preset = estimate.EstimateOptions.gauss_newton()
+    auto = replace(tracker, mask_trust="auto", mask_band_px=preset.mask_band_px, outside_weight=preset.outside_weight)
     assert auto.mask_band_px > 0
-    cases = ((auto, mask, images.depth), (auto, mask & ~hand, occluded), (tracker, mask & ~hand, occluded),
-             (replace(tracker, mask_trust="partial"), mask & ~hand, occluded))
+    cases = ((auto, mask, images.depth), (auto, mask & ~hand, occluded),
+             (replace(auto, mask_trust="partial"), mask & ~hand, occluded), (tracker, mask & ~hand, occluded),
+             (in_full, mask & ~hand, occluded))
     results = [refine_frame(clamp, dataset.camera, images.rgb, m, d, frame.T_cam_obj, frame.joints, o)
                for o, m, d in cases]
-    assert bands == [0, auto.mask_band_px, 0, auto.mask_band_px]
-    np.testing.assert_allclose(results[1].T_cam_obj, results[3].T_cam_obj)  # "auto" there is "partial"
-    assert not np.allclose(results[2].T_cam_obj, results[3].T_cam_obj)  # and the tracker's trust is not
+    assert bands == [0, auto.mask_band_px, auto.mask_band_px, 0, 0]
+    np.testing.assert_allclose(results[1].T_cam_obj, results[2].T_cam_obj)  # "auto" there is "partial"
+    add = [score(clamp, frame, r)["add_m"] for r in results[3:]]
+    assert add[0] < 0.0002 < 0.0005 < add[1], add  # metres
 
 
 def test_a_joint_whose_part_the_mask_leaves_out_has_its_prior_sigma(clamp, clamp_sequence: Path) -> None:
@@ -1164,7 +1172,7 @@ def test_concurrent_tracking_steps_with_covariance(clamp, clamp_sequence: Path) 
 
 def test_bench_track_can_leave_the_depth_alignment_off() -> None:
     """``narf bench track --no-depth-align`` runs the tracker without it (to compare), and its table says so; the
-    same for ``--outside-weight-rgb``."""
+    same for ``--outside-weight-rgb`` and ``--no-occluder-test``."""
     from narf_benchmarks.track import markdown
     from narf_core.cli import build_parser
     from narf_core.track import TrackOptions
@@ -1179,6 +1187,12 @@ def test_bench_track_can_leave_the_depth_alignment_off() -> None:
     for weight in (1.0, 0.3):
         table = markdown({"frames": 3, "runs": [], "options": TrackOptions(outside_weight_rgb=weight).__dict__})
         assert ("outside the mask weighing 0.3" in table) is (weight < 1)
+    # and --no-occluder-test: with depth the mask trusted in full, said in the table
+    assert build_parser().parse_args(["bench", "track"]).occluder_test is None
+    assert build_parser().parse_args(["bench", "track", "--no-occluder-test"]).occluder_test is False
+    for test in (True, False):
+        table = markdown({"frames": 3, "runs": [], "options": TrackOptions(occluder_test=test).__dict__})
+        assert ("no occluder test" in table) is not test
 
 
 def test_bench_track_takes_the_frames_jacobian() -> None:
@@ -1898,7 +1912,9 @@ def test_colour_gain_and_rate_are_validated() -> None:
 def test_without_depth_a_frame_may_trust_the_mask_outside_itself_less() -> None:
     """``outside_weight_rgb`` below one: a frame without depth trusts the mask partially (its rays outside the
     mask weigh that much, no edge band, no extra configuration starts); at the default the preset's own trust
-    ("auto": in full without depth); with depth :data:`~narf_core.track.DEPTH_MASK_TRUST` whatever the option."""
+    ("auto": in full without depth); with depth :data:`~narf_core.track.DEPTH_MASK_TRUST`'s whatever the option
+    (partial, no band, every ray outside the mask at its full weight but an occluder's), or in full without the
+    occluder test."""
     from narf_core.estimate import EstimateOptions
     from narf_core.track import DEPTH_MASK_TRUST, TrackInputError, TrackOptions
 
@@ -1910,7 +1926,10 @@ def test_without_depth_a_frame_may_trust_the_mask_outside_itself_less() -> None:
     assert (default.mask_trust, default.outside_weight, default.mask_band_px) == (
         preset.mask_trust, preset.outside_weight, preset.mask_band_px)
     with_depth = TrackOptions(outside_weight_rgb=0.3).step_options(True)
-    assert (with_depth.mask_trust, with_depth.outside_weight) == (DEPTH_MASK_TRUST, preset.outside_weight)
+    assert (with_depth.mask_trust, with_depth.mask_band_px, with_depth.outside_weight,
+            with_depth.partial_theta_starts) == ("partial", 0, 1.0, 0) == tuple(DEPTH_MASK_TRUST.values())
+    in_full = TrackOptions(outside_weight_rgb=0.3, occluder_test=False).step_options(True)
+    assert (in_full.mask_trust, in_full.outside_weight) == ("full", preset.outside_weight)
     with pytest.raises(TrackInputError, match="outside_weight_rgb"):
         TrackOptions(outside_weight_rgb=1.5)
 
