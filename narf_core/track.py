@@ -259,6 +259,10 @@ class TrackOptions:
     # few pixels' width barely sees, and unheld it now and then ran off by tens of degrees (docs/benchmarks.md).
     frame_prior_position_m: float = 0.01
     frame_prior_rotation_deg: float = 5.0
+    # With that prior, a joint whose moved parts the mask hardly shows at the prediction (an occluder over them, a
+    # missed blob; estimate.HIDDEN_SHARE) is held to its prediction by this σ, a share of its half range (0: free).
+    # Unheld, the view's residuals leave it free and it wandered anywhere out of sight (docs/benchmarks.md).
+    hidden_joint_sigma: float = 0.02
     # Without depth, the track carries a colour gain per channel: each tracked frame's fit at its estimate
     # (colour_gain_at) moves it by this share (its first frames by 1/n). 0 = off.
     colour_rate_rgb: float = 0.2
@@ -327,6 +331,7 @@ class TrackOptions:
         need(self.frame_prior_rotation_deg_rgb >= 0, "frame_prior_rotation_deg_rgb", "must be >= 0 (0 = off)")
         need(self.frame_prior_position_m >= 0, "frame_prior_position_m", "must be >= 0 (0 = off)")
         need(self.frame_prior_rotation_deg >= 0, "frame_prior_rotation_deg", "must be >= 0 (0 = off)")
+        need(self.hidden_joint_sigma >= 0, "hidden_joint_sigma", "must be >= 0 (0 = off)")
         need(0 <= self.colour_rate_rgb <= 1, "colour_rate_rgb", "must be in [0, 1] (0 = off)")
         need(0 <= self.colour_gate_rgb < 1, "colour_gate_rgb", "must be in [0, 1)")
         need(0 <= self.outside_weight_rgb <= 1, "outside_weight_rgb", "must be in [0, 1] (1 = the mask trusted in full)")
@@ -756,7 +761,7 @@ def refine_frame(
     options: EstimateOptions,
     distance_prior: float = 0.0,
     polish: bool = False,
-    prior: tuple[float, float] | None = None,
+    prior: tuple[float, float] | tuple[float, float, float] | None = None,
     checks: list[str] | None = None,
 ) -> EstimateResult:
     """The refiner's iterations for a warm-started frame without marching, each ray sampled only in a
@@ -781,9 +786,11 @@ def refine_frame(
     box centre along the line of sight, in object radii, to Adam's loss where the mask's box is no
     larger than ``options.reference_box_px``. ``polish`` (for a view without depth): every
     Gauss-Newton iteration polishes (:attr:`narf_core.gauss_newton.GaussNewtonRun.polish_only`);
-    ``prior`` ``(σ position m, σ rotation rad)``: its iterations are held to the prediction, the box
-    centre's position per camera axis and the rotation about it per axis (:meth:`~narf_core.gauss_newton.
-    GaussNewtonRun.hold_to`; the joints are free). ``checks``: the frame's input checks, already made
+    ``prior`` ``(σ position m, σ rotation rad[, σ hidden joint])``: its iterations are held to the prediction, the
+    box centre's position per camera axis and the rotation about it per axis (:meth:`~narf_core.gauss_newton.
+    GaussNewtonRun.hold_to`), and a joint the mask hardly shows at the prediction (:func:`~narf_core.estimate.
+    joint_mask_shares` under :data:`~narf_core.estimate.HIDDEN_SHARE`) by the third, a share of its half range
+    (else the joints are free): what the view does not show of it cannot move it, nor should noise. ``checks``: the frame's input checks, already made
     (the tracker's step makes them before it aligns its prediction): not made again. ``options.mask_trust``
     "auto" means what it means to :func:`refine` (partial where the depth contradicts the mask, with its
     edge band); the tracker's own frames pass :data:`DEPTH_MASK_TRUST`'s options with depth.
@@ -791,8 +798,8 @@ def refine_frame(
     from narf_core.band import ray_band
     from narf_core.compositing import composite
     from narf_core.estimate import (
-        ROBUST_BOX_PX, _box_scale, _check_observation, _Loss, _mask_box, _object_rays, _observation, _overlaps,
-        _Parameterisation, _partial_trust, _ray_index, _uncertainty, coarse_model,
+        HIDDEN_SHARE, ROBUST_BOX_PX, _box_scale, _check_observation, _Loss, _mask_box, _object_rays, _observation,
+        _overlaps, _Parameterisation, _partial_trust, _ray_index, _uncertainty, coarse_model, joint_mask_shares,
     )
     from narf_core.gauss_newton import GaussNewtonRun, Problem, cluster_sample
     from narf_core.geometry import pose_to_position_quaternion
@@ -873,6 +880,9 @@ def refine_frame(
         if prior is not None:  # σ of the box centre's position (m, per camera axis) and its rotation (rad, per axis)
             sigma = torch.full((p0.shape[1],), math.inf, dtype=torch.float64)
             sigma[:3], sigma[3:6] = prior[0] / param.radius, prior[1]
+            if len(prior) > 2 and prior[2] > 0 and k:  # a hidden joint's σ: θ = mid + half sin(u)
+                hidden = joint_mask_shares(model, camera, T0, theta0, obs) < HIDDEN_SHARE
+                sigma[6:] = torch.where(hidden, prior[2] / torch.cos(p0[0, 6:]).clamp_min(1e-3), math.inf)
             run.hold_to(p0, sigma)
         run.optimise()
         candidates, trace, failures = (run.params, run.best_params), run.trace, int(run.recovered)
@@ -1187,7 +1197,7 @@ def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.
             and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf"):
         position, rotation = ((opts.frame_prior_position_m, opts.frame_prior_rotation_deg) if depth is not None
                               else (opts.frame_prior_position_m_rgb, opts.frame_prior_rotation_deg_rgb))
-        prior = (position, math.radians(rotation)) if position > 0 and rotation > 0 else None
+        prior = (position, math.radians(rotation), opts.hidden_joint_sigma) if position > 0 and rotation > 0 else None
         return refine_frame(model, camera, image, mask, depth, T, joints, step_options,
                             0.0 if depth is not None else opts.distance_prior_rgb, polish=depth is None, prior=prior,
                             checks=checks)

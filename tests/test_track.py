@@ -595,6 +595,43 @@ def test_a_joint_whose_part_the_mask_leaves_out_has_its_prior_sigma(clamp, clamp
         assert any(w.startswith(f"{UNOBSERVED_CODE}: jaw_opening") for w in answer.warnings) == hidden
 
 
+def test_a_joint_the_mask_leaves_out_is_held_to_its_prediction(clamp, clamp_sequence: Path, monkeypatch) -> None:
+    """A warm-started frame whose mask leaves the jaw out (an occluder over it, in front in the depth) holds the
+    jaw to the prediction by ``hidden_joint_sigma`` (a share of its half range, through θ = mid + half sin u): the
+    frame's prior takes that σ for the jaw, none where the whole mask shows it. Held tightly (a thousandth) the jaw
+    then ends within 0.2 mm of a prediction 3 mm off the label, where unheld (σ 0) or seen whole it moves back
+    over a millimetre (the configuration field's other parts, still in view, tell something of it)."""
+    import torch
+
+    from narf_core import gauss_newton
+    from narf_core.data.dataset import Dataset
+    from narf_core.track import TrackOptions, _warm_refine
+
+    dataset = Dataset.open(clamp_sequence)
+    frame = dataset.frames()[1]
+    images = dataset.load(frame)
+    jaw = images.labels == dataset.links.index("moving_jaw") + 1
+    for _ in range(8):  # and 8 pixels round it, so that the prediction's jaw lies under it too
+        jaw = jaw | np.roll(jaw, 1, 0) | np.roll(jaw, -1, 0) | np.roll(jaw, 1, 1) | np.roll(jaw, -1, 1)
+    whole = images.labels > 0
+    occluded = images.depth.copy()
+    occluded[jaw] = float(images.depth[whole].min()) - 0.05  # something in front of the jaw
+    predicted = {"jaw_opening": frame.joints["jaw_opening"] + 0.003}
+    held = []
+    real = gauss_newton.GaussNewtonRun.hold_to
+    monkeypatch.setattr(gauss_newton.GaussNewtonRun, "hold_to", lambda run, c, s: held.append(s) or real(run, c, s))
+    options = TrackOptions(rays_per_iteration=256, uncertainty_rays=0)
+    ends = {}
+    for name, mask, depth, sigma in (("whole", whole, images.depth, 0.001), ("held", whole & ~jaw, occluded, 0.001),
+                                     ("free", whole & ~jaw, occluded, 0.0)):
+        result = _warm_refine(clamp, dataset.camera, images.rgb, mask, depth, frame.T_cam_obj, predicted,
+                              TrackOptions(**{**options.__dict__, "hidden_joint_sigma": sigma}))
+        ends[name] = abs(result.joints["jaw_opening"] - predicted["jaw_opening"])
+    assert [bool(torch.isfinite(s[6:]).all()) for s in held] == [False, True, False]
+    assert held[1][6] >= 0.001  # σ in u: 0.001 / cos u
+    assert ends["held"] < 2e-4 < 1e-3 < min(ends["free"], ends["whole"]), ends
+
+
 def test_model_error_footprint_is_never_finer_than_the_reference_box(clamp, clamp_sequence: Path, monkeypatch) -> None:
     """A mask box larger than the reference box (:data:`~narf_core.estimate.ROBUST_BOX_PX`: a finer camera)
     scales the pixel footprint of the model's error by the box's size over it, whatever the preset's own
