@@ -15,7 +15,8 @@ per-frame settings head the table; ``--band-m`` marches only a band around the m
 every iteration instead of sampling the band found once per frame (``TrackOptions.march``);
 ``--no-depth-align`` leaves the prediction where the motion model puts it (``TrackOptions.depth_align``);
 ``--no-occluder-test`` trusts the mask in full with depth, also on the rays where the depth shows an occluder
-(``TrackOptions.occluder_test``). With
+(``TrackOptions.occluder_test``); ``--hidden-joint-sigma 0`` leaves a joint the mask hides free
+(``TrackOptions.hidden_joint_sigma``). With
 ``--events`` the sequence with a glance away and an occluding bar is tracked as well. ``--seed`` picks the
 sequences' seeds (default 0), so that other motions of the same tools can be tracked; the result names them.
 ``--ray-seeds`` tracks each sequence once per seed of the tracker's ray draws (``TrackOptions.seed``, default 0):
@@ -246,6 +247,9 @@ def markdown(result: dict) -> str:
         + f", {band}"
         + ("" if o.get("depth_align", True) else ", the prediction not aligned to the depth")
         + ("" if o.get("occluder_test", True) else ", with depth the mask trusted in full (no occluder test)")
+        + ("" if o.get("hidden_joint_sigma", TrackOptions.hidden_joint_sigma) == TrackOptions.hidden_joint_sigma else
+           f", a joint the mask hides held by {o['hidden_joint_sigma']:g} of its half range" if o["hidden_joint_sigma"]
+           else ", a joint the mask hides not held")
         + ("" if o.get("outside_weight_rgb", 1.0) >= 1 else
            f", without depth the rays outside the mask weighing {o['outside_weight_rgb']:g}")
         + "." + describe_machine(result.get("machine")),
@@ -331,7 +335,7 @@ def main(args: argparse.Namespace) -> int:
     """``narf bench track``: ``args`` has ``work``, ``models``, ``tools``, ``frames``, ``sizes``,
     ``modalities``, ``events``, ``seed`` (a list), ``ray_seeds``, ``images``, ``spp``, ``iterations``, ``rays``,
     ``solver``, ``band_m``, ``march``, ``depth_align``, ``jacobian``, ``jacobian_once``, ``occluder_test``,
-    ``service_clients``, ``json``."""
+    ``hidden_joint_sigma``, ``service_clients``, ``json``."""
     tools = args.tools or sorted(p.stem for p in args.models.glob("*.narf"))
     models, missing = {}, []
     for tool in tools:
@@ -351,7 +355,8 @@ def main(args: argparse.Namespace) -> int:
                  "jacobian": getattr(args, "jacobian", None), "jacobian_rgb": getattr(args, "jacobian", None),
                  "outside_weight_rgb": getattr(args, "outside_weight_rgb", None),
                  "jacobian_once": getattr(args, "jacobian_once", None),
-                 "occluder_test": getattr(args, "occluder_test", None)}
+                 "occluder_test": getattr(args, "occluder_test", None),
+                 "hidden_joint_sigma": getattr(args, "hidden_joint_sigma", None)}
     options = TrackOptions(first_frame="warm", **{k: v for k, v in overrides.items() if v is not None})
     result = run(models, args.work, frames=args.frames, sizes=sizes, modalities=tuple(args.modalities),
                  events=args.events, options=options, seeds=tuple(getattr(args, "seed", None) or (0,)),

@@ -1209,7 +1209,7 @@ def test_concurrent_tracking_steps_with_covariance(clamp, clamp_sequence: Path) 
 
 def test_bench_track_can_leave_the_depth_alignment_off() -> None:
     """``narf bench track --no-depth-align`` runs the tracker without it (to compare), and its table says so; the
-    same for ``--outside-weight-rgb`` and ``--no-occluder-test``."""
+    same for ``--outside-weight-rgb``, ``--no-occluder-test`` and ``--hidden-joint-sigma``."""
     from narf_benchmarks.track import markdown
     from narf_core.cli import build_parser
     from narf_core.track import TrackOptions
@@ -1230,6 +1230,11 @@ def test_bench_track_can_leave_the_depth_alignment_off() -> None:
     for test in (True, False):
         table = markdown({"frames": 3, "runs": [], "options": TrackOptions(occluder_test=test).__dict__})
         assert ("no occluder test" in table) is not test
+    # and --hidden-joint-sigma: a joint the mask hides held otherwise than by default, or not at all
+    assert build_parser().parse_args(["bench", "track", "--hidden-joint-sigma", "0"]).hidden_joint_sigma == 0.0
+    for sigma, said in ((TrackOptions.hidden_joint_sigma, None), (0.0, "not held"), (0.05, "held by 0.05")):
+        table = markdown({"frames": 3, "runs": [], "options": TrackOptions(hidden_joint_sigma=sigma).__dict__})
+        assert ("the mask hides" in table) is (said is not None) and (said is None or said in table)
 
 
 def test_bench_track_takes_the_frames_jacobian() -> None:
