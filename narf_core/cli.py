@@ -1061,8 +1061,9 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
                      help="with depth, trust the mask in full, also where the depth shows an occluder in front of the "
                           "render outside it (TrackOptions.occluder_test; to compare)")
     sub.add_argument("--hidden-joint-sigma", type=_non_negative_float, default=None, metavar="S",
-                     help="hold a joint the mask hardly shows at the prediction to it by this σ, a share of its half "
-                          "range (TrackOptions.hidden_joint_sigma; 0: free, to compare; default: the tracker's)")
+                     help="with depth, hold a joint the mask hardly shows at the prediction to it by this σ, a share "
+                          "of its half range (TrackOptions.hidden_joint_sigma; 0: free, to compare; default: the "
+                          "tracker's)")
     sub.add_argument("--service-clients", type=_non_negative_int, default=0, metavar="N",
                      help="also N clients tracking at once through POST /v1/track on a loopback server")
     _add_json_flag(sub)

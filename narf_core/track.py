@@ -259,9 +259,10 @@ class TrackOptions:
     # few pixels' width barely sees, and unheld it now and then ran off by tens of degrees (docs/benchmarks.md).
     frame_prior_position_m: float = 0.01
     frame_prior_rotation_deg: float = 5.0
-    # With that prior, a joint whose moved parts the mask hardly shows at the prediction (an occluder over them, a
-    # missed blob; estimate.HIDDEN_SHARE) is held to its prediction by this σ, a share of its half range (0: free).
-    # Unheld, the view's residuals leave it free and it wandered anywhere out of sight (docs/benchmarks.md).
+    # With depth, a joint whose moved parts the mask hardly shows at the prediction (an occluder over them, a missed
+    # blob; estimate.HIDDEN_SHARE) is held to its prediction by the prior above with this σ, a share of its half
+    # range (0: free). The occluder's rays carry no residual (occluder_test), and unheld the joint wandered anywhere
+    # out of sight; without depth those rays still pull it and the hold did not pay (docs/benchmarks.md, session 56).
     hidden_joint_sigma: float = 0.02
     # Without depth, the track carries a colour gain per channel: each tracked frame's fit at its estimate
     # (colour_gain_at) moves it by this share (its first frames by 1/n). 0 = off.
@@ -1197,7 +1198,8 @@ def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.
             and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf"):
         position, rotation = ((opts.frame_prior_position_m, opts.frame_prior_rotation_deg) if depth is not None
                               else (opts.frame_prior_position_m_rgb, opts.frame_prior_rotation_deg_rgb))
-        prior = (position, math.radians(rotation), opts.hidden_joint_sigma) if position > 0 and rotation > 0 else None
+        hold = (opts.hidden_joint_sigma,) if depth is not None else ()  # without depth no ray tells an occluder
+        prior = (position, math.radians(rotation), *hold) if position > 0 and rotation > 0 else None
         return refine_frame(model, camera, image, mask, depth, T, joints, step_options,
                             0.0 if depth is not None else opts.distance_prior_rgb, polish=depth is None, prior=prior,
                             checks=checks)
