@@ -791,8 +791,9 @@ def refine_frame(
     box centre's position per camera axis and the rotation about it per axis (:meth:`~narf_core.gauss_newton.
     GaussNewtonRun.hold_to`), and a joint the mask hardly shows at the prediction (:func:`~narf_core.estimate.
     joint_mask_shares` under :data:`~narf_core.estimate.HIDDEN_SHARE`) by the third, a share of its half range
-    (else the joints are free): what the view does not show of it cannot move it, nor should noise. ``checks``: the frame's input checks, already made
-    (the tracker's step makes them before it aligns its prediction): not made again. ``options.mask_trust``
+    (else the joints are free): what the view does not show of it cannot move it, nor should noise. ``checks``: the
+    frame's input checks, already made (the tracker's step makes them before it aligns its prediction): not made
+    again. ``options.mask_trust``
     "auto" means what it means to :func:`refine` (partial where the depth contradicts the mask, with its
     edge band); the tracker's own frames pass :data:`DEPTH_MASK_TRUST`'s options with depth.
     """

@@ -598,9 +598,9 @@ def test_a_joint_whose_part_the_mask_leaves_out_has_its_prior_sigma(clamp, clamp
 def test_a_joint_the_mask_leaves_out_is_held_to_its_prediction(clamp, clamp_sequence: Path, monkeypatch) -> None:
     """A warm-started frame whose mask leaves the jaw out (an occluder over it, in front in the depth) holds the
     jaw to the prediction by ``hidden_joint_sigma`` (a share of its half range, through θ = mid + half sin u): the
-    frame's prior takes that σ for the jaw, none where the whole mask shows it nor without depth. Held tightly (a thousandth) the jaw
-    then ends within 0.2 mm of a prediction 3 mm off the label, where unheld (σ 0) or seen whole it moves back
-    over a millimetre (the configuration field's other parts, still in view, tell something of it)."""
+    frame's prior takes that σ for the jaw, none where the whole mask shows it nor without depth. Held tightly (a
+    thousandth) the jaw then ends within 0.2 mm of a prediction 3 mm off the label, where unheld (σ 0) or seen whole
+    it moves back over a millimetre (the configuration field's other parts, still in view, tell something of it)."""
     import torch
 
     from narf_core import gauss_newton
