@@ -27,7 +27,8 @@ estimate are projected into the image (no render), and ``overlap = min(inside, c
 ``inside`` is the fraction of the projected points inside the image that land on the (slightly
 dilated) mask (so an object leaving the view through an image border keeps its overlap) and
 ``covered`` the fraction of mask pixels near a projected point. A wrong pose or configuration
-lowers one or the other; an occluder lowers ``inside``.
+lowers one or the other; without depth an occluder lowers ``inside``, with depth ``inside`` leaves out the
+points a reading stands in front of (an occluder's, or the object's own nearer surface).
 
 Frames must come in time order (a frame at or before the previous time is an input error).
 """
@@ -619,20 +620,31 @@ def _surface_points_cam(model: NarfModel, T_cam_obj: np.ndarray, joints: Mapping
     return x[x[:, 2] > 1e-6]
 
 
-def overlap(model: NarfModel, camera: Pinhole, mask: np.ndarray, T_cam_obj: np.ndarray, joints: Mapping[str, float]) -> float:
-    """``min(inside, covered)`` of the projected surface points and the mask (see the module docstring)."""
+def overlap(model: NarfModel, camera: Pinhole, mask: np.ndarray, T_cam_obj: np.ndarray, joints: Mapping[str, float],
+            depth: np.ndarray | None = None) -> float:
+    """``min(inside, covered)`` of the projected surface points and the mask (see the module docstring); with a
+    ``depth`` image [H, W] (metres, 0 = no return), ``inside`` over the points no reading stands over
+    ``estimate._BEHIND_M`` in front of (an occluder's, or the object's own nearer surface)."""
+    from narf_core.estimate import _BEHIND_M
+
     mask = np.asarray(mask) != 0
     h, w = mask.shape
     n_mask = int(mask.sum())
-    uv = surface_pixels(model, camera, T_cam_obj, joints)
-    if n_mask == 0 or len(uv) == 0:
+    x = _surface_points_cam(model, T_cam_obj, joints)
+    if n_mask == 0 or len(x) == 0:
         return 0.0
-    px = np.floor(uv).astype(np.int64)
+    px = np.floor(_pixels(camera, x)).astype(np.int64)
     in_image = (px[:, 0] >= 0) & (px[:, 0] < w) & (px[:, 1] >= 0) & (px[:, 1] < h)
     spacing = max(1, int(math.ceil(math.sqrt(n_mask / max(1, int(in_image.sum()))))))
     if not in_image.any():
         return 0.0
-    px = px[in_image]
+    px, z = px[in_image], x[in_image, 2]
+    seen = np.ones(len(px), dtype=bool)
+    if depth is not None:
+        reading = np.asarray(depth, dtype=np.float64)[px[:, 1], px[:, 0]]
+        seen = ~((reading > 0) & (reading < z - _BEHIND_M))
+        if not seen.any():
+            return 0.0
     # The same sums on the crop around the mask and the points, grown by the widest dilation (nothing
     # outside it is set or reached), instead of the whole image.
     v, u = np.nonzero(mask)
@@ -640,7 +652,7 @@ def overlap(model: NarfModel, camera: Pinhole, mask: np.ndarray, T_cam_obj: np.n
     u1, v1 = min(w, max(u.max(), px[:, 0].max()) + spacing + 2), min(h, max(v.max(), px[:, 1].max()) + spacing + 2)
     mask, px = mask[v0:v1, u0:u1], px - np.array([u0, v0])
     grown = dilate(mask, max(1, spacing // 2))
-    inside = float(grown[px[:, 1], px[:, 0]].sum()) / len(px)  # the image shows no more
+    inside = float(grown[px[seen, 1], px[seen, 0]].sum()) / int(seen.sum())  # the image shows no more
     splat = np.zeros_like(mask)
     splat[px[:, 1], px[:, 0]] = True
     covered = float((dilate(splat, spacing) & mask).sum()) / n_mask
@@ -1390,7 +1402,7 @@ def _step(
             # the silhouette's, which a mask's own faults cause: a calibration changes Σ, never the track.)
             result = _warm_refine(model, camera, frame.image, mask, depth, result.T_cam_obj, result.joints, opts, checks)
             iterations += result.iterations
-        score = overlap(model, camera, mask, result.T_cam_obj, result.joints) if result.loss is not None else 0.0
+        score = 0.0 if result.loss is None else overlap(model, camera, mask, result.T_cam_obj, result.joints, depth)
         if result.status not in ("no_overlap", "non_finite") and score >= opts.lost_overlap:
             info, cov = _uncertainty(result, sigma_scale(model, opts, depth is not None, camera))
             status, reason = "tracking", None
@@ -1444,7 +1456,7 @@ def _step(
         result = refine(model, frame.image, mask, camera, T0, joints_init=state.joints, depth=depth,
                         options=_coloured(opts.reinit_options(), colour))
         failed = result.status in ("no_overlap", "non_finite")
-        score = None if failed else overlap(model, camera, mask, result.T_cam_obj, result.joints)
+        score = None if failed else overlap(model, camera, mask, result.T_cam_obj, result.joints, depth)
         if redetect and (failed or score < opts.uncertain_overlap):  # (here without depth)
             found = _redetected(model, camera, frame.image, mask, depth, T0, state.joints, opts, checks, colour)
             if found is not None:
@@ -1453,7 +1465,7 @@ def _step(
     if result.status in ("no_overlap", "non_finite"):
         return lost(f"{why}; re-initialisation failed ({result.status})", result.loss, iterations)
     if score is None:
-        score = overlap(model, camera, mask, result.T_cam_obj, result.joints)
+        score = overlap(model, camera, mask, result.T_cam_obj, result.joints, depth)
     if score < opts.uncertain_overlap:
         return lost(f"{why}; re-initialisation explains only {score:.0%} of the mask", result.loss, iterations, score)
     partial = ("the mask touches the image's border" if _cut_by_border(checks)

@@ -1086,6 +1086,8 @@ def test_track_with_the_band_follows_the_clamp(clamp, clamp_sequence: Path) -> N
 
 
 def test_overlap_separates_right_from_wrong(clamp, clamp_sequence: Path) -> None:
+    """The surface points' overlap with the mask: near one at the label, low when moved 8 cm or half the mask is
+    gone; with depth, the points a reading stands in front of (an occluder's) are left out of ``inside``."""
     from narf_core.data.dataset import Dataset
     from narf_core.track import overlap
 
@@ -1099,6 +1101,15 @@ def test_overlap_separates_right_from_wrong(clamp, clamp_sequence: Path) -> None
     half = mask.copy()
     half[:, : int(np.median(np.nonzero(mask)[1]))] = False  # an occluder over the left half of the object
     assert overlap(clamp, dataset.camera, half, frame.T_cam_obj, frame.joints) < 0.75
+    # with depth, the points the occluder stands in front of are left out: the label explains what is seen
+    depth = dataset.load(frame).depth.copy()
+    occluder = mask & ~half
+    depth[occluder] = float(depth[mask].min()) - 0.05
+    assert overlap(clamp, dataset.camera, half, frame.T_cam_obj, frame.joints, depth) > 0.9
+    assert overlap(clamp, dataset.camera, mask, frame.T_cam_obj, frame.joints, dataset.load(frame).depth) > 0.9
+    assert overlap(clamp, dataset.camera, half, moved, frame.joints, depth) < 0.5  # a wrong pose stays wrong
+    everywhere = np.full_like(depth, float(depth[mask].min()) - 0.05)  # all of it behind something: nothing seen
+    assert overlap(clamp, dataset.camera, half, frame.T_cam_obj, frame.joints, everywhere) == 0.0
 
 
 @pytest.mark.slow
