@@ -28,7 +28,7 @@ estimate are projected into the image (no render), and ``overlap = min(inside, c
 dilated) mask (so an object leaving the view through an image border keeps its overlap) and
 ``covered`` the fraction of mask pixels near a projected point. A wrong pose or configuration
 lowers one or the other; without depth an occluder lowers ``inside``, with depth ``inside`` leaves out the
-points a reading stands in front of (an occluder's, or the object's own nearer surface).
+points off the mask that a reading stands in front of (an occluder's).
 
 Frames must come in time order (a frame at or before the previous time is an input error).
 """
@@ -623,8 +623,8 @@ def _surface_points_cam(model: NarfModel, T_cam_obj: np.ndarray, joints: Mapping
 def overlap(model: NarfModel, camera: Pinhole, mask: np.ndarray, T_cam_obj: np.ndarray, joints: Mapping[str, float],
             depth: np.ndarray | None = None) -> float:
     """``min(inside, covered)`` of the projected surface points and the mask (see the module docstring); with a
-    ``depth`` image [H, W] (metres, 0 = no return), ``inside`` over the points no reading stands over
-    ``estimate._BEHIND_M`` in front of (an occluder's, or the object's own nearer surface)."""
+    ``depth`` image [H, W] (metres, 0 = no return), ``inside`` leaves out the points off the mask that a reading
+    stands over ``estimate._BEHIND_M`` in front of (an occluder's, which the mask leaves out with what it hides)."""
     from narf_core.estimate import _BEHIND_M
 
     mask = np.asarray(mask) != 0
@@ -639,12 +639,10 @@ def overlap(model: NarfModel, camera: Pinhole, mask: np.ndarray, T_cam_obj: np.n
     if not in_image.any():
         return 0.0
     px, z = px[in_image], x[in_image, 2]
-    seen = np.ones(len(px), dtype=bool)
+    behind = np.zeros(len(px), dtype=bool)  # behind a nearer reading
     if depth is not None:
         reading = np.asarray(depth, dtype=np.float64)[px[:, 1], px[:, 0]]
-        seen = ~((reading > 0) & (reading < z - _BEHIND_M))
-        if not seen.any():
-            return 0.0
+        behind = (reading > 0) & (reading < z - _BEHIND_M)
     # The same sums on the crop around the mask and the points, grown by the widest dilation (nothing
     # outside it is set or reached), instead of the whole image.
     v, u = np.nonzero(mask)
@@ -652,7 +650,11 @@ def overlap(model: NarfModel, camera: Pinhole, mask: np.ndarray, T_cam_obj: np.n
     u1, v1 = min(w, max(u.max(), px[:, 0].max()) + spacing + 2), min(h, max(v.max(), px[:, 1].max()) + spacing + 2)
     mask, px = mask[v0:v1, u0:u1], px - np.array([u0, v0])
     grown = dilate(mask, max(1, spacing // 2))
-    inside = float(grown[px[seen, 1], px[seen, 0]].sum()) / int(seen.sum())  # the image shows no more
+    on_mask = grown[px[:, 1], px[:, 0]]
+    seen = on_mask | ~behind  # an occluder's points off the mask say nothing
+    if not seen.any():
+        return 0.0
+    inside = float(on_mask.sum()) / int(seen.sum())  # the image shows no more
     splat = np.zeros_like(mask)
     splat[px[:, 1], px[:, 0]] = True
     covered = float((dilate(splat, spacing) & mask).sum()) / n_mask

@@ -1087,7 +1087,8 @@ def test_track_with_the_band_follows_the_clamp(clamp, clamp_sequence: Path) -> N
 
 def test_overlap_separates_right_from_wrong(clamp, clamp_sequence: Path) -> None:
     """The surface points' overlap with the mask: near one at the label, low when moved 8 cm or half the mask is
-    gone; with depth, the points a reading stands in front of (an occluder's) are left out of ``inside``."""
+    gone; with depth, the points off the mask that a reading stands in front of (an occluder's) are left out of
+    ``inside``, and a pose behind the observed surface scores as without depth."""
     from narf_core.data.dataset import Dataset
     from narf_core.track import overlap
 
@@ -1108,8 +1109,12 @@ def test_overlap_separates_right_from_wrong(clamp, clamp_sequence: Path) -> None
     assert overlap(clamp, dataset.camera, half, frame.T_cam_obj, frame.joints, depth) > 0.9
     assert overlap(clamp, dataset.camera, mask, frame.T_cam_obj, frame.joints, dataset.load(frame).depth) > 0.9
     assert overlap(clamp, dataset.camera, half, moved, frame.joints, depth) < 0.5  # a wrong pose stays wrong
-    everywhere = np.full_like(depth, float(depth[mask].min()) - 0.05)  # all of it behind something: nothing seen
-    assert overlap(clamp, dataset.camera, half, frame.T_cam_obj, frame.joints, everywhere) == 0.0
+    # a pose behind the observed surface: its points on the mask count as before, it is no occluder's
+    back = frame.T_cam_obj.copy()
+    back[:3, 3] *= 1.05
+    true_depth = dataset.load(frame).depth
+    assert overlap(clamp, dataset.camera, mask, back, frame.joints, true_depth) == pytest.approx(
+        overlap(clamp, dataset.camera, mask, back, frame.joints))
 
 
 @pytest.mark.slow
