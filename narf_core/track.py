@@ -594,11 +594,6 @@ def _blended_velocity(model: NarfModel, before: TrackState, T: np.ndarray, dt: f
 # overlap: the model's surface points against the mask
 
 
-def surface_pixels(model: NarfModel, camera: Pinhole, T_cam_obj: np.ndarray, joints: Mapping[str, float]) -> np.ndarray:
-    """Pixels ``[N, 2]`` (u, v, float) of the model's surface points in front of the camera."""
-    return _pixels(camera, _surface_points_cam(model, T_cam_obj, joints))
-
-
 def _pixels(camera: Pinhole, x_cam: np.ndarray) -> np.ndarray:
     """The pixels ``[N, 2]`` (u, v, float) of camera-frame points ``x_cam [N, 3]`` in front of the camera."""
     uv = x_cam @ camera.K.detach().double().cpu().numpy().T
@@ -776,7 +771,8 @@ def refine_frame(
     options: EstimateOptions,
     distance_prior: float = 0.0,
     polish: bool = False,
-    prior: tuple[float, float] | tuple[float, float, float] | None = None,
+    prior: tuple[float, float] | None = None,
+    hidden_joint_sigma: float = 0.0,
     checks: list[str] | None = None,
 ) -> EstimateResult:
     """The refiner's iterations for a warm-started frame without marching, each ray sampled only in a
@@ -801,11 +797,11 @@ def refine_frame(
     box centre along the line of sight, in object radii, to Adam's loss where the mask's box is no
     larger than ``options.reference_box_px``. ``polish`` (for a view without depth): every
     Gauss-Newton iteration polishes (:attr:`narf_core.gauss_newton.GaussNewtonRun.polish_only`);
-    ``prior`` ``(σ position m, σ rotation rad[, σ hidden joint])``: its iterations are held to the prediction, the
-    box centre's position per camera axis and the rotation about it per axis (:meth:`~narf_core.gauss_newton.
-    GaussNewtonRun.hold_to`), and a joint the mask hardly shows at the prediction (:func:`~narf_core.estimate.
-    joint_mask_shares` under :data:`~narf_core.estimate.HIDDEN_SHARE`) by the third, a share of its half range
-    (else the joints are free): what the view does not show of it cannot move it, nor should noise. ``checks``: the
+    ``prior`` ``(σ position m, σ rotation rad)``: its iterations are held to the prediction, the box centre's
+    position per camera axis and the rotation about it per axis (:meth:`~narf_core.gauss_newton.GaussNewtonRun.
+    hold_to`), and with it a joint the mask hardly shows at the prediction (:func:`~narf_core.estimate.
+    joint_mask_shares` under :data:`~narf_core.estimate.HIDDEN_SHARE`) by ``hidden_joint_sigma``, a share of its half
+    range (0: the joints are free): what the view does not show of it cannot move it, nor should noise. ``checks``: the
     frame's input checks, already made (the tracker's step makes them before it aligns its prediction): not made
     again. ``options.mask_trust``
     "auto" means what it means to :func:`refine` (partial where the depth contradicts the mask, with its
@@ -896,9 +892,9 @@ def refine_frame(
         if prior is not None:  # σ of the box centre's position (m, per camera axis) and its rotation (rad, per axis)
             sigma = torch.full((p0.shape[1],), math.inf, dtype=torch.float64)
             sigma[:3], sigma[3:6] = prior[0] / param.radius, prior[1]
-            if len(prior) > 2 and prior[2] > 0 and k:  # a hidden joint's σ: θ = mid + half sin(u)
+            if hidden_joint_sigma > 0 and k:  # a hidden joint's σ in u, where θ = mid + half sin(u)
                 hidden = joint_mask_shares(model, camera, T0, theta0, obs) < HIDDEN_SHARE
-                sigma[6:] = torch.where(hidden, prior[2] / torch.cos(p0[0, 6:]).clamp_min(1e-3), math.inf)
+                sigma[6:] = torch.where(hidden, hidden_joint_sigma / torch.cos(p0[0, 6:]).clamp_min(1e-3), math.inf)
             run.hold_to(p0, sigma)
         run.optimise()
         candidates, trace, failures = (run.params, run.best_params), run.trace, int(run.recovered)
@@ -1213,11 +1209,11 @@ def _warm_refine(model: NarfModel, camera: Pinhole, image: np.ndarray, mask: np.
             and choose_mode(model, opts.mode, error=TrackInputError)[0] == "narf"):
         position, rotation = ((opts.frame_prior_position_m, opts.frame_prior_rotation_deg) if depth is not None
                               else (opts.frame_prior_position_m_rgb, opts.frame_prior_rotation_deg_rgb))
-        hold = (opts.hidden_joint_sigma,) if depth is not None else ()  # without depth no ray tells an occluder
-        prior = (position, math.radians(rotation), *hold) if position > 0 and rotation > 0 else None
+        prior = (position, math.radians(rotation)) if position > 0 and rotation > 0 else None
+        hold = opts.hidden_joint_sigma if depth is not None else 0.0  # without depth no ray tells an occluder
         return refine_frame(model, camera, image, mask, depth, T, joints, step_options,
                             0.0 if depth is not None else opts.distance_prior_rgb, polish=depth is None, prior=prior,
-                            checks=checks)
+                            hidden_joint_sigma=hold, checks=checks)
     return refine(model, image, mask, camera, T, joints_init=joints, depth=depth, options=step_options)
 
 
