@@ -247,9 +247,7 @@ def markdown(result: dict) -> str:
         + f", {band}"
         + ("" if o.get("depth_align", True) else ", the prediction not aligned to the depth")
         + ("" if o.get("occluder_test", True) else ", with depth the mask trusted in full (no occluder test)")
-        + ("" if o.get("hidden_joint_sigma", TrackOptions.hidden_joint_sigma) == TrackOptions.hidden_joint_sigma else
-           f", a joint the mask hides held by {o['hidden_joint_sigma']:g} of its half range" if o["hidden_joint_sigma"]
-           else ", a joint the mask hides not held")
+        + _hold_text(o.get("hidden_joint_sigma", TrackOptions.hidden_joint_sigma))
         + ("" if o.get("outside_weight_rgb", 1.0) >= 1 else
            f", without depth the rays outside the mask weighing {o['outside_weight_rgb']:g}")
         + "." + describe_machine(result.get("machine")),
@@ -296,6 +294,13 @@ def markdown(result: dict) -> str:
                       + ", ".join(f"{c['frame_seconds_mean'] * 1000:.0f} ({c['tracker_seconds_mean'] * 1000:.0f})"
                                   for c in service["per_client"] if "error" not in c)]
     return "\n".join(lines)
+
+
+def _hold_text(sigma: float) -> str:
+    """The caption's clause for ``TrackOptions.hidden_joint_sigma`` where it is not the tracker's default."""
+    if sigma == TrackOptions.hidden_joint_sigma:
+        return ""
+    return f", a joint the mask hides held by {sigma:g} of its half range" if sigma else ", a joint the mask hides not held"
 
 
 def _jacobian_text(per_frame: dict) -> str:
