@@ -881,6 +881,28 @@ def test_an_articulated_field_from_the_clamps_parts_renders_like_parts_mode_with
     torch.testing.assert_close(gradients["narf"], gradients["parts"], rtol=0.02, atol=1e-3 * float(gradients["parts"].abs().max()))
 
 
+def test_an_articulated_fields_posed_grids_read_each_part_grid_in_its_own_frame(clamp):
+    """``PosedGrids.occupied`` (all part grids in one flat table, the index summed in float32) is, point by point,
+    any part's own grid read in that part's frame at θ: inside and outside the boxes, at the cell faces and at
+    the far corner of the largest part's grid."""
+    from narf_core.fields import ArticulatedField
+    from narf_core.geometry import transform_points
+
+    field = ArticulatedField.from_parts(clamp.kinematics, clamp.part_fields, clamp.part_grids, clamp.aabb)
+    theta = clamp.lower + (clamp.upper - clamp.lower) * 0.3
+    g = torch.Generator().manual_seed(5)
+    x = clamp.aabb[0] - 0.01 + torch.rand(100_000, 3, generator=g) * (clamp.aabb[1] - clamp.aabb[0] + 0.02)
+    T_part_obj = field.part_from_object(theta, 1)
+    grids = field.part_grids()
+    faces = [transform_points(torch.linalg.inv(T_part_obj[i]), gr.aabb[0] + gr.cell_size * torch.tensor(idx))
+             for i, gr in enumerate(grids) for idx in ([3.0, 5.0, 2.0], gr.occupancy.shape)]  # a face, the far corner
+    x = torch.cat([x, torch.stack(faces)])
+    own = torch.stack([gr.occupied(transform_points(T_part_obj[i], x)) for i, gr in enumerate(grids)], -1).any(-1)
+    held = field.occupancy(theta).occupied(x)
+    assert 1000 < int(own.sum()) < len(x) - 1000
+    assert int((held != own).sum()) <= 2  # a point on a cell face may round to either side
+
+
 def test_an_articulated_fields_occupied_near_holds_every_point_within_a_block_of_an_occupied_one(clamp):
     """``PosedGrids.occupied_near`` (a tracked frame's samples near an occupied cell, narf_core.track): every point
     ``occupied`` holds, every point moved from one by less than a block (``_BLOCK`` cells of its part's grid)

@@ -528,20 +528,24 @@ class _PartLookup:
         self.shift = 1 - lo * self.scale  # cell units of the padded grid: x * scale + shift
         self.z_scale, self.z_shift = 2 / cells, -2 / cells - 1  # cell units -> [-1, 1] over the box
         padded = cells.long() + 2
-        self.top = (padded - 1).int()
-        self.strides = torch.stack([padded[:, 1] * padded[:, 2], padded[:, 2], padded.new_ones(len(grids))], -1).int()
-        self.offset = torch.cat([padded.new_zeros(1), padded.prod(-1).cumsum(0)[:-1]]).int()  # [p]
+        # the last cell, the flat table's strides [p, 3] and each part's first cell [p], in float32 like the lookups'
+        # sums (exact: the table has fewer than 2^24 cells)
+        self.top = (padded - 1).float()
+        self.strides = torch.stack([padded[:, 1] * padded[:, 2], padded[:, 2], padded.new_ones(len(grids))], -1).float()
+        self.offset = torch.cat([padded.new_zeros(1), padded.prod(-1).cumsum(0)[:-1]]).float()
         if self.flat.numel() >= 1 << 24:
             raise ValueError(f"at most 2^24 cells in all part grids together, got {self.flat.numel()}")
-        self._axes = [(top.tolist(), size.tolist(), int(o)) for top, size, o in zip(self.top, padded, self.offset)]
+        self._axes = [(top.long().tolist(), size.tolist(), int(o)) for top, size, o in zip(self.top, padded, self.offset)]
         self.boxes = torch.stack([_occupied_cells_box(g.occupancy) for g in grids], 1)  # [2, p, 3], padded cell units
         if self.coarse is not None:  # cell units -> the coarse grids' (block) units: c * ratio + offset, [p, 3]
             self.to_coarse = (self.coarse.scale / self.scale, self.coarse.shift - self.shift * self.coarse.scale / self.scale)
 
     def occupied_cells(self, c: Tensor) -> Tensor:
-        """``c [..., p, 3]`` in cell units -> ``[..., p]``: in an occupied cell of the part's grid."""
-        cell = torch.minimum(c.floor().clamp_(min=0).int(), self.top)
-        return self.flat[(cell * self.strides).sum(-1, dtype=torch.int32) + self.offset]
+        """``c [..., p, 3]`` in cell units -> ``[..., p]``: in an occupied cell of the part's grid (the flat index
+        summed in float32, two products where a sum over an axis of three costs more)."""
+        cell = torch.minimum(c.floor().clamp_(min=0), self.top)
+        flat = torch.addcmul(self.offset, cell[..., 0], self.strides[:, 0]).addcmul_(cell[..., 1], self.strides[:, 1])
+        return self.flat[flat.add_(cell[..., 2]).int()]
 
     def occupied_along(self, c: Tensor, cd: Tensor, t: Tensor) -> Tensor:
         """``[m, w]``: the points ``c + t cd`` (``c``, ``cd [m, p, 3]`` rays in each part grid's cell units,
