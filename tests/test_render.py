@@ -883,8 +883,8 @@ def test_an_articulated_field_from_the_clamps_parts_renders_like_parts_mode_with
 
 def test_an_articulated_fields_posed_grids_read_each_part_grid_in_its_own_frame(clamp):
     """``PosedGrids.occupied`` (all part grids in one flat table, the index summed in float32) is, point by point,
-    any part's own grid read in that part's frame at θ: inside and outside the boxes, at the cell faces and at
-    the far corner of the largest part's grid."""
+    any part's own grid read in that part's frame at θ: inside and outside the boxes, and at a cell corner and the
+    far corner (the last cell of the flat table's part) of every part's grid."""
     from narf_core.fields import ArticulatedField
     from narf_core.geometry import transform_points
 
