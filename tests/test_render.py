@@ -894,9 +894,9 @@ def test_an_articulated_fields_posed_grids_read_each_part_grid_in_its_own_frame(
     x = clamp.aabb[0] - 0.01 + torch.rand(100_000, 3, generator=g) * (clamp.aabb[1] - clamp.aabb[0] + 0.02)
     T_part_obj = field.part_from_object(theta, 1)
     grids = field.part_grids()
-    faces = [transform_points(torch.linalg.inv(T_part_obj[i]), gr.aabb[0] + gr.cell_size * torch.tensor(idx))
-             for i, gr in enumerate(grids) for idx in ([3.0, 5.0, 2.0], gr.occupancy.shape)]  # a face, the far corner
-    x = torch.cat([x, torch.stack(faces)])
+    corners = [transform_points(torch.linalg.inv(T_part_obj[i]), gr.aabb[0] + gr.cell_size * torch.tensor(idx))
+               for i, gr in enumerate(grids) for idx in ([3.0, 5.0, 2.0], gr.occupancy.shape)]  # a cell corner, the far corner
+    x = torch.cat([x, torch.stack(corners)])
     own = torch.stack([gr.occupied(transform_points(T_part_obj[i], x)) for i, gr in enumerate(grids)], -1).any(-1)
     held = field.occupancy(theta).occupied(x)
     assert 1000 < int(own.sum()) < len(x) - 1000
