@@ -895,7 +895,7 @@ def test_an_articulated_fields_posed_grids_read_each_part_grid_in_its_own_frame(
     T_part_obj = field.part_from_object(theta, 1)
     grids = field.part_grids()
     corners = [transform_points(torch.linalg.inv(T_part_obj[i]), gr.aabb[0] + gr.cell_size * torch.tensor(idx))
-               for i, gr in enumerate(grids) for idx in ([3.0, 5.0, 2.0], gr.occupancy.shape)]  # a cell corner, the far corner
+               for i, gr in enumerate(grids) for idx in ([3.0, 5.0, 2.0], gr.occupancy.shape)]  # corner, far corner
     x = torch.cat([x, torch.stack(corners)])
     own = torch.stack([gr.occupied(transform_points(T_part_obj[i], x)) for i, gr in enumerate(grids)], -1).any(-1)
     held = field.occupancy(theta).occupied(x)
