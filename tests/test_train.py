@@ -4,6 +4,7 @@ stopped, and the pieces (composition, union occupancy, loss, resumable stages) a
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 
 import numpy as np
@@ -397,6 +398,29 @@ def test_union_occupancy_ignores_cells_moved_out_of_the_box():
     part_grid = OccupancyGrid(aabb.clone(), torch.ones(2, 2, 2, dtype=torch.bool))
     far = union_occupancy([part_grid], slide_x, torch.tensor([5.0]), torch.tensor([6.0]), aabb, 8)
     assert not far.occupancy.any()
+
+
+def test_the_cells_a_moved_box_touches_are_those_between_its_ends_in_every_grid_of_a_stack():
+    """Boxes (some reaching three cells along an axis, some leaving the grid) under three poses, each pose's
+    cells offset by its grid's start in a stack: the flat indices are every cell, cell by cell, that a box
+    overlaps and the grid holds, in its pose's grid."""
+    from narf_core.fields.composed import _touched_cells
+
+    gen = torch.Generator().manual_seed(0)
+    cells, origin, size = (5, 4, 6), torch.tensor([0.0, -1.0, 0.5]), torch.tensor([0.5, 0.25, 0.2])
+    centres = origin - 0.4 + torch.rand(3, 40, 3, generator=gen) * (torch.tensor(cells) * size + 0.8)
+    half = torch.tensor([[0.2, 0.1, 0.05], [0.6, 0.2, 0.15], [0.1, 0.3, 0.25]])  # in cells: up to 1.5 across
+    base = torch.tensor([0, 120, 360])
+    got = _touched_cells(centres, half, origin, size, cells, 0.0, base)
+    expected = set()
+    for c in range(3):
+        for i, j, k in itertools.product(*(range(n) for n in cells)):
+            lo = origin + torch.tensor([i, j, k]) * size
+            if bool(((centres[c] - half[c] < lo + size) & (centres[c] + half[c] >= lo)).all(-1).any()):
+                expected.add(int(base[c]) + (i * cells[1] + j) * cells[2] + k)
+    assert len(expected) > 50 and sorted(set(got.tolist())) == sorted(expected)
+    assert bool((((centres[1] + half[1] - origin) / size).floor() - ((centres[1] - half[1] - origin) / size).floor()
+                 >= 2).any())  # boxes spanning three cells along an axis are among them
 
 
 @pytest.mark.slow

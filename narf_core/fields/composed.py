@@ -186,18 +186,23 @@ def union_occupancy(
     bin_of = torch.cat(bin_of)
     moving = torch.zeros(bins**k, *cells, dtype=torch.bool)
     still = torch.zeros(cells, dtype=torch.bool)
+    per_bin = moving[0].numel()
     for p, grid in enumerate(part_grids):
         centres, half = _cell_boxes(grid, float(size.min()))
         unique, which = torch.unique(poses[:, p].reshape(-1, 16), dim=0, return_inverse=True)
-        still_part = unique.shape[0] == 1
-        for u, T in enumerate(unique.reshape(-1, 4, 4)):  # each distinct pose once, into every bin it occurs in
-            # no dilation will cover rounding for a part that stays still: grow its boxes a little
-            grow = 1e-4 if still_part else 0.0
-            splat = _splat_boxes(transform_points(T, centres), T[:3, :3].abs() @ half, aabb[0], size, cells, grow)
-            if still_part:
-                still |= splat
-            else:
-                moving[torch.unique(bin_of[which == u])] |= splat
+        unique = unique.reshape(-1, 4, 4)
+        if unique.shape[0] == 1:  # no dilation will cover rounding for a part that stays still: grow its boxes a little
+            still.view(-1)[_touched_cells(transform_points(unique[:, None], centres), unique[:, :3, :3].abs() @ half,
+                                          aabb[0], size, cells, 1e-4, torch.zeros(1, dtype=torch.long))] = True
+            continue
+        # each distinct pose once, into every bin it occurs in: (pose, bin) pairs, a chunk of poses at a time
+        pairs = torch.unique(which * bins**k + bin_of)
+        pose_of, bin_of_pair = pairs // bins**k, pairs % bins**k
+        chunk = max(1, _SPLAT_CHUNK // max(len(centres), 1))
+        for first in range(0, len(pairs), chunk):
+            T = unique[pose_of[first:first + chunk]]  # [c, 4, 4]
+            moving.view(-1)[_touched_cells(transform_points(T[:, None], centres), T[:, :3, :3].abs() @ half, aabb[0],
+                                           size, cells, 0.0, bin_of_pair[first:first + chunk] * per_bin)] = True
     moving = F.max_pool3d(moving[:, None].float(), 3, stride=1, padding=1)[:, 0] > 0
     occ = (moving | still).reshape((bins,) * k + tuple(cells))
     return OccupancyGrid(aabb, occ, torch.stack([lower, upper]).to(aabb.dtype) if k else None)
@@ -214,16 +219,23 @@ def _cell_boxes(grid: OccupancyGrid, max_size: float) -> tuple[Tensor, Tensor]:
     return grid.aabb[0] + (occupancy.nonzero() + 0.5) * cell, cell / 2
 
 
-def _splat_boxes(centres: Tensor, half: Tensor, origin: Tensor, size: Tensor, cells, grow: float) -> Tensor:
-    """The bool grid ``cells`` (from ``origin``, cells of ``size [3]``) with every cell touched by an
-    axis-aligned box ``centres [n,3] ± half [3]``, grown by ``grow`` cells on every side."""
-    lo = ((centres - half - origin) / size - grow).floor().long()
-    hi = ((centres + half - origin) / size + grow).floor().long()
-    bound = torch.tensor(cells) - 1
-    out = torch.zeros(cells, dtype=torch.bool)
-    span = int((hi - lo).max()) + 1 if len(centres) else 0
-    for offset in itertools.product(range(span), repeat=3):
-        ijk = lo + torch.tensor(offset)
-        ijk = ijk[((ijk <= hi) & (ijk >= 0) & (ijk <= bound)).all(-1)]
-        out[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
-    return out
+_SPLAT_CHUNK = 1 << 17  # boxes moved at once (poses times a part's boxes) while the union is splatted
+
+
+def _touched_cells(centres: Tensor, half: Tensor, origin: Tensor, size: Tensor, cells, grow: float, base: Tensor
+                   ) -> Tensor:
+    """The flat indices (row-major, ``[m]``) of every cell of a grid ``cells`` (from ``origin``, cells of
+    ``size [3]``) touched by an axis-aligned box ``centres [c, n, 3] ± half [c, 3]`` (``c`` poses of the same
+    ``n`` boxes) grown by ``grow`` cells on every side, each pose's offset by ``base [c]`` (its grid's start in
+    a stack of grids). Per axis, a box touches the cells from its low end's to its high end's."""
+    lo = ((centres - half[:, None] - origin) / size - grow).floor().long()
+    hi = ((centres + half[:, None] - origin) / size + grow).floor().long()
+    span = int((hi - lo).max()) + 1 if centres.numel() else 0
+    strides = (cells[1] * cells[2], cells[2], 1)
+    axes = []  # per axis, per offset along it: (the cell's share of the flat index, whether the box reaches it)
+    for a in range(3):
+        at = [lo[..., a] + o for o in range(span)]
+        axes.append([(x * strides[a] + (base[:, None] if a == 0 else 0), (x <= hi[..., a]) & (x >= 0) & (x < cells[a]))
+                     for x in at])
+    touched = [(fx + fy + fz)[vx & vy & vz] for (fx, vx), (fy, vy), (fz, vz) in itertools.product(*axes)]
+    return torch.cat(touched) if touched else torch.zeros(0, dtype=torch.long)
