@@ -70,7 +70,7 @@ def test_the_bundle_records_what_was_trained(tiny_bundle):
 
 
 @pytest.mark.slow
-def test_training_fits_the_trackers_own_factor_on_sequences_of_its_object(tiny_dataset, tmp_path):
+def test_training_fits_the_trackers_own_factor_on_sequences_of_its_object(tiny_dataset, tmp_path, monkeypatch):
     """With ``track_sequences`` N, training tracks N smooth sequences of the dataset's object (seeds 1..N) at
     its camera and at one 4x finer, and stores per modality the smallest factor whose 95 % regions hold 95 %
     of the frames' errors, which the tracker then applies (between the two cameras on the power that joins
@@ -81,10 +81,21 @@ def test_training_fits_the_trackers_own_factor_on_sequences_of_its_object(tiny_d
     from narf_core.geometry import Pinhole
     from narf_core.estimate import JACOBIANS
     from narf_core.track import DIFFERENCES_GAIN, SIGMA_SCALE, TrackOptions, sigma_scale
+    from narf_core.train import track_sigma
     from narf_core.train.track_sigma import calibrate_tracker, dataset_tool, fine_size, fit_track_scale, track_nees
 
+    pooled = []  # per fit, whether its tracks ran in processes of their own
+
+    class Tracks(track_sigma._Tracks):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            pooled.append(self.pool is not None)
+
+    monkeypatch.setattr(track_sigma, "_Tracks", Tracks)
+    monkeypatch.setattr(pipeline, "free_cores", lambda *a, **k: 2)  # two cores free when the fit starts
     config = tiny_config(part_steps=40, distill_steps=40, field="articulated", track_sequences=1)
     model = load_bundle(train(tiny_dataset, tmp_path / "m.narf", config, progress=False))
+    assert pooled == [True]
     fitted = model.metadata["uncertainty"]["track"]
     camera = Dataset.open(tiny_dataset).camera
     assert fine_size((48, 36)) == (192, 144) and fine_size((160, 120)) == (640, 480) and fine_size((640, 480)) is None
@@ -101,8 +112,10 @@ def test_training_fits_the_trackers_own_factor_on_sequences_of_its_object(tiny_d
     assert TrackOptions().jacobian_for(False, model) == fitted["jacobians"]["rgb"]
     assert "track_sigma_s" in model.metadata["provenance"]["timings_s"]
     assert not (tmp_path / "m.narf.work").exists()
-    # The factor is the fit of the frames' NEES on the same sequence (drawn again: the same frames).
+    # The factor is the fit of the frames' NEES on the same sequence (drawn again: the same frames), its tracks
+    # here in this process where training's ran in two of their own: the same fit to the digit.
     again = calibrate_tracker(model, dataset_tool(Dataset.open(tiny_dataset)), (48, 36), tmp_path / "again", [1])
+    assert pooled == [True, False]
     nees = track_nees(model, Dataset.open(tmp_path / "again" / "sequence-48x36-60-s1"), rgb_only=False)
     assert again == fitted and fitted["rgbd"] == fit_track_scale(nees, 7) and len(nees) == fitted["rgbd_frames"]
     for depth, key in ((True, "rgbd"), (False, "rgb")):

@@ -29,6 +29,7 @@ from narf_core.kinematics import KinematicTree
 from narf_core.modes import RECORD_KEY, measure_modes
 from narf_core.occupancy import density_fn
 from narf_core.render import OccupancyGrid, render_rays
+from narf_core.threads import free_cores
 from narf_core.train.distill import composite_rays
 from narf_core.train.loop import run_stage, save_atomic
 from narf_core.train.track_sigma import calibrate_tracker, dataset_tool, draw_ahead
@@ -425,7 +426,8 @@ def train(
             drawing.join()  # what it left undrawn, the fit draws
         if tool is not None:
             try:
-                fitted = calibrate_tracker(model, tool, size, work / "sequences", seeds)
+                fitted = calibrate_tracker(model, tool, size, work / "sequences", seeds, bundle=out,
+                                           workers=free_cores())
                 model.metadata["uncertainty"] = {**(model.metadata.get("uncertainty") or {}), "track": fitted}
                 model.metadata["provenance"]["timings_s"]["track_sigma_s"] = time.perf_counter() - started
                 save_bundle(out, model)

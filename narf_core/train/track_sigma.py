@@ -16,7 +16,8 @@ pooled factor's growth with the camera's fineness.
 
 Drawing the finer sequences costs as much as tracking them (pybullet's renderer, one core, holding
 Python's lock: a cabinet's three take three minutes). Where a core is free beside the training's threads,
-:func:`draw_ahead` draws them in a process of their own while the fields train.
+:func:`draw_ahead` draws them in a process of their own while the fields train; and where cores are free when
+the fit starts, its tracks (each on one thread) run side by side in processes of their own.
 """
 
 from __future__ import annotations
@@ -80,39 +81,109 @@ def fit_track_scale(nees: list[float], dof: int, share: float = COVERAGE) -> flo
     return max(0.01, math.ceil(round(100 * math.sqrt(needed / chi2_quantile(COVERAGE, dof)), 9)) / 100)
 
 
-def track_calibration(model: NarfModel, datasets: list[Dataset], modalities=("rgbd", "rgb"),
-                      jacobians: dict[str, str] | None = None) -> dict:
-    """``metadata["uncertainty"]["track"]``: per modality the factor on a warm-started frame's σ
-    (:func:`narf_core.track.sigma_scale`) fitted on the pooled frames of ``datasets``' sequences (one
-    camera, its focal length ``fx`` in pixels), and the solver and the frame Jacobian it was fitted with
-    (``solvers``: the default tracker's for that modality; ``jacobians``: given, else with depth the default
-    tracker's and without, where its ``jacobian_rgb`` is "auto", the one whose frames' mean ADD on the first
-    sequence is lower by :data:`~narf_core.track.DIFFERENCES_GAIN`, both means under ``rgb_add_m``: one track more
-    than the fit itself, training's time being the issue's too)."""
+class _Tracks:
+    """The fit's tracks (:func:`track_errors`, each a :class:`~concurrent.futures.Future`): in this process as they
+    are asked for, or with ``workers`` > 1 and the bundle's ``path`` in that many processes of their own (spawned,
+    one torch thread each as the tracker runs by default, each loading the bundle once). Every track is
+    deterministic: the same errors wherever it runs."""
+
+    def __init__(self, model: NarfModel, path: Path | None, workers: int) -> None:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        self.model = model
+        self.pool = None
+        if workers > 1 and path is not None:
+            self.pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                            initializer=_load_worker, initargs=(str(path),))
+
+    def submit(self, folder: Path, rgb_only: bool, jacobian: str):
+        from concurrent.futures import Future
+
+        if self.pool is not None:
+            return self.pool.submit(_worker_track, str(folder), rgb_only, jacobian)
+        done: Future = Future()
+        with torch_threads(1):
+            done.set_result(track_errors(self.model, Dataset.open(folder), rgb_only, jacobian_rgb=jacobian))
+        return done
+
+    def __enter__(self) -> _Tracks:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(cancel_futures=True)
+
+
+_worker_model: NarfModel | None = None
+
+
+def _load_worker(path: str) -> None:
+    global _worker_model
+    import torch
+
+    from narf_core.bundle import load_bundle
+
+    torch.set_num_threads(1)
+    _worker_model = load_bundle(Path(path), "cpu")
+
+
+def _worker_track(folder: str, rgb_only: bool, jacobian: str) -> tuple[list[float], list[float]]:
+    assert _worker_model is not None, "the worker loads its bundle first"
+    return track_errors(_worker_model, Dataset.open(Path(folder)), rgb_only, jacobian_rgb=jacobian)
+
+
+def track_calibration(tracks: _Tracks, cameras: dict[str, list[Path]], modalities=("rgbd", "rgb")) -> dict:
+    """``metadata["uncertainty"]["track"]`` less its seeds: per camera (``cameras``: the sequences' folders at the
+    views' camera under ``""``, and at a finer one under ``"fine"``) and per modality the factor on a warm-started
+    frame's σ (:func:`narf_core.track.sigma_scale`) fitted on the pooled frames of its sequences (one camera, its
+    focal length ``fx`` in pixels), and at the views' camera the solver and the frame Jacobian it was fitted with
+    (``solvers``: the default tracker's for that modality; ``jacobians``: with depth the default tracker's and
+    without, where its ``jacobian_rgb`` is "auto", the one whose frames' mean ADD on the first sequence at the
+    views' camera is lower by :data:`~narf_core.track.DIFFERENCES_GAIN`, both means under ``rgb_add_m``: one track
+    more than the fit itself, training's time being the issue's too; the finer camera's fit takes the same).
+    Every track that waits on nothing is asked for first, so that ``tracks``' workers run side by side."""
     from narf_core.estimate import JACOBIANS
     from narf_core.track import DIFFERENCES_GAIN, TrackOptions
 
-    def pooled(rgb_only: bool, jacobian: str, sets: list[Dataset]) -> list[float]:
-        return [n for dataset in sets for n in track_errors(model, dataset, rgb_only, jacobian_rgb=jacobian)[0]]
-
     default = TrackOptions()
-    out: dict = {"solvers": {}, "jacobians": {}, "fx": float(datasets[0].camera.K[0, 0])}
-    for modality in modalities:
-        depth, given = modality == "rgbd", (jacobians or {}).get(modality)
-        if (given is None and not depth and default.jacobian_rgb == "auto"
-                and default.solver_for(False) == "gauss-newton"):  # both on the first sequence (one more track)
-            first = {j: track_errors(model, datasets[0], True, jacobian_rgb=j) for j in JACOBIANS}
-            mean = {j: float(np.mean(adds)) if adds else math.inf for j, (_, adds) in first.items()}
-            chosen = "differences" if mean["differences"] < DIFFERENCES_GAIN * mean["derivatives"] else "derivatives"
-            nees = first[chosen][0] + pooled(True, chosen, datasets[1:])
-            out["rgb_add_m"] = mean
+    auto = "rgb" in modalities and default.jacobian_rgb == "auto" and default.solver_for(False) == "gauss-newton"
+    asked: dict = {}
+
+    def ask(camera: str, modality: str, i: int, jacobian: str):
+        key = (camera, modality, i, jacobian)
+        if key not in asked:
+            asked[key] = tracks.submit(cameras[camera][i], modality == "rgb", jacobian)
+        return asked[key]
+
+    chosen = {"rgbd": default.jacobian_for(True), "rgb": default.jacobian_for(False)}
+    firsts = {j: ask("", "rgb", 0, j) for j in JACOBIANS} if auto else {}
+    for camera, folders in cameras.items():
+        for modality in modalities:
+            if modality == "rgbd" or not auto:
+                for i in range(len(folders)):
+                    ask(camera, modality, i, chosen[modality])
+    mean = None
+    if auto:  # both on the first sequence (one more track), then the rest with the one chosen
+        mean = {j: float(np.mean(adds)) if (adds := f.result()[1]) else math.inf for j, f in firsts.items()}
+        chosen["rgb"] = "differences" if mean["differences"] < DIFFERENCES_GAIN * mean["derivatives"] else "derivatives"
+        for camera, folders in cameras.items():
+            for i in range(len(folders)):
+                ask(camera, "rgb", i, chosen["rgb"])
+    out: dict = {}
+    for camera, folders in cameras.items():
+        fit: dict = {"fx": float(Dataset.open(folders[0]).camera.K[0, 0])}
+        for modality in modalities:
+            if modality == "rgb" and mean is not None and camera == "":
+                fit["rgb_add_m"] = mean
+            nees = [n for i in range(len(folders)) for n in asked[(camera, modality, i, chosen[modality])].result()[0]]
+            fit[modality] = fit_track_scale(nees, 6 + len(tracks.model.joints))
+            fit[f"{modality}_frames"] = len(nees)
+        if camera == "":
+            out = {"solvers": {m: default.solver_for(m == "rgbd") for m in modalities},
+                   "jacobians": {m: chosen[m] for m in modalities}, **fit}
         else:
-            chosen = given or default.jacobian_for(depth)
-            nees = pooled(not depth, chosen, datasets)
-        out[modality] = fit_track_scale(nees, 6 + len(model.joints))
-        out[f"{modality}_frames"] = len(nees)
-        out["solvers"][modality] = default.solver_for(depth)
-        out["jacobians"][modality] = chosen
+            out[camera] = fit
     return out
 
 
@@ -164,21 +235,26 @@ def _draw(tool: str, sizes: list[tuple[int, int]], work: str, seeds: list[int], 
 
 
 def calibrate_tracker(model: NarfModel, tool: str, size: tuple[int, int], work: Path, seeds: list[int],
-                      frames: int = SEQUENCE_FRAMES) -> dict:
+                      frames: int = SEQUENCE_FRAMES, bundle: Path | None = None, workers: int = 1) -> dict:
     """The model's own tracker factors (:func:`track_calibration`) on smooth sequences of ``tool`` of
     ``seeds`` at ``size`` (its views' camera) and, under ``fine``, at :func:`fine_size` (where
     :func:`narf_core.track.sigma_scale` interpolates between the two cameras), drawn into ``work``; with
-    the ``seeds``. A ``ValueError`` where a modality held no frame."""
-    def fitted(at: tuple[int, int], jacobians: dict[str, str] | None = None) -> dict:
-        datasets = [Dataset.open(f) for f in sequence_folders(tool, at, work, seeds, frames)]
-        with torch_threads(1):  # as the tracker runs by default (small work): the fit does not follow the machine
-            return track_calibration(model, datasets, jacobians=jacobians)
-
-    out = {**fitted(size), "seeds": list(seeds)}
+    the ``seeds``. With ``workers`` > 1 and the model's ``bundle`` file, its tracks run in that many processes
+    (the same factors). A ``ValueError`` where a modality held no frame."""
+    cameras = {"": sequence_folders(tool, size, work, seeds, frames)}
     fine = fine_size(size)
-    if fine is not None:  # with the Jacobians chosen at the views' camera
-        out["fine"] = {k: v for k, v in fitted(fine, out["jacobians"]).items() if k not in ("solvers", "jacobians")}
-    return out
+    if fine is not None:
+        cameras["fine"] = sequence_folders(tool, fine, work, seeds, frames)
+    from concurrent.futures.process import BrokenProcessPool
+
+    try:
+        with _Tracks(model, bundle, min(workers, 2 * len(seeds) * len(cameras))) as tracks:
+            out = track_calibration(tracks, cameras)
+    except BrokenProcessPool:  # a worker died (killed, out of memory): the tracks again, here
+        with _Tracks(model, None, 1) as tracks:
+            out = track_calibration(tracks, cameras)
+    return {**{k: v for k, v in out.items() if k != "fine"}, "seeds": list(seeds),
+            **({"fine": out["fine"]} if "fine" in out else {})}
 
 
 def dataset_tool(dataset: Dataset) -> str | None:
