@@ -186,7 +186,7 @@ def union_occupancy(
     bin_of = torch.cat(bin_of)
     moving = torch.zeros(bins**k, *cells, dtype=torch.bool)
     still = torch.zeros(cells, dtype=torch.bool)
-    per_bin = moving[0].numel()
+    n_bins, per_bin = moving.shape[0], moving[0].numel()
     for p, grid in enumerate(part_grids):
         centres, half = _cell_boxes(grid, float(size.min()))
         unique, which = torch.unique(poses[:, p].reshape(-1, 16), dim=0, return_inverse=True)
@@ -196,8 +196,8 @@ def union_occupancy(
                                           aabb[0], size, cells, 1e-4, torch.zeros(1, dtype=torch.long))] = True
             continue
         # each distinct pose once, into every bin it occurs in: (pose, bin) pairs, a chunk of poses at a time
-        pairs = torch.unique(which * bins**k + bin_of)
-        pose_of, bin_of_pair = pairs // bins**k, pairs % bins**k
+        pairs = torch.unique(which * n_bins + bin_of)
+        pose_of, bin_of_pair = pairs // n_bins, pairs % n_bins
         chunk = max(1, _SPLAT_CHUNK // max(len(centres), 1))
         for first in range(0, len(pairs), chunk):
             T = unique[pose_of[first:first + chunk]]  # [c, 4, 4]

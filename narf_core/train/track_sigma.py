@@ -241,20 +241,19 @@ def calibrate_tracker(model: NarfModel, tool: str, size: tuple[int, int], work: 
     :func:`narf_core.track.sigma_scale` interpolates between the two cameras), drawn into ``work``; with
     the ``seeds``. With ``workers`` > 1 and the model's ``bundle`` file, its tracks run in that many processes
     (the same factors). A ``ValueError`` where a modality held no frame."""
+    from concurrent.futures.process import BrokenProcessPool
+
     cameras = {"": sequence_folders(tool, size, work, seeds, frames)}
     fine = fine_size(size)
     if fine is not None:
         cameras["fine"] = sequence_folders(tool, fine, work, seeds, frames)
-    from concurrent.futures.process import BrokenProcessPool
-
     try:
         with _Tracks(model, bundle, min(workers, 2 * len(seeds) * len(cameras))) as tracks:
             out = track_calibration(tracks, cameras)
     except BrokenProcessPool:  # a worker died (killed, out of memory): the tracks again, here
         with _Tracks(model, None, 1) as tracks:
             out = track_calibration(tracks, cameras)
-    return {**{k: v for k, v in out.items() if k != "fine"}, "seeds": list(seeds),
-            **({"fine": out["fine"]} if "fine" in out else {})}
+    return {**out, "seeds": list(seeds)}
 
 
 def dataset_tool(dataset: Dataset) -> str | None:
