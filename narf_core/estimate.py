@@ -338,6 +338,9 @@ class EstimateOptions:
     # With depth, the model's error in pixels no finer than the training views' (trained_footprint): an
     # estimate from a few iterations (the tracker's frame) keeps the model's error at a finer camera.
     uncertainty_trained_footprint: bool = False
+    # The model's error in rotation spread by the object's shape (rotation_spread): about an axis its surface
+    # lies near, the rotation its position error means is wider than over the box's radius (the tracker's).
+    uncertainty_rotation_shape: bool = False
 
     def __post_init__(self) -> None:
         check_option_types(self, EstimateInputError)
@@ -1989,13 +1992,14 @@ def _uncertainty(
         torch.full((3,), opts.sigma_floor_position), torch.full((3,), opts.sigma_floor_rotation), opts.sigma_floor_joint * span
     ]).double()
     kind, sight = _error_class(opts, uses_depth), line_of_sight(model, T)
+    spread = rotation_spread(model, T, theta) if opts.uncertainty_rotation_shape else None
     hidden = joint_mask_shares(model, camera, T, theta, obs) < HIDDEN_SHARE  # [k]
     unseen = torch.cat([torch.zeros(6, dtype=torch.float64), torch.where(hidden, param.half.double().cpu() ** 2, 0.0)])
 
     def covariance_at(usual_silhouette: float) -> Tensor:
         sd = model_error(model, kind, pixel, param.radius, stat.colour_variance, opts.uncertainty_usual_residual,
                          stat.silhouette_misfit, usual_silhouette)
-        return stat.sigma + model_error_covariance(sd, kind, sight) + torch.diag(floor**2 + unseen)
+        return stat.sigma + model_error_covariance(sd, kind, sight, spread) + torch.diag(floor**2 + unseen)
 
     Sigma, colour = covariance_at(opts.uncertainty_usual_silhouette), None
     if 0 < opts.uncertainty_usual_silhouette < stat.silhouette_misfit:  # the silhouette may have widened it
@@ -2153,19 +2157,50 @@ def model_error_sigma(calibration: Mapping, kind: str, pixel_m: float, radius: f
     return torch.cat([torch.tensor([position] * 3 + [position / radius] * 3, dtype=torch.float64), joints])
 
 
-def model_error_covariance(sd: Tensor, kind: str, sight: tuple[Tensor, float]) -> Tensor:
+def model_error_covariance(sd: Tensor, kind: str, sight: tuple[Tensor, float], spread: Tensor | None = None) -> Tensor:
     """The model error's covariance ``[6+k, 6+k]`` from its σ ``sd [6 + k]`` (:func:`model_error`):
     ``diag(sd²)``, and for a class without depth (:data:`LINE_OF_SIGHT_CLASSES`) the position's σ along
     the line of sight ``sight = (u [3], stretch)`` (:func:`line_of_sight`) ``stretch`` times the σ
     across it. Without depth the distance is read from the object's size in the image: an outline
     ``p`` footprints off moves the object ``p`` footprints times its distance over its radius along
-    the line of sight."""
+    the line of sight. ``spread [3, 3]`` (:func:`rotation_spread`): the rotation block is ``sd_rotation²``
+    times it instead of isotropic, the rotation that a surface error of the position's σ means for the
+    object's own shape."""
     cov = torch.diag(sd.to(torch.float64) ** 2)
     if kind in LINE_OF_SIGHT_CLASSES:
         u, stretch = sight
         u = u.to(torch.float64)
         cov[:3, :3] += float(sd[0]) ** 2 * (stretch**2 - 1.0) * torch.outer(u, u)
+    if spread is not None:
+        cov[3:6, 3:6] = float(sd[3]) ** 2 * spread.to(torch.float64)
     return cov
+
+
+# The largest eigenvalue of rotation_spread (σ at most its square root, 10x, wider than over the radius): a
+# rod's turn about its own axis moves no surface point, and no finite model error would say so.
+MAX_ROTATION_SPREAD = 100.0
+
+
+def rotation_spread(model: NarfModel, T: Tensor, theta: Tensor) -> Tensor:
+    """``[3, 3]`` float64, camera axes: ``r² M⁻¹``, with ``M`` the mean of ``|q|² I - q qᵀ`` over the model's
+    surface points at ``θ [k]`` under ``T [4,4]`` (``q`` a point from the box centre) and ``r`` half the
+    box's diagonal. A rotation ``ω`` about the centre moves the points by ``ω × q``, ``ωᵀ M ω`` in the mean
+    square: a surface error of ``σ`` metres is a rotation of covariance ``σ² M⁻¹``, the isotropic ``(σ /
+    r)²`` times this. Every point lies within ``r`` of the centre, so its eigenvalues are at least 1 (wider
+    on every axis, most about the axis the surface lies near: the clamp's long one), at most
+    :data:`MAX_ROTATION_SPREAD`; the identity without surface points."""
+    from narf_core.band import surface_points
+
+    eye = torch.eye(3, dtype=torch.float64)
+    points = surface_points(model, torch.as_tensor(T)[None], torch.as_tensor(theta)[None])[0]  # [N, 3]
+    if len(points) == 0:
+        return eye
+    aabb = model.aabb.detach().to("cpu", torch.float64)
+    T = torch.as_tensor(T).to("cpu", torch.float64)
+    q = points - (T[:3, :3] @ ((aabb[0] + aabb[1]) / 2) + T[:3, 3])
+    M = (q * q).sum(-1).mean() * eye - q.T @ q / len(q)
+    w, V = torch.linalg.eigh(M / (float((aabb[1] - aabb[0]).norm()) / 2) ** 2)
+    return V @ torch.diag(1.0 / w.clamp(1.0 / MAX_ROTATION_SPREAD, 1.0)) @ V.T
 
 
 def line_of_sight(model: NarfModel, T: Tensor) -> tuple[Tensor, float]:

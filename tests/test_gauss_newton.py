@@ -26,6 +26,7 @@ from narf_core.estimate import (
     model_error,
     model_error_covariance,
     line_of_sight,
+    rotation_spread,
     nees,
     _error_class,
     refine,
@@ -427,6 +428,52 @@ def test_model_error_without_depth_is_longer_along_the_line_of_sight():
         assert torch.allclose(model_error_covariance(sd, kind, (u, stretch)), torch.diag(sd**2))
     T[:3, 3] = torch.tensor([0.0, 0.0, 0.05])
     assert line_of_sight(box, T)[1] == 1.0  # nearer than its radius: never shorter along than across
+
+
+def test_the_rotations_spread_is_the_turn_a_surface_error_means_for_the_objects_shape():
+    """``rotation_spread``: a small turn ``ω`` about the box centre (camera axes) moves the bundled clamp's
+    surface points by ``r² ωᵀ spread⁻¹ ω`` in the mean square (``r`` half the box's diagonal), whichever way
+    the clamp is posed; every axis at least as wide as the isotropic σ, most about the clamp's long axis (its
+    box's x); points on a line through the centre are held at MAX_ROTATION_SPREAD; the model error's
+    rotation block takes it in place of the isotropic one."""
+    from narf_core.band import surface_points
+    from narf_core.bundle import load_bundle
+    from narf_core.estimate import MAX_ROTATION_SPREAD
+    from narf_core.geometry import so3_exp
+
+    clamp = load_bundle(ASSETS.parent.parent / "models" / "clamp.narf")
+    aabb = clamp.aabb.double()
+    centre, r = (aabb[0] + aabb[1]) / 2, float((aabb[1] - aabb[0]).norm()) / 2
+    theta = ((clamp.kinematics.lower + clamp.kinematics.upper) / 2).double()
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] = so3_exp(torch.tensor([0.4, -1.1, 0.7], dtype=torch.float64))
+    T[:3, 3] = torch.tensor([0.05, -0.02, 0.6], dtype=torch.float64)
+    spread = rotation_spread(clamp, T, theta)
+    points = surface_points(clamp, T[None], theta[None])[0]
+    c = T[:3, :3] @ centre + T[:3, 3]
+    for omega in torch.tensor([[1e-4, 0, 0], [0, 1e-4, 0], [0, 0, 1e-4], [3e-5, -6e-5, 2e-5]], dtype=torch.float64):
+        moved = (points - c) @ so3_exp(omega).T + c
+        mean_square = float(((moved - points) ** 2).sum(-1).mean())
+        assert mean_square == pytest.approx(r**2 * float(omega @ torch.linalg.solve(spread, omega)), rel=1e-3)
+    widths = torch.linalg.eigvalsh(spread)
+    assert float(widths[0]) >= 1.0 and float(widths[-1]) > 10.0  # about the long axis: over 3x the σ
+    long_axis = T[:3, 0]  # the clamp's box is longest along its x
+    assert float(long_axis @ spread @ long_axis) == pytest.approx(float(widths[-1]), rel=0.05)
+
+    rod = SimpleNamespace(aabb=torch.tensor([[-0.1, -0.01, -0.01], [0.1, 0.01, 0.01]]), links=["rod"],
+                          sample_points={"rod": torch.stack([torch.linspace(-0.1, 0.1, 50), torch.zeros(50),
+                                                             torch.zeros(50)], -1)},
+                          kinematics=SimpleNamespace(link_poses=lambda th: torch.eye(4, dtype=torch.float64)[None, None]))
+    about_its_axis = rotation_spread(rod, torch.eye(4, dtype=torch.float64), torch.zeros(0, dtype=torch.float64))
+    assert float(about_its_axis[0, 0]) == pytest.approx(MAX_ROTATION_SPREAD)
+    assert float(torch.linalg.eigvalsh(about_its_axis)[0]) >= 1.0
+
+    sd = torch.tensor([0.002] * 3 + [0.01] * 3 + [0.003], dtype=torch.float64)
+    for kind in ("shape-gauss-newton", "silhouette"):
+        cov = model_error_covariance(sd, kind, line_of_sight(clamp, T), spread)
+        assert torch.allclose(cov[3:6, 3:6], 0.01**2 * spread)
+        assert torch.allclose(cov[:3, :3], model_error_covariance(sd, kind, line_of_sight(clamp, T))[:3, :3])
+        assert float(cov[6, 6]) == pytest.approx(0.003**2)
 
 
 # --------------------------------------------------------------------------------------------
