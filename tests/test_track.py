@@ -1401,8 +1401,8 @@ def test_bench_track_tracks_the_sequence_of_the_seed_asked(tmp_path: Path, capfd
 
 def test_sigma_scale_grows_at_a_camera_finer_than_the_training_views(clamp, monkeypatch) -> None:
     """SIGMA_SCALE's factor is the training views' resolution's; a camera ``r`` times finer (fx over
-    theirs) multiplies it by ``r ** SIGMA_SCALE_FINER`` (with depth, Gauss-Newton: 4x finer, 5/3 of the
-    factor), a coarser one leaves it; an option is taken as it is, a model's own factor by the same law
+    theirs) multiplies it by ``r ** SIGMA_SCALE_FINER`` (fitted with depth, Gauss-Newton: 0, no growth; the
+    law checked with 0.37), a coarser one leaves it; an option is taken as it is, a model's own factor by the same law
     from the camera it was fitted at (``fx``), or as it is where it does not name one, or, fitted at a
     finer camera too, by the power that joins its two fits up to that camera."""
     from narf_core.geometry import Pinhole
@@ -1412,8 +1412,9 @@ def test_sigma_scale_grows_at_a_camera_finer_than_the_training_views(clamp, monk
                                                           if k != "track"})
     base = SIGMA_SCALE["gauss-newton"]
     fine, same, coarse = Pinhole.primesense(640, 480), Pinhole.primesense(160, 120), Pinhole.primesense(80, 60)
-    assert sigma_scale(clamp, TrackOptions(), True, fine) == pytest.approx(base["rgbd"] * 4 ** SIGMA_SCALE_FINER[
-        "gauss-newton"]["rgbd"]) == pytest.approx(0.5, abs=0.01)
+    assert sigma_scale(clamp, TrackOptions(), True, fine) == pytest.approx(base["rgbd"])  # the fitted law: no growth
+    monkeypatch.setitem(SIGMA_SCALE_FINER["gauss-newton"], "rgbd", 0.37)  # the law itself, with a growth
+    assert sigma_scale(clamp, TrackOptions(), True, fine) == pytest.approx(base["rgbd"] * 4**0.37)
     for camera in (same, coarse, None):
         assert sigma_scale(clamp, TrackOptions(), True, camera) == pytest.approx(base["rgbd"])
     assert sigma_scale(clamp, TrackOptions(), False, fine) == pytest.approx(base["rgb"])  # no law fitted without depth
@@ -1835,6 +1836,28 @@ def test_without_depth_the_limit_along_the_line_of_sight_is_the_model_errors_str
     assert _too_uncertain(info(0.01, 0.03), options, sight)  # across: the limit itself
     assert _too_uncertain(info(0.09, 0.01), options)  # with depth: 5.4 cm on the z axis
     assert not _too_uncertain(info(0.015, 0.015), options)
+
+
+def test_the_rotations_limit_holds_with_the_objects_shape_taken_out() -> None:
+    """A frame's rotation Σ widened about one axis by the object's shape (``spread``) passes the limit where
+    the σ with the spread taken out is within it, and fails where that is over it."""
+    import torch
+
+    from narf_core.track import TrackOptions, _too_uncertain
+
+    options = TrackOptions(max_rotation_sigma_deg=10.0)
+    axis = np.array([0.0, 0.6, 0.8])
+    spread = np.eye(3) + 15.0 * np.outer(axis, axis)  # 4x the σ about that axis
+
+    def info(sigma_deg: float) -> dict:
+        cov = np.zeros((6, 6))
+        cov[3:6, 3:6] = math.radians(sigma_deg) ** 2 * spread
+        return {"covariance": cov.tolist(), "position_sigma_m": [0.001] * 3,
+                "rotation_sigma_rad": np.sqrt(np.diag(cov)[3:6]).tolist()}
+
+    assert _too_uncertain(info(8.0), options)  # 8° times up to 4 about that axis
+    assert not _too_uncertain(info(8.0), options, spread=torch.tensor(spread))
+    assert _too_uncertain(info(11.0), options, spread=torch.tensor(spread))
 
 
 def test_bench_track_tracks_path_traced_images_of_its_sequences(tmp_path: Path, capfd) -> None:
