@@ -51,6 +51,7 @@ from narf_core.bundle import NarfModel, load_bundle, save_bundle
 from narf_core.data.dataset import Dataset
 from narf_core.modes import choose_mode
 from narf_core.geometry import Pinhole
+from narf_core.threads import free_cores
 from narf_core.train.track_sigma import COVERAGE, calibrate_tracker
 
 PIXELS_GRID = np.geomspace(0.05, 50.0, 300)
@@ -225,7 +226,8 @@ def main(argv: list[str] | None = None) -> int:
     model = load_bundle(args.model)
     if args.tracker:
         factors = calibrate_tracker(model, args.tool, (160, 120), args.work / f"track-{Path(args.tool).stem}",
-                                    args.track_seeds, args.frames)  # one folder per object: its own sequences
+                                    args.track_seeds, args.frames,  # one folder per object: its own sequences
+                                    bundle=args.model, workers=free_cores())  # its tracks on the free cores
         print(json.dumps({"track": factors}, indent=1))
         if args.write_bundle:
             write_calibration(args.write_bundle, "track", factors)

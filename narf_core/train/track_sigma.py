@@ -50,12 +50,15 @@ def track_errors(model: NarfModel, dataset: Dataset, rgb_only: bool, seed: int =
     """:func:`track_nees` and, per frame not lost, the ADD (m); without depth with the frame Jacobian
     ``jacobian_rgb`` (None: the default tracker's for this model)."""
     from narf_core.estimate import local_error
-    from narf_core.track import SIGMA_SCALE, TrackOptions, track
+    from narf_core.track import RETRY_SIGMA_SCALE, SIGMA_SCALE, TrackOptions, track
     from narf_core.track_io import load_frames, score, sequence_frames
 
-    pooled = {key: SIGMA_SCALE[TrackOptions().solver_for(key == "rgbd")][key] for key in ("rgbd", "rgb")}
-    scale = pooled["rgb" if rgb_only else "rgbd"]  # the pooled factor: the track does not see a model's own
-    options = TrackOptions(first_frame="warm", seed=seed, sigma_scale=pooled["rgbd"], sigma_scale_rgb=pooled["rgb"],
+    # A fixed factor per modality, not the model's own (the one being fitted); with depth the one the default
+    # tracker judges its second round at (RETRY_SIGMA_SCALE, which a set factor replaces): the same estimates.
+    fixed = {"rgbd": RETRY_SIGMA_SCALE[TrackOptions().solver_for(True)],
+             "rgb": SIGMA_SCALE[TrackOptions().solver_for(False)]["rgb"]}
+    scale = fixed["rgb" if rgb_only else "rgbd"]
+    options = TrackOptions(first_frame="warm", seed=seed, sigma_scale=fixed["rgbd"], sigma_scale_rgb=fixed["rgb"],
                            **({"jacobian_rgb": jacobian_rgb} if jacobian_rgb else {}))
     frames = sequence_frames(dataset)
     nees, adds = [], []
