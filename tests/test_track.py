@@ -1290,8 +1290,11 @@ def test_a_frame_without_depth_takes_the_jacobian_its_models_calibration_chose(c
     from narf_core.track import JACOBIAN_RGB, SIGMA_SCALE, TrackOptions, calibrated_jacobian, sigma_scale
 
     auto = TrackOptions()
-    assert auto.jacobian_rgb == "auto" and calibrated_jacobian(clamp, "rgb") is None
-    assert auto.step_options(False, "cpu", clamp).jacobian == JACOBIAN_RGB == "derivatives"
+    unchosen = copy.copy(clamp)  # a bundle calibrated before the choice
+    unchosen.metadata = copy.deepcopy(clamp.metadata)
+    unchosen.metadata.setdefault("uncertainty", {}).setdefault("track", {}).pop("jacobians", None)
+    assert auto.jacobian_rgb == "auto" and calibrated_jacobian(unchosen, "rgb") is None
+    assert auto.step_options(False, "cpu", unchosen).jacobian == JACOBIAN_RGB == "derivatives"
     chose = copy.copy(clamp)
     chose.metadata = copy.deepcopy(clamp.metadata)
     chose.metadata.setdefault("uncertainty", {})["track"] = {
