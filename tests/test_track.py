@@ -1289,14 +1289,17 @@ def test_a_frame_without_depth_takes_the_jacobian_its_models_calibration_chose(c
     from narf_benchmarks.track import markdown
     from narf_core.track import JACOBIAN_RGB, SIGMA_SCALE, TrackOptions, calibrated_jacobian, sigma_scale
 
+    def own_metadata():  # the bundled clamp with metadata of its own to change
+        model = copy.copy(clamp)
+        model.metadata = copy.deepcopy(clamp.metadata)
+        return model
+
     auto = TrackOptions()
-    unchosen = copy.copy(clamp)  # a bundle calibrated before the choice
-    unchosen.metadata = copy.deepcopy(clamp.metadata)
+    unchosen = own_metadata()  # a bundle calibrated before the choice
     unchosen.metadata.setdefault("uncertainty", {}).setdefault("track", {}).pop("jacobians", None)
     assert auto.jacobian_rgb == "auto" and calibrated_jacobian(unchosen, "rgb") is None
     assert auto.step_options(False, "cpu", unchosen).jacobian == JACOBIAN_RGB == "derivatives"
-    chose = copy.copy(clamp)
-    chose.metadata = copy.deepcopy(clamp.metadata)
+    chose = own_metadata()
     chose.metadata.setdefault("uncertainty", {})["track"] = {
         "rgbd": 0.5, "rgb": 2.0, "solvers": {"rgbd": "gauss-newton", "rgb": "gauss-newton"},
         "jacobians": {"rgbd": "differences", "rgb": "differences"}}
