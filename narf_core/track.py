@@ -229,7 +229,8 @@ class TrackOptions:
     # With depth, the colour residual up to which the refiner's model error is in pixel footprints alone
     # (EstimateOptions.uncertainty_usual_residual); above it σ grows with the residual, which there marks a
     # track turning away, or colours the model was not trained on (another renderer's light, a camera's
-    # noise): on our renderer's sequences the residual stays below it in nine frames of ten, and σ with it.
+    # noise): on our renderer's sequences the residual stays below it in most frames (its 90th percentile
+    # 0.005-0.017 on four tools), and σ with it.
     # Path-traced frames sit at 0.03-0.06 with errors five times our renderer's, and σ grown from 0.02
     # left a fifth of them outside the 95 % region (docs/benchmarks.md, session 61). Without depth the
     # refiner's Σ is kept (the residual follows the error there).
