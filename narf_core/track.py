@@ -232,7 +232,7 @@ class TrackOptions:
     # noise): on our renderer's sequences the residual stays below it in most frames (its 90th percentile
     # 0.005-0.017 on four tools), and σ with it.
     # Path-traced frames sit at 0.03-0.06 with errors five times our renderer's, and σ grown from 0.02
-    # left a fifth of them outside the 95 % region (docs/benchmarks.md, session 61). Without depth the
+    # left up to a fifth of them outside the 95 % region (docs/benchmarks.md, session 61). Without depth the
     # refiner's Σ is kept (the residual follows the error there).
     usual_residual: float = 0.014
     # With depth, the silhouette's mean squared misfit up to which σ does not grow with it
