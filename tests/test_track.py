@@ -31,6 +31,11 @@ def clamp_sequence(tmp_path_factory) -> Path:
     return synthesize_sequence("clamp", tmp_path_factory.mktemp("seq") / "clamp", 8, events=False, supersample=1)
 
 
+# A usual colour residual over that of clamp_sequence's frames (aliased point samples: about 0.026, over
+# TrackOptions.usual_residual), for tests of what σ does below it.
+ALIASED_USUAL_RESIDUAL = 0.03
+
+
 # --------------------------------------------------------------------------------------------
 # sequences
 
@@ -747,7 +752,7 @@ def _close(a, b) -> bool:
 def test_depth_frame_sigma_is_in_pixel_footprints_below_the_usual_residual(clamp, clamp_sequence: Path) -> None:
     """With depth a warm-started frame's position σ is its ``sigma_scale`` times the model's error in
     pixel footprints at the object (its colour residual is below ``usual_residual`` on the clamp's
-    own render: 0.03 here, the fixture's frames being aliased point samples, about 0.026) plus the small
+    own render at ALIASED_USUAL_RESIDUAL, over the fixture's aliased frames') plus the small
     statistical part, and no smaller on a darkened image (a larger residual); without depth the refiner's
     Σ follows the residual from the calibration's reference, and grows on the darkened image."""
     from narf_core.data.dataset import Dataset
@@ -759,7 +764,8 @@ def test_depth_frame_sigma_is_in_pixel_footprints_below_the_usual_residual(clamp
     dataset = Dataset.open(clamp_sequence)
     frame = dataset.frames()[1]
     images = dataset.load(frame)
-    options = TrackOptions(iterations=2, rays_per_iteration=128, uncertainty_rays=64, usual_residual=0.03)
+    options = TrackOptions(iterations=2, rays_per_iteration=128, uncertainty_rays=64,
+                           usual_residual=ALIASED_USUAL_RESIDUAL)
     assert options.step_options(True).uncertainty_usual_residual == options.usual_residual > 0
     assert options.step_options(False).uncertainty_usual_residual == 0
     sigmas = {}
@@ -805,7 +811,7 @@ def test_depth_frame_sigma_grows_where_the_mask_disagrees_with_the_outline(clamp
     for name, mask in (("exact", exact), ("blob", blob)):
         for usual in (0.02, 0.0):
             options = TrackOptions(iterations=2, rays_per_iteration=128, uncertainty_rays=256, usual_silhouette=usual,
-                                   retry_uncertain=False, usual_residual=0.03)  # above the aliased frames' colours
+                                   retry_uncertain=False, usual_residual=ALIASED_USUAL_RESIDUAL)
             state = TrackState.initial(clamp, frame.T_cam_obj, frame.joints, frame.time - 1 / 30, status="tracking")
             result = step(clamp, dataset.camera, TrackFrame(image, mask, frame.time, images.depth), state, options)[0]
             sigma[name, usual] = np.asarray(result.uncertainty["position_sigma_m"])
@@ -818,7 +824,7 @@ def test_depth_frame_sigma_grows_where_the_mask_disagrees_with_the_outline(clamp
     limit = 2.5 * float(sigma["blob", 0.0].max()) * RETRY_SIGMA_SCALE["gauss-newton"] / own
     assert float(sigma["blob", 0.02].min()) * RETRY_SIGMA_SCALE["gauss-newton"] / own > limit
     options = TrackOptions(iterations=2, rays_per_iteration=128, uncertainty_rays=256, max_position_sigma_m=limit,
-                           usual_residual=0.03)
+                           usual_residual=ALIASED_USUAL_RESIDUAL)
     state = TrackState.initial(clamp, frame.T_cam_obj, frame.joints, frame.time - 1 / 30, status="tracking")
     assert step(clamp, dataset.camera, TrackFrame(image, blob, frame.time, images.depth), state, options)[0].iterations == 2
 
