@@ -184,9 +184,11 @@ def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, m
         step = options.step_options(modality == "rgbd", device)
         own = {tool: j for tool, model in models.items() if (j := options.jacobian_for(modality == "rgbd", model))
                != step.jacobian}  # a model's calibration chose another (TrackOptions.jacobian_rgb "auto")
+        rays = {tool: r for tool, model in models.items() if (r := options.rays_for(modality == "rgbd", device, model))
+                != step.rays_per_iteration}  # likewise the rays with depth (TrackOptions.rays_per_iteration 0)
         per_frame[modality] = {"solver": options.solver_for(modality == "rgbd"), "iterations": step.iterations,
                                "rays_per_iteration": step.rays_per_iteration, "jacobian": step.jacobian,
-                               "jacobian_once": step.jacobian_once, "jacobian_own": own}
+                               "jacobian_once": step.jacobian_once, "jacobian_own": own, "rays_own": rays}
     result = {"frames": frames, "seeds": list(seeds), "ray_seeds": list(ray_seeds), "options": options.__dict__,
               "per_frame": per_frame, "runs": runs, "over_tracks": over_tracks(runs),
               "machine": machine(models.values())}
@@ -241,7 +243,7 @@ def markdown(result: dict) -> str:
         f"from the first frame's label "
         f"({'as exact' if o.get('first_frame') == 'warm' else 'refined by the multi-start refiner'}); per frame "
         + "; ".join(f"{'with depth' if m == 'rgbd' else 'RGB only'} {p['iterations']} {p['solver']} iterations of "
-                    f"{p['rays_per_iteration']} rays"
+                    f"{p['rays_per_iteration']} rays" + _own_text(p.get("rays_own"), lambda r: f"{r}")
                     + (_jacobian_text(p) if p["solver"] == "gauss-newton" and "jacobian" in p else "")
                     for m, p in result.get("per_frame", {}).items())
         + f", {band}"
@@ -306,12 +308,20 @@ def _hold_text(sigma: float) -> str:
 def _jacobian_text(per_frame: dict) -> str:
     """" (Jacobian by derivatives; by differences for lamp, its calibration's choice)", " (Jacobian by differences,
     once a frame)"."""
-    own: dict = {}
-    for tool, jacobian in (per_frame.get("jacobian_own") or {}).items():
-        own.setdefault(jacobian, []).append(tool)
     return (f" (Jacobian by {per_frame['jacobian']}" + (", once a frame" if per_frame.get("jacobian_once") else "")
-            + "".join(f"; by {j} for {', '.join(tools)}, {'its' if len(tools) == 1 else 'their'} calibration's choice"
-                      for j, tools in own.items()) + ")")
+            + _own_text(per_frame.get("jacobian_own"), lambda j: f"by {j}", "; ") + ")")
+
+
+def _own_text(own: dict | None, what, lead: str = " (") -> str:
+    """The models whose calibration chose otherwise, grouped by choice (``own``: tool -> choice, ``what`` its words):
+    " (512 for gripper, its calibration's choice)" or, with ``lead`` "; ", "; by differences for lamp, its
+    calibration's choice"."""
+    grouped: dict = {}
+    for tool, choice in (own or {}).items():
+        grouped.setdefault(choice, []).append(tool)
+    text = "; ".join(f"{what(c)} for {', '.join(tools)}, {'its' if len(tools) == 1 else 'their'} calibration's choice"
+                     for c, tools in grouped.items())
+    return "" if not text else lead + text + (")" if lead == " (" else "")
 
 
 def _repeat_cell(run: dict, result: dict) -> str:

@@ -566,6 +566,10 @@ def _print_track_sigma(model: NarfModel) -> None:
     if means:  # the frame Jacobian without depth it measured (TrackOptions.jacobian_rgb "auto" takes it)
         print(f"  tracker's Jacobian without depth: {fitted['jacobians']['rgb']} (mean ADD on those frames "
               + ", ".join(f"{m * 100:.2f} cm by {j}" for j, m in means.items()) + ")")
+    means = (fitted or {}).get("rgbd_add_m")
+    if means:  # the rays per iteration with depth it measured (TrackOptions.rays_per_iteration 0 takes them)
+        print(f"  tracker's rays per iteration with depth: {fitted['rays']['rgbd']} (mean ADD on those frames "
+              + ", ".join(f"{m * 100:.3f} cm on {n}" for n, m in means.items()) + ")")
 
 
 def _print_auto_mode(model: NarfModel) -> None:
@@ -1038,7 +1042,9 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
                      "(default: %(default)s)")
     sub.add_argument("--iterations", type=_positive_int, metavar="N", help="refiner iterations per frame "
                      f"(default: the solver's, {TRACK_ITERATIONS})")
-    sub.add_argument("--rays", type=_positive_int, metavar="N", help="rays per iteration (default: the solver's)")
+    sub.add_argument("--rays", type=_positive_int, metavar="N",
+                     help="rays per iteration (default: the solver's; with depth what each model's tracker "
+                          "calibration chose)")
     sub.add_argument("--solver", choices=TRACK_SOLVER_CHOICES, default=None,
                      help=f"per-frame solver (default: the tracker's, auto: {TRACK_AUTO_SOLVER})")
     sub.add_argument("--band-m", type=_non_negative_float, metavar="M",

@@ -123,6 +123,16 @@ JACOBIAN_RGB = "derivatives"
 # The calibration takes the differences without depth only where they lower the mean ADD of its sequences'
 # frames below this share of the derivatives' (on the CPU they cost 2-3x the time).
 DIFFERENCES_GAIN = 0.8
+# With depth on the CPU, a Gauss-Newton frame takes FEWER_RAYS rays per iteration where the model's tracker
+# calibration chose them: where its frames' mean ADD over its sequences stays within FEWER_RAYS_LOSS of the
+# solver's own budget's (BUDGETS), and that one's within FEWER_RAYS_HELD of the object's diameter. A frame's time is
+# mostly its rays' renders (2 (6 + k) + 1 of them in its Jacobian): a large, textured object such as the gripper
+# tracks as well on fewer at about 1.3x the rate, a thin one (the clamp, longnose) loses more, and a track that
+# wanders (the lamp's, 2 % of its diameter) wanders further on fewer, whatever its fitting sequences' draw said
+# (docs/benchmarks.md, session 62).
+FEWER_RAYS = 512
+FEWER_RAYS_LOSS = 1.15
+FEWER_RAYS_HELD = 0.01
 
 
 def budget_text(which: int = 0) -> str:
@@ -151,6 +161,14 @@ def calibrated_jacobian(model: NarfModel, key: str) -> str | None:
     return (track.get("jacobians") or {}).get(key)
 
 
+def calibrated_rays(model: NarfModel | None, key: str = "rgbd") -> int | None:
+    """The rays per Gauss-Newton iteration the model's tracker calibration chose for frames with depth (``key``
+    "rgbd"), measured on sequences of its object (:func:`narf_core.train.track_sigma.track_calibration`); None where
+    it chose none (a bundle calibrated before the choice, or never)."""
+    track = ((model.metadata.get("uncertainty") or {}).get("track") or {}) if model is not None else {}
+    return (track.get("rays") or {}).get(key)
+
+
 def auto_solver_text() -> str:
     """:data:`AUTO_SOLVER` for help texts: "gauss-newton, with depth and without"."""
     if AUTO_SOLVER["rgbd"] == AUTO_SOLVER["rgb"]:
@@ -172,8 +190,9 @@ class TrackOptions:
     ``solver``: a warm-started frame's solver, "adam" (the robust preset with one start),
     "gauss-newton", or "auto" (:data:`AUTO_SOLVER`: by whether the frame has depth).
     ``iterations``/``rays_per_iteration``: its budget per frame from the prediction, 0 for the
-    solver's own (:data:`BUDGETS`, without depth :data:`RGB_ITERATIONS`, on a GPU :data:`GPU_RAYS`; few
-    iterations on many rays: an iteration's cost is mostly per render call, little per ray); ``reinit_iterations``/
+    solver's own (:data:`BUDGETS`, without depth :data:`RGB_ITERATIONS`, on a GPU :data:`GPU_RAYS`, with depth on
+    the CPU the rays the model's calibration chose, :data:`FEWER_RAYS`; few iterations on many rays: an
+    iteration's cost is mostly per render call, little per ray); ``reinit_iterations``/
     ``reinit_theta_starts``: that of a re-initialisation (multi-start, coarse-to-fine).
     """
 
@@ -385,18 +404,28 @@ class TrackOptions:
             return self.jacobian_rgb
         return (calibrated_jacobian(model, "rgb") if model is not None else None) or JACOBIAN_RGB
 
+    def rays_for(self, depth: bool, device: torch.device | str = "cpu", model: NarfModel | None = None) -> int:
+        """A frame's rays per iteration with ``depth`` or without, on ``device`` and ``model``: the option where
+        set, else on a GPU :data:`GPU_RAYS`, else with depth the rays ``model``'s calibration chose
+        (:func:`calibrated_rays`, a Gauss-Newton frame's), else :data:`BUDGETS`'."""
+        if self.rays_per_iteration:
+            return self.rays_per_iteration
+        solver = self.solver_for(depth)
+        if torch.device(device).type == "cuda" and solver in GPU_RAYS:
+            return GPU_RAYS[solver]
+        own = calibrated_rays(model) if depth and solver == "gauss-newton" else None
+        return own or BUDGETS[solver][1]
+
     def step_options(self, depth: bool, device: torch.device | str = "cpu",
                      model: NarfModel | None = None) -> EstimateOptions:
         """The refiner's options for a warm-started frame on ``model`` on ``device`` (from the prediction
         alone: a frame that misses is the re-initialisation's to find, so no pose starts and no slide along
         the object's axis)."""
         solver = self.solver_for(depth)
-        iterations, rays = BUDGETS[solver]
+        iterations = BUDGETS[solver][0]
         if not depth:
             iterations = RGB_ITERATIONS.get(solver, iterations)
-        if torch.device(device).type == "cuda":
-            rays = GPU_RAYS.get(solver, rays)
-        common = {"iterations": self.iterations or iterations, "rays_per_iteration": self.rays_per_iteration or rays,
+        common = {"iterations": self.iterations or iterations, "rays_per_iteration": self.rays_for(depth, device, model),
                   "mode": self.mode,
                   "theta_starts": 1, "coarse_to_fine": 1, "early_stop": False, "seed": self.seed,
                   "band_m": self.band_m, "eval_rays": self.eval_rays,
@@ -1181,7 +1210,8 @@ def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool, camera: Pi
     also fitted at a finer camera (``fine``: its ``fx`` and factors), to the power that joins the two
     fits (and the finer fit's as it is for a camera finer still); an own factor that does not name its
     camera is taken as it is. An own factor fitted with another frame Jacobian (``jacobians``) than the
-    frame's is not the frame's: Σ comes from the field's derivatives either way, and its misfit differs."""
+    frame's is not the frame's: Σ comes from the field's derivatives either way, and its misfit differs; nor is
+    one fitted on another number of rays per iteration (``rays``, where the calibration chose one) on the CPU."""
     key, solver = "rgbd" if depth else "rgb", options.solver_for(depth)
     chosen = options.sigma_scale if depth else options.sigma_scale_rgb
     if chosen:
@@ -1190,6 +1220,9 @@ def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool, camera: Pi
     own = track.get(key) if (track.get("solvers") or {}).get(key, "adam") == solver else None
     fitted_with = calibrated_jacobian(model, key)
     if own and solver == "gauss-newton" and fitted_with and fitted_with != options.jacobian_for(depth, model):
+        own = None
+    fitted_rays = calibrated_rays(model, key)
+    if own and fitted_rays and model.aabb.device.type == "cpu" and fitted_rays != options.rays_for(depth, "cpu", model):
         own = None
     factor, fitted_fx = (own, track.get("fx")) if own else (SIGMA_SCALE[solver][key], training_fx(model))
     if camera is None or not fitted_fx:

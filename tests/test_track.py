@@ -1333,6 +1333,45 @@ def test_a_frame_without_depth_takes_the_jacobian_its_models_calibration_chose(c
             "1.07 cm by differences)") in capsys.readouterr().out
 
 
+def test_a_frame_with_depth_takes_the_rays_its_models_calibration_chose(clamp, capsys) -> None:
+    """``TrackOptions.rays_per_iteration`` 0 (the default) takes, with depth on the CPU, the rays per iteration the
+    model's tracker calibration chose (``uncertainty.track.rays``), else the solver's own; a set number overrides it,
+    a GPU takes its own, a frame without depth the solver's. A factor fitted on other rays than the frame's is not
+    the model's own."""
+    import copy
+
+    from narf_benchmarks.track import markdown
+    from narf_core.cli import _print_track_sigma
+    from narf_core.track import BUDGETS, FEWER_RAYS, GPU_RAYS, SIGMA_SCALE, TrackOptions, calibrated_rays, sigma_scale
+
+    chose = copy.copy(clamp)
+    chose.metadata = copy.deepcopy(clamp.metadata)
+    chose.metadata.setdefault("uncertainty", {})["track"] = {
+        "rgbd": 0.5, "rgb": 2.0, "solvers": {"rgbd": "gauss-newton", "rgb": "gauss-newton"},
+        "jacobians": {"rgbd": "differences", "rgb": "derivatives"}, "rays": {"rgbd": FEWER_RAYS}}
+    auto, own = TrackOptions(), BUDGETS["gauss-newton"][1]
+    assert calibrated_rays(chose) == FEWER_RAYS != own and calibrated_rays(clamp) in (None, own)
+    assert auto.step_options(True, "cpu", chose).rays_per_iteration == FEWER_RAYS
+    assert auto.step_options(False, "cpu", chose).rays_per_iteration == own
+    assert auto.step_options(True, "cpu").rays_per_iteration == own  # no model: the solver's own
+    assert auto.rays_for(True, "cuda", chose) == GPU_RAYS["gauss-newton"]
+    assert TrackOptions(rays_per_iteration=1024).step_options(True, "cpu", chose).rays_per_iteration == 1024
+    # the model's factor where the frame takes the rays it was fitted on, else the pooled one
+    assert sigma_scale(chose, auto, True) == 0.5 and sigma_scale(chose, auto, False) == 2.0
+    assert sigma_scale(chose, TrackOptions(rays_per_iteration=own), True) == SIGMA_SCALE["gauss-newton"]["rgbd"]
+    assert sigma_scale(chose, TrackOptions(rays_per_iteration=own), False) == 2.0  # fitted on its own rays
+    # the benchmark's caption names a model's own choice, and `narf train` prints what it measured
+    per_frame = {"rgbd": {"solver": "gauss-newton", "iterations": 2, "rays_per_iteration": own,
+                          "jacobian": "differences", "rays_own": {"gripper": FEWER_RAYS}}}
+    table = markdown({"frames": 3, "runs": [], "options": auto.__dict__, "per_frame": per_frame})
+    assert f"2 gauss-newton iterations of {own} rays ({FEWER_RAYS} for gripper, its calibration's choice)" in table
+    chose.metadata["uncertainty"]["track"].update(fx=134.0, rgbd_frames=180, rgb_frames=179, seeds=[1, 2, 3],
+                                                  rgbd_add_m={str(own): 0.00055, str(FEWER_RAYS): 0.00058})
+    _print_track_sigma(chose)
+    assert (f"tracker's rays per iteration with depth: {FEWER_RAYS} (mean ADD on those frames 0.055 cm on {own}, "
+            f"0.058 cm on {FEWER_RAYS})") in capsys.readouterr().out
+
+
 def _bench_track_args(extra: list[str]):
     from narf_core.cli import build_parser
 

@@ -80,7 +80,8 @@ def test_training_fits_the_trackers_own_factor_on_sequences_of_its_object(tiny_d
 
     from narf_core.geometry import Pinhole
     from narf_core.estimate import JACOBIANS
-    from narf_core.track import DIFFERENCES_GAIN, SIGMA_SCALE, TrackOptions, sigma_scale
+    from narf_core.track import (DIFFERENCES_GAIN, FEWER_RAYS, FEWER_RAYS_HELD, FEWER_RAYS_LOSS, SIGMA_SCALE, TrackOptions,
+                                 sigma_scale)
     from narf_core.train import track_sigma
     from narf_core.train.track_sigma import calibrate_tracker, dataset_tool, fine_size, fit_track_scale, track_nees
 
@@ -110,13 +111,22 @@ def test_training_fits_the_trackers_own_factor_on_sequences_of_its_object(tiny_d
     assert fitted["jacobians"] == {"rgbd": TrackOptions().jacobian, "rgb": "differences" if means["differences"]
                                    < DIFFERENCES_GAIN * means["derivatives"] else "derivatives"}
     assert TrackOptions().jacobian_for(False, model) == fitted["jacobians"]["rgb"]
+    # with depth, the fewer rays where their frames came out within FEWER_RAYS_LOSS of the solver's own budget's,
+    # those held within FEWER_RAYS_HELD of the diameter
+    budget, means = TrackOptions().rays_for(True), fitted["rgbd_add_m"]
+    assert set(means) == {str(budget), str(FEWER_RAYS)} and all(0 < m < math.inf for m in means.values())
+    fewer = (means[str(FEWER_RAYS)] <= FEWER_RAYS_LOSS * means[str(budget)]
+             and means[str(budget)] <= FEWER_RAYS_HELD * model.diameter)
+    assert fitted["rays"] == {"rgbd": FEWER_RAYS if fewer else budget}
+    assert TrackOptions().rays_for(True, "cpu", model) == fitted["rays"]["rgbd"]
     assert "track_sigma_s" in model.metadata["provenance"]["timings_s"]
     assert not (tmp_path / "m.narf.work").exists()
     # The factor is the fit of the frames' NEES on the same sequence (drawn again: the same frames), its tracks
     # here in this process where training's ran in two of their own: the same fit to the digit.
     again = calibrate_tracker(model, dataset_tool(Dataset.open(tiny_dataset)), (48, 36), tmp_path / "again", [1])
     assert pooled == [True, False]
-    nees = track_nees(model, Dataset.open(tmp_path / "again" / "sequence-48x36-60-s1"), rgb_only=False)
+    nees = track_nees(model, Dataset.open(tmp_path / "again" / "sequence-48x36-60-s1"), rgb_only=False,
+                      rays=fitted["rays"]["rgbd"])
     assert again == fitted and fitted["rgbd"] == fit_track_scale(nees, 7) and len(nees) == fitted["rgbd_frames"]
     for depth, key in ((True, "rgbd"), (False, "rgb")):
         assert sigma_scale(model, TrackOptions(), depth) == fitted[key]
@@ -136,6 +146,44 @@ def test_training_fits_the_trackers_own_factor_on_sequences_of_its_object(tiny_d
                                                                                                 distill_steps=5)))
     assert "uncertainty" not in bare.metadata
     assert sigma_scale(bare, TrackOptions(), True) == SIGMA_SCALE[TrackOptions().solver_for(True)]["rgbd"]
+
+
+@pytest.mark.parametrize("fewer_add, diameter, chosen", [(0.0011, 0.2, 512), (0.0012, 0.2, 768), (0.0011, 0.05, 768)])
+def test_the_fit_takes_fewer_rays_with_depth_only_where_their_frames_come_out_as_near(tiny_dataset, fewer_add, diameter,
+                                                                                       chosen):
+    """With depth the fit tracks its sequences at the views' camera on the solver's own rays and on FEWER_RAYS, keeps
+    the fewer where their frames' mean ADD stays within FEWER_RAYS_LOSS of the others' (1.1 mm against 1 mm: yes,
+    1.2: no) and those hold within FEWER_RAYS_HELD of the diameter (1 mm of 20 cm: yes, of 5 cm: no), fits every
+    RGB-D factor on tracks of the rays it kept (the finer camera's on those alone) and records
+    both means; without depth the solver's own."""
+    from concurrent.futures import Future
+
+    from narf_core.track import FEWER_RAYS, FEWER_RAYS_HELD, FEWER_RAYS_LOSS, TrackOptions
+    from narf_core.train.track_sigma import fit_track_scale, track_calibration
+
+    budget, jacobian = TrackOptions().rays_for(True), TrackOptions().jacobian
+    assert (budget, FEWER_RAYS, FEWER_RAYS_LOSS, FEWER_RAYS_HELD) == (768, 512, 1.15, 0.01)
+    calls = []
+
+    class Tracks:  # a track's NEES say which rays it ran on: 1 on the solver's own, 4 on the fewer
+        model = type("Model", (), {"joints": [object()], "diameter": diameter})()
+
+        def submit(self, folder, rgb_only, jacobian, rays=0):
+            calls.append((rgb_only, jacobian, rays))
+            done = Future()
+            add = fewer_add if not rgb_only and rays == FEWER_RAYS else 0.001
+            done.set_result(([4.0 if rays == FEWER_RAYS else 1.0] * 10, [add] * 10))
+            return done
+
+    two = [tiny_dataset, tiny_dataset]  # two sequences (one folder twice) at each camera
+    fit = track_calibration(Tracks(), {"": two, "fine": two})
+    assert fit["rays"] == {"rgbd": chosen}
+    assert fit["rgbd_add_m"] == {"768": pytest.approx(0.001), "512": pytest.approx(fewer_add)}
+    assert fit["rgbd"] == fit["fine"]["rgbd"] == fit_track_scale([4.0 if chosen == FEWER_RAYS else 1.0] * 20, 7)
+    rgbd = [c for c in calls if not c[0]]
+    # both on the views' camera's sequences, asked before anything waits; then the finer camera's on the rays kept
+    assert rgbd == [(False, jacobian, budget)] * 2 + [(False, jacobian, FEWER_RAYS)] * 2 + [(False, jacobian, chosen)] * 2
+    assert all(c[2] == 0 for c in calls if c[0])  # without depth: the solver's own
 
 
 def test_the_fits_sequences_drawn_ahead_in_their_own_process_are_the_ones_the_fit_draws(tmp_path, monkeypatch):
