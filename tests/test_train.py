@@ -184,6 +184,8 @@ def test_the_fit_takes_fewer_rays_with_depth_only_where_their_frames_come_out_as
     # both on the views' camera's sequences, asked before anything waits; then the finer camera's on the rays kept
     assert rgbd == [(False, jacobian, budget)] * 2 + [(False, jacobian, FEWER_RAYS)] * 2 + [(False, jacobian, chosen)] * 2
     assert all(c[2] == 0 for c in calls if c[0])  # without depth: the solver's own
+    calls.clear()  # a fit without depth tracks nothing with depth and records no rays
+    assert "rays" not in track_calibration(Tracks(), {"": two}, modalities=("rgb",)) and all(c[0] for c in calls)
 
 
 def test_the_fits_sequences_drawn_ahead_in_their_own_process_are_the_ones_the_fit_draws(tmp_path, monkeypatch):

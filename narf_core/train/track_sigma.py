@@ -175,8 +175,8 @@ def track_calibration(tracks: _Tracks, cameras: dict[str, list[Path]], modalitie
 
     chosen = {"rgbd": default.jacobian_for(True), "rgb": default.jacobian_for(False)}
     rays = {"rgbd": budget, "rgb": 0}
-    both = {n: [ask("", "rgbd", i, chosen["rgbd"], n) for i in range(len(cameras[""]))] for n in (budget, FEWER_RAYS)}
-    both = both if fewer else {}
+    both = ({n: [ask("", "rgbd", i, chosen["rgbd"], n) for i in range(len(cameras[""]))] for n in (budget, FEWER_RAYS)}
+            if fewer else {})
     firsts = {j: ask("", "rgb", 0, j) for j in JACOBIANS} if auto else {}
     for camera, folders in cameras.items():
         for modality in modalities:
