@@ -243,7 +243,7 @@ def markdown(result: dict) -> str:
         f"from the first frame's label "
         f"({'as exact' if o.get('first_frame') == 'warm' else 'refined by the multi-start refiner'}); per frame "
         + "; ".join(f"{'with depth' if m == 'rgbd' else 'RGB only'} {p['iterations']} {p['solver']} iterations of "
-                    f"{p['rays_per_iteration']} rays" + _own_text(p.get("rays_own"), lambda r: f"{r}")
+                    f"{p['rays_per_iteration']} rays" + _enclosed(" (", _own_text(p.get("rays_own"), str), ")")
                     + (_jacobian_text(p) if p["solver"] == "gauss-newton" and "jacobian" in p else "")
                     for m, p in result.get("per_frame", {}).items())
         + f", {band}"
@@ -309,19 +309,22 @@ def _jacobian_text(per_frame: dict) -> str:
     """" (Jacobian by derivatives; by differences for lamp, its calibration's choice)", " (Jacobian by differences,
     once a frame)"."""
     return (f" (Jacobian by {per_frame['jacobian']}" + (", once a frame" if per_frame.get("jacobian_once") else "")
-            + _own_text(per_frame.get("jacobian_own"), lambda j: f"by {j}", "; ") + ")")
+            + _enclosed("; ", _own_text(per_frame.get("jacobian_own"), lambda j: f"by {j}")) + ")")
 
 
-def _own_text(own: dict | None, what, lead: str = " (") -> str:
+def _own_text(own: dict | None, what) -> str:
     """The models whose calibration chose otherwise, grouped by choice (``own``: tool -> choice, ``what`` its words):
-    " (512 for gripper, its calibration's choice)" or, with ``lead`` "; ", "; by differences for lamp, its
-    calibration's choice"."""
+    "by differences for lamp, its calibration's choice"; "" where none did."""
     grouped: dict = {}
     for tool, choice in (own or {}).items():
         grouped.setdefault(choice, []).append(tool)
-    text = "; ".join(f"{what(c)} for {', '.join(tools)}, {'its' if len(tools) == 1 else 'their'} calibration's choice"
+    return "; ".join(f"{what(c)} for {', '.join(tools)}, {'its' if len(tools) == 1 else 'their'} calibration's choice"
                      for c, tools in grouped.items())
-    return "" if not text else lead + text + (")" if lead == " (" else "")
+
+
+def _enclosed(before: str, text: str, after: str = "") -> str:
+    """``text`` between ``before`` and ``after``, or nothing where it is empty."""
+    return before + text + after if text else ""
 
 
 def _repeat_cell(run: dict, result: dict) -> str:

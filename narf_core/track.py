@@ -153,20 +153,22 @@ def jacobian_text() -> str:
     return f"{o.jacobian}, with depth and without" if o.jacobian == o.jacobian_rgb else f"{o.jacobian} with depth, {rgb}"
 
 
+def tracker_calibration(model: NarfModel | None) -> dict:
+    """The model's tracker calibration (``metadata["uncertainty"]["track"]``, fitted on sequences of its object by
+    :func:`narf_core.train.track_sigma.track_calibration`); empty where it has none (or there is no model)."""
+    return ((model.metadata.get("uncertainty") or {}).get("track") or {}) if model is not None else {}
+
+
 def calibrated_jacobian(model: NarfModel, key: str) -> str | None:
     """The frame Jacobian the model's tracker calibration chose for frames with depth (``key`` "rgbd") or
-    without ("rgb"), measured on sequences of its object (:func:`narf_core.train.track_sigma.track_calibration`);
-    None where it chose none (a bundle calibrated before the choice, or never)."""
-    track = (model.metadata.get("uncertainty") or {}).get("track") or {}
-    return (track.get("jacobians") or {}).get(key)
+    without ("rgb"); None where it chose none (a bundle calibrated before the choice, or never)."""
+    return (tracker_calibration(model).get("jacobians") or {}).get(key)
 
 
 def calibrated_rays(model: NarfModel | None, key: str = "rgbd") -> int | None:
     """The rays per Gauss-Newton iteration the model's tracker calibration chose for frames with depth (``key``
-    "rgbd"), measured on sequences of its object (:func:`narf_core.train.track_sigma.track_calibration`); None where
-    it chose none (a bundle calibrated before the choice, or never)."""
-    track = ((model.metadata.get("uncertainty") or {}).get("track") or {}) if model is not None else {}
-    return (track.get("rays") or {}).get(key)
+    "rgbd"); None where it chose none (a bundle calibrated before the choice, or never)."""
+    return (tracker_calibration(model).get("rays") or {}).get(key)
 
 
 def auto_solver_text() -> str:
@@ -1216,7 +1218,7 @@ def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool, camera: Pi
     chosen = options.sigma_scale if depth else options.sigma_scale_rgb
     if chosen:
         return float(chosen)
-    track = (model.metadata.get("uncertainty") or {}).get("track") or {}
+    track = tracker_calibration(model)
     own = track.get(key) if (track.get("solvers") or {}).get(key, "adam") == solver else None
     fitted_with = calibrated_jacobian(model, key)
     if own and solver == "gauss-newton" and fitted_with and fitted_with != options.jacobian_for(depth, model):
