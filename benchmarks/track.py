@@ -186,9 +186,12 @@ def run(models: dict[str, NarfModel], work: Path, *, frames: int, sizes=SIZES, m
                != step.jacobian}  # a model's calibration chose another (TrackOptions.jacobian_rgb "auto")
         rays = {tool: r for tool, model in models.items() if (r := options.rays_for(modality == "rgbd", device, model))
                 != step.rays_per_iteration}  # likewise the rays with depth (TrackOptions.rays_per_iteration 0)
+        huber = {tool: h for tool, model in models.items() if (h := options.step_options(
+            modality == "rgbd", device, model).robust_scale) != step.robust_scale}  # and the Huber scale with depth
         per_frame[modality] = {"solver": options.solver_for(modality == "rgbd"), "iterations": step.iterations,
                                "rays_per_iteration": step.rays_per_iteration, "jacobian": step.jacobian,
-                               "jacobian_once": step.jacobian_once, "jacobian_own": own, "rays_own": rays}
+                               "jacobian_once": step.jacobian_once, "jacobian_own": own, "rays_own": rays,
+                               "robust_scale": step.robust_scale, "robust_scale_own": huber}
     result = {"frames": frames, "seeds": list(seeds), "ray_seeds": list(ray_seeds), "options": options.__dict__,
               "per_frame": per_frame, "runs": runs, "over_tracks": over_tracks(runs),
               "machine": machine(models.values())}
@@ -245,6 +248,7 @@ def markdown(result: dict) -> str:
         + "; ".join(f"{'with depth' if m == 'rgbd' else 'RGB only'} {p['iterations']} {p['solver']} iterations of "
                     f"{p['rays_per_iteration']} rays" + _enclosed(" (", _own_text(p.get("rays_own"), str), ")")
                     + (_jacobian_text(p) if p["solver"] == "gauss-newton" and "jacobian" in p else "")
+                    + _huber_text(p, m)
                     for m, p in result.get("per_frame", {}).items())
         + f", {band}"
         + ("" if o.get("depth_align", True) else ", the prediction not aligned to the depth")
@@ -312,6 +316,17 @@ def _jacobian_text(per_frame: dict) -> str:
             + _enclosed("; ", _own_text(per_frame.get("jacobian_own"), lambda j: f"by {j}")) + ")")
 
 
+def _huber_text(per_frame: dict, modality: str) -> str:
+    """", Huber scale 0.3 for lamp, its calibration's choice" (with depth, where a model's calibration chose another
+    than the frames'), ", Huber scale 0.2" (one set with ``--huber``); "" where every frame takes the preset's."""
+    if modality != "rgbd" or "robust_scale" not in per_frame:
+        return ""
+    own = _own_text(per_frame.get("robust_scale_own"), lambda s: f"{s:g}")
+    if per_frame["robust_scale"] != TrackOptions().step_options(True).robust_scale:
+        return f", Huber scale {per_frame['robust_scale']:g}" + _enclosed(" (", own, ")")
+    return _enclosed(", Huber scale ", own)
+
+
 def _own_text(own: dict | None, what) -> str:
     """The models whose calibration chose otherwise, grouped by choice (``own``: tool -> choice, ``what`` its words):
     "by differences for lamp, its calibration's choice"; "" where none did."""
@@ -352,7 +367,7 @@ def _joint_cell(run: dict) -> str:
 def main(args: argparse.Namespace) -> int:
     """``narf bench track``: ``args`` has ``work``, ``models``, ``tools``, ``frames``, ``sizes``,
     ``modalities``, ``events``, ``seed`` (a list), ``ray_seeds``, ``images``, ``spp``, ``iterations``, ``rays``,
-    ``solver``, ``band_m``, ``march``, ``depth_align``, ``jacobian``, ``jacobian_once``, ``occluder_test``,
+    ``huber``, ``solver``, ``band_m``, ``march``, ``depth_align``, ``jacobian``, ``jacobian_once``, ``occluder_test``,
     ``hidden_joint_sigma``, ``service_clients``, ``json``."""
     tools = args.tools or sorted(p.stem for p in args.models.glob("*.narf"))
     models, missing = {}, []
@@ -368,6 +383,7 @@ def main(args: argparse.Namespace) -> int:
         print(f"narf bench track: skipping {', '.join(missing)}: no model in {args.models}", file=sys.stderr)
     sizes = tuple(tuple(s) for s in args.sizes) if args.sizes else SIZES
     overrides = {"iterations": args.iterations, "rays_per_iteration": getattr(args, "rays", None),
+                 "robust_scale": getattr(args, "huber", None),
                  "solver": getattr(args, "solver", None), "band_m": getattr(args, "band_m", None),
                  "march": getattr(args, "march", None), "depth_align": getattr(args, "depth_align", None),
                  "jacobian": getattr(args, "jacobian", None), "jacobian_rgb": getattr(args, "jacobian", None),

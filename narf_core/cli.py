@@ -162,6 +162,7 @@ def _number(kind: type, lowest: float, strict: bool, what: str) -> Callable[[str
 _positive_int = _number(int, 0, True, "a positive integer")
 _non_negative_int = _number(int, 0, False, "an integer >= 0")
 _non_negative_float = _number(float, 0.0, False, "a finite number >= 0")
+_positive_float = _number(float, 0.0, True, "a finite number > 0")
 
 
 def _folder_size(root: Path) -> int:
@@ -570,6 +571,10 @@ def _print_track_sigma(model: NarfModel) -> None:
     if means:  # the rays per iteration with depth it measured (TrackOptions.rays_per_iteration 0 takes them)
         print(f"  tracker's rays per iteration with depth: {fitted['rays']['rgbd']} (mean ADD on those frames "
               + ", ".join(f"{m * 100:.3f} cm on {n}" for n, m in means.items()) + ")")
+    means = (fitted or {}).get("rgbd_huber_add_m")
+    if means:  # the Huber scale with depth it measured (TrackOptions.robust_scale 0 takes it)
+        print(f"  tracker's Huber scale with depth: {fitted['robust_scale']['rgbd']:g} (mean ADD on those frames "
+              + ", ".join(f"{m * 100:.3f} cm at {s}" for s, m in means.items()) + ")")
 
 
 def _print_auto_mode(model: NarfModel) -> None:
@@ -1045,6 +1050,9 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--rays", type=_positive_int, metavar="N",
                      help="rays per iteration (default: the solver's; with depth what each model's tracker "
                           "calibration chose)")
+    sub.add_argument("--huber", type=_positive_float, metavar="S",
+                     help="with depth, the frames' Huber scale (residual units; default: the preset's, or what each "
+                          "model's tracker calibration chose)")
     sub.add_argument("--solver", choices=TRACK_SOLVER_CHOICES, default=None,
                      help=f"per-frame solver (default: the tracker's, auto: {TRACK_AUTO_SOLVER})")
     sub.add_argument("--band-m", type=_non_negative_float, metavar="M",
@@ -1195,7 +1203,7 @@ def _run_bench_track(args: argparse.Namespace) -> int:
         except TrackInputError as e:
             if not (e.field or "").startswith("options."):
                 raise
-            raise _flag_error(e, {"rays_per_iteration": "rays"}) from None
+            raise _flag_error(e, {"rays_per_iteration": "rays", "robust_scale": "huber"}) from None
 
 
 def _run_bench_service(args: argparse.Namespace) -> int:

@@ -125,14 +125,24 @@ JACOBIAN_RGB = "derivatives"
 DIFFERENCES_GAIN = 0.8
 # With depth on the CPU, a Gauss-Newton frame takes FEWER_RAYS rays per iteration where the model's tracker
 # calibration chose them: where its frames' mean ADD over its sequences stays within FEWER_RAYS_LOSS of the
-# solver's own budget's (BUDGETS), and that one's within FEWER_RAYS_HELD of the object's diameter. A frame's time is
+# solver's own budget's (BUDGETS), and that one's within TRACK_HELD of the object's diameter. A frame's time is
 # mostly its rays' renders (2 (6 + k) + 1 of them in its Jacobian): a large, textured object such as the gripper
 # tracks as well on fewer at about 1.3x the rate, a thin one (the clamp, longnose) loses more, and a track that
 # wanders (the lamp's, 2 % of its diameter) wanders further on fewer, whatever its fitting sequences' draw said
 # (docs/benchmarks.md, session 62).
 FEWER_RAYS = 512
 FEWER_RAYS_LOSS = 1.15
-FEWER_RAYS_HELD = 0.01
+# A model's track holds where its frames' mean ADD over the calibration's sequences stays within this share of the
+# object's diameter: only such a track takes FEWER_RAYS, and only one that does not is tried with WIDE_HUBER.
+TRACK_HELD = 0.01
+# With depth, a Gauss-Newton frame's Huber scale (EstimateOptions.robust_scale) where the model's tracker calibration
+# chose it: where the track on the preset's scale does not hold (TRACK_HELD) and this one's frames' mean ADD comes out
+# below WIDE_HUBER_GAIN of that one's. A track that wanders along a valley of its object's poses (the lamp's, its
+# round foot turned about the joints' axis against the shoulder) sees there residuals of centimetres of depth that the
+# preset's scale weighs as outliers, and wandered less at the wider one; tracks that hold came out worse with it
+# (docs/benchmarks.md, session 63).
+WIDE_HUBER = 0.3
+WIDE_HUBER_GAIN = 0.85
 
 
 def budget_text(which: int = 0) -> str:
@@ -169,6 +179,13 @@ def calibrated_rays(model: NarfModel | None, key: str = "rgbd") -> int | None:
     """The rays per Gauss-Newton iteration the model's tracker calibration chose for frames with depth (``key``
     "rgbd"); None where it chose none (a bundle calibrated before the choice, or never)."""
     return (tracker_calibration(model).get("rays") or {}).get(key)
+
+
+def calibrated_huber(model: NarfModel | None, key: str = "rgbd") -> float | None:
+    """The Huber scale of a Gauss-Newton frame with depth (``key`` "rgbd") the model's tracker calibration fitted its
+    factors with (:data:`WIDE_HUBER` where it chose that one, else the preset's); None where it records none (a
+    bundle calibrated before the choice, or never)."""
+    return (tracker_calibration(model).get("robust_scale") or {}).get(key)
 
 
 def auto_solver_text() -> str:
@@ -213,6 +230,9 @@ class TrackOptions:
     jacobian_once: bool = True
     iterations: int = 0
     rays_per_iteration: int = 0
+    # With depth, a frame's Huber scale (EstimateOptions.robust_scale, residual units): 0 (the default) for a Gauss-Newton
+    # frame the one the model's tracker calibration chose (:data:`WIDE_HUBER` or the preset's), else the preset's.
+    robust_scale: float = 0.0
     lr_pose: float = 0.003  # Adam moves every parameter by about its rate per step: small, from a close start
     lr_theta: float = 0.01
     lr_decay: float = 0.5
@@ -350,6 +370,7 @@ class TrackOptions:
         need = option_rule(self, TrackInputError)
         need(self.iterations >= 0, "iterations", "must be >= 0 (0 = the solver's own)")
         need(self.rays_per_iteration >= 0, "rays_per_iteration", "must be >= 0 (0 = the solver's own)")
+        need(self.robust_scale >= 0, "robust_scale", "must be >= 0 (0 = the model's own or the preset's)")
         need(self.reinit_iterations >= 1, "reinit_iterations", "must be >= 1")
         need(1 <= self.reinit_theta_starts <= 64, "reinit_theta_starts", "must be in [1, 64]")
         need(self.first_frame in FIRST_FRAMES, "first_frame", f"must be one of {', '.join(FIRST_FRAMES)}")
@@ -418,6 +439,15 @@ class TrackOptions:
         own = calibrated_rays(model) if depth and solver == "gauss-newton" else None
         return own or BUDGETS[solver][1]
 
+    def huber_for(self, depth: bool, model: NarfModel | None = None) -> float | None:
+        """A frame's Huber scale with ``depth`` or without, on ``model``: with depth the option where set, else for a
+        Gauss-Newton frame the one ``model``'s calibration chose (:func:`calibrated_huber`); None: the preset's."""
+        if not depth:
+            return None
+        if self.robust_scale:
+            return self.robust_scale
+        return calibrated_huber(model) if self.solver_for(depth) == "gauss-newton" else None
+
     def step_options(self, depth: bool, device: torch.device | str = "cpu",
                      model: NarfModel | None = None) -> EstimateOptions:
         """The refiner's options for a warm-started frame on ``model`` on ``device`` (from the prediction
@@ -441,6 +471,8 @@ class TrackOptions:
                   "jacobian": self.jacobian_for(depth, model), "jacobian_once": self.jacobian_once and depth}
         if depth:
             common.update(DEPTH_MASK_TRUST if self.occluder_test else {"mask_trust": "full"})
+            if (huber := self.huber_for(depth, model)) is not None:
+                common["robust_scale"] = huber
         elif self.outside_weight_rgb < 1:
             common.update(mask_trust="partial", mask_band_px=0, outside_weight=self.outside_weight_rgb,
                           partial_theta_starts=0)
@@ -1213,7 +1245,8 @@ def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool, camera: Pi
     fits (and the finer fit's as it is for a camera finer still); an own factor that does not name its
     camera is taken as it is. An own factor fitted with another frame Jacobian (``jacobians``) than the
     frame's is not the frame's: Σ comes from the field's derivatives either way, and its misfit differs; nor is
-    one fitted on another number of rays per iteration (``rays``, where the calibration chose one) on the CPU."""
+    one fitted on another number of rays per iteration (``rays``, where the calibration chose one) on the CPU, nor
+    with depth one fitted at another Huber scale (``robust_scale``, where it records one)."""
     key, solver = "rgbd" if depth else "rgb", options.solver_for(depth)
     chosen = options.sigma_scale if depth else options.sigma_scale_rgb
     if chosen:
@@ -1225,6 +1258,9 @@ def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool, camera: Pi
         own = None
     fitted_rays = calibrated_rays(model, key)
     if own and fitted_rays and model.aabb.device.type == "cpu" and fitted_rays != options.rays_for(depth, "cpu", model):
+        own = None
+    fitted_huber = calibrated_huber(model, key)
+    if own and fitted_huber and fitted_huber != options.step_options(depth, model.aabb.device, model).robust_scale:
         own = None
     factor, fitted_fx = (own, track.get("fx")) if own else (SIGMA_SCALE[solver][key], training_fx(model))
     if camera is None or not fitted_fx:

@@ -1372,6 +1372,50 @@ def test_a_frame_with_depth_takes_the_rays_its_models_calibration_chose(clamp, c
             f"0.058 cm on {FEWER_RAYS})") in capsys.readouterr().out
 
 
+def test_a_frame_with_depth_takes_the_huber_scale_its_models_calibration_chose(clamp, capsys) -> None:
+    """``TrackOptions.robust_scale`` 0 (the default) takes, for a Gauss-Newton frame with depth, the Huber scale the
+    model's tracker calibration chose (``uncertainty.track.robust_scale``), else the preset's; a set scale overrides
+    it, a frame without depth keeps the preset's. A factor fitted at another scale than the frame's is not the
+    model's own."""
+    import copy
+
+    from narf_benchmarks.track import markdown
+    from narf_core.cli import _print_track_sigma
+    from narf_core.track import SIGMA_SCALE, WIDE_HUBER, TrackInputError, TrackOptions, calibrated_huber, sigma_scale
+
+    chose = copy.copy(clamp)
+    chose.metadata = copy.deepcopy(clamp.metadata)
+    chose.metadata.setdefault("uncertainty", {})["track"] = {
+        "rgbd": 0.5, "rgb": 2.0, "solvers": {"rgbd": "gauss-newton", "rgb": "gauss-newton"},
+        "jacobians": {"rgbd": "differences", "rgb": "derivatives"}, "robust_scale": {"rgbd": WIDE_HUBER}}
+    auto, preset = TrackOptions(), TrackOptions().step_options(True).robust_scale
+    assert calibrated_huber(chose) == WIDE_HUBER != preset and calibrated_huber(clamp) in (None, preset)
+    assert auto.step_options(True, "cpu", chose).robust_scale == WIDE_HUBER
+    assert auto.step_options(False, "cpu", chose).robust_scale == TrackOptions().step_options(False).robust_scale
+    assert auto.step_options(True, "cpu").robust_scale == preset  # no model: the preset's
+    assert TrackOptions(robust_scale=0.2).step_options(True, "cpu", chose).robust_scale == 0.2
+    assert TrackOptions(solver="adam").huber_for(True, chose) is None  # measured with Gauss-Newton's frames
+    with pytest.raises(TrackInputError, match="robust_scale"):
+        TrackOptions(robust_scale=-1.0)
+    # the model's factor where the frame takes the scale it was fitted at, else the pooled one
+    assert sigma_scale(chose, auto, True) == 0.5 and sigma_scale(chose, auto, False) == 2.0
+    assert sigma_scale(chose, TrackOptions(robust_scale=preset), True) == SIGMA_SCALE["gauss-newton"]["rgbd"]
+    assert sigma_scale(chose, TrackOptions(robust_scale=preset), False) == 2.0  # without depth: the preset's anyway
+    # the benchmark's caption names a model's own choice and a set one, and `narf train` prints what it measured
+    per_frame = {"rgbd": {"solver": "gauss-newton", "iterations": 2, "rays_per_iteration": 768,
+                          "jacobian": "differences", "robust_scale": preset, "robust_scale_own": {"lamp": WIDE_HUBER}}}
+    table = markdown({"frames": 3, "runs": [], "options": auto.__dict__, "per_frame": per_frame})
+    assert "(Jacobian by differences), Huber scale 0.3 for lamp, its calibration's choice" in table
+    per_frame["rgbd"].update(robust_scale=0.2, robust_scale_own={})
+    table = markdown({"frames": 3, "runs": [], "options": auto.__dict__, "per_frame": per_frame})
+    assert "(Jacobian by differences), Huber scale 0.2" in table and "calibration's choice" not in table
+    chose.metadata["uncertainty"]["track"].update(fx=134.0, rgbd_frames=180, rgb_frames=179, seeds=[1, 2, 3],
+                                                  rgbd_huber_add_m={"0.1": 0.0140, "0.3": 0.0065})
+    _print_track_sigma(chose)
+    assert ("tracker's Huber scale with depth: 0.3 (mean ADD on those frames 1.400 cm at 0.1, 0.650 cm at 0.3)"
+            in capsys.readouterr().out)
+
+
 def _bench_track_args(extra: list[str]):
     from narf_core.cli import build_parser
 

@@ -80,8 +80,8 @@ def test_training_fits_the_trackers_own_factor_on_sequences_of_its_object(tiny_d
 
     from narf_core.geometry import Pinhole
     from narf_core.estimate import JACOBIANS
-    from narf_core.track import (DIFFERENCES_GAIN, FEWER_RAYS, FEWER_RAYS_HELD, FEWER_RAYS_LOSS, SIGMA_SCALE, TrackOptions,
-                                 sigma_scale)
+    from narf_core.track import (DIFFERENCES_GAIN, FEWER_RAYS, FEWER_RAYS_LOSS, SIGMA_SCALE, TRACK_HELD, WIDE_HUBER,
+                                 WIDE_HUBER_GAIN, TrackOptions, sigma_scale)
     from narf_core.train import track_sigma
     from narf_core.train.track_sigma import calibrate_tracker, dataset_tool, fine_size, fit_track_scale, track_nees
 
@@ -112,13 +112,20 @@ def test_training_fits_the_trackers_own_factor_on_sequences_of_its_object(tiny_d
                                    < DIFFERENCES_GAIN * means["derivatives"] else "derivatives"}
     assert TrackOptions().jacobian_for(False, model) == fitted["jacobians"]["rgb"]
     # with depth, the fewer rays where their frames came out within FEWER_RAYS_LOSS of the solver's own budget's,
-    # those held within FEWER_RAYS_HELD of the diameter
+    # those held within TRACK_HELD of the diameter
     budget, means = TrackOptions().rays_for(True), fitted["rgbd_add_m"]
     assert set(means) == {str(budget), str(FEWER_RAYS)} and all(0 < m < math.inf for m in means.values())
     fewer = (means[str(FEWER_RAYS)] <= FEWER_RAYS_LOSS * means[str(budget)]
-             and means[str(budget)] <= FEWER_RAYS_HELD * model.diameter)
+             and means[str(budget)] <= TRACK_HELD * model.diameter)
     assert fitted["rays"] == {"rgbd": FEWER_RAYS if fewer else budget}
     assert TrackOptions().rays_for(True, "cpu", model) == fitted["rays"]["rgbd"]
+    # and on the rays kept, where their tracks do not hold within TRACK_HELD of the diameter, the wider Huber scale
+    # too, kept where its frames came out below WIDE_HUBER_GAIN of the preset's
+    preset, tried = TrackOptions().step_options(True).robust_scale, fitted.get("rgbd_huber_add_m")
+    assert (tried is not None) == (means[str(fitted["rays"]["rgbd"])] > TRACK_HELD * model.diameter)
+    wide = tried is not None and tried[str(WIDE_HUBER)] < WIDE_HUBER_GAIN * tried[str(preset)]
+    assert fitted["robust_scale"] == {"rgbd": WIDE_HUBER if wide else preset}
+    assert TrackOptions().step_options(True, "cpu", model).robust_scale == fitted["robust_scale"]["rgbd"]
     assert "track_sigma_s" in model.metadata["provenance"]["timings_s"]
     assert not (tmp_path / "m.narf.work").exists()
     # The factor is the fit of the frames' NEES on the same sequence (drawn again: the same frames), its tracks
@@ -126,7 +133,7 @@ def test_training_fits_the_trackers_own_factor_on_sequences_of_its_object(tiny_d
     again = calibrate_tracker(model, dataset_tool(Dataset.open(tiny_dataset)), (48, 36), tmp_path / "again", [1])
     assert pooled == [True, False]
     nees = track_nees(model, Dataset.open(tmp_path / "again" / "sequence-48x36-60-s1"), rgb_only=False,
-                      rays=fitted["rays"]["rgbd"])
+                      rays=fitted["rays"]["rgbd"], huber=fitted["robust_scale"]["rgbd"])
     assert again == fitted and fitted["rgbd"] == fit_track_scale(nees, 7) and len(nees) == fitted["rgbd_frames"]
     for depth, key in ((True, "rgbd"), (False, "rgb")):
         assert sigma_scale(model, TrackOptions(), depth) == fitted[key]
@@ -153,23 +160,23 @@ def test_the_fit_takes_fewer_rays_with_depth_only_where_their_frames_come_out_as
                                                                                        chosen):
     """With depth the fit tracks its sequences at the views' camera on the solver's own rays and on FEWER_RAYS, keeps
     the fewer where their frames' mean ADD stays within FEWER_RAYS_LOSS of the others' (1.1 mm against 1 mm: yes,
-    1.2: no) and those hold within FEWER_RAYS_HELD of the diameter (1 mm of 20 cm: yes, of 5 cm: no), fits every
+    1.2: no) and those hold within TRACK_HELD of the diameter (1 mm of 20 cm: yes, of 5 cm: no), fits every
     RGB-D factor on tracks of the rays it kept (the finer camera's on those alone) and records
     both means; without depth the solver's own."""
     from concurrent.futures import Future
 
-    from narf_core.track import FEWER_RAYS, FEWER_RAYS_HELD, FEWER_RAYS_LOSS, TrackOptions
+    from narf_core.track import FEWER_RAYS, FEWER_RAYS_LOSS, TRACK_HELD, WIDE_HUBER, TrackOptions
     from narf_core.train.track_sigma import fit_track_scale, track_calibration
 
     budget, jacobian = TrackOptions().rays_for(True), TrackOptions().jacobian
-    assert (budget, FEWER_RAYS, FEWER_RAYS_LOSS, FEWER_RAYS_HELD) == (768, 512, 1.15, 0.01)
+    assert (budget, FEWER_RAYS, FEWER_RAYS_LOSS, TRACK_HELD) == (768, 512, 1.15, 0.01)
     calls = []
 
     class Tracks:  # a track's NEES say which rays it ran on: 1 on the solver's own, 4 on the fewer
         model = type("Model", (), {"joints": [object()], "diameter": diameter})()
 
-        def submit(self, folder, rgb_only, jacobian, rays=0):
-            calls.append((rgb_only, jacobian, rays))
+        def submit(self, folder, rgb_only, jacobian, rays=0, huber=0.0):
+            calls.append((rgb_only, jacobian, rays, huber))
             done = Future()
             add = fewer_add if not rgb_only and rays == FEWER_RAYS else 0.001
             done.set_result(([4.0 if rays == FEWER_RAYS else 1.0] * 10, [add] * 10))
@@ -181,11 +188,60 @@ def test_the_fit_takes_fewer_rays_with_depth_only_where_their_frames_come_out_as
     assert fit["rgbd_add_m"] == {"768": pytest.approx(0.001), "512": pytest.approx(fewer_add)}
     assert fit["rgbd"] == fit["fine"]["rgbd"] == fit_track_scale([4.0 if chosen == FEWER_RAYS else 1.0] * 20, 7)
     rgbd = [c for c in calls if not c[0]]
-    # both on the views' camera's sequences, asked before anything waits; then the finer camera's on the rays kept
-    assert rgbd == [(False, jacobian, budget)] * 2 + [(False, jacobian, FEWER_RAYS)] * 2 + [(False, jacobian, chosen)] * 2
+    # both on the views' camera's sequences, asked before anything waits; where the solver's own do not hold (1 mm of
+    # 5 cm) the wider Huber scale on them (no better here: not kept); then the finer camera's on the rays kept
+    wide = [(False, jacobian, budget, WIDE_HUBER)] * 2 if diameter * TRACK_HELD < 0.001 else []
+    assert rgbd == ([(False, jacobian, budget, 0.0)] * 2 + [(False, jacobian, FEWER_RAYS, 0.0)] * 2 + wide
+                    + [(False, jacobian, chosen, 0.0)] * 2)
+    assert fit["robust_scale"] == {"rgbd": TrackOptions().step_options(True).robust_scale}
     assert all(c[2] == 0 for c in calls if c[0])  # without depth: the solver's own
     calls.clear()  # a fit without depth tracks nothing with depth and records no rays
     assert "rays" not in track_calibration(Tracks(), {"": two}, modalities=("rgb",)) and all(c[0] for c in calls)
+
+
+@pytest.mark.parametrize("kept_add, wide_add, diameter, chosen", [
+    (0.004, 0.003, 0.2, 0.3),  # 2 % of the diameter: tried, and 0.75 of the preset's: kept
+    (0.004, 0.0036, 0.2, 0.1),  # tried, 0.9 of the preset's: not kept
+    (0.001, 0.0005, 0.2, 0.1),  # 0.5 % of the diameter: the track holds, not tried
+])
+def test_the_fit_takes_the_wider_huber_scale_with_depth_only_where_the_track_wanders_and_it_pays(
+        tiny_dataset, kept_add, wide_add, diameter, chosen):
+    """With depth, where the tracks on the rays kept do not hold within TRACK_HELD of the diameter, the fit tracks the
+    views' camera's sequences once more at WIDE_HUBER, keeps it where their frames' mean ADD comes out below
+    WIDE_HUBER_GAIN of the preset's, fits every RGB-D factor on tracks at the scale it kept (the finer camera's on
+    those alone) and records both means; where the tracks hold it tracks nothing more and records the preset's."""
+    from concurrent.futures import Future
+
+    from narf_core.track import TRACK_HELD, WIDE_HUBER, WIDE_HUBER_GAIN, TrackOptions
+    from narf_core.train.track_sigma import fit_track_scale, track_calibration
+
+    budget, jacobian = TrackOptions().rays_for(True), TrackOptions().jacobian
+    preset = TrackOptions().step_options(True).robust_scale
+    assert (WIDE_HUBER, WIDE_HUBER_GAIN, preset) == (0.3, 0.85, 0.1)
+    calls = []
+
+    class Tracks:  # the fewer rays come out far worse (never kept); a track's NEES say its Huber scale: 9 at the wide
+        model = type("Model", (), {"joints": [object()], "diameter": diameter})()
+
+        def submit(self, folder, rgb_only, jacobian, rays=0, huber=0.0):
+            calls.append((rgb_only, rays, huber))
+            done = Future()
+            add = 0.001 if rgb_only else kept_add * (10 if rays != budget else 1) if not huber else wide_add
+            done.set_result(([9.0 if huber else 1.0] * 10, [add] * 10))
+            return done
+
+    two = [tiny_dataset, tiny_dataset]  # two sequences (one folder twice) at each camera
+    fit = track_calibration(Tracks(), {"": two, "fine": two})
+    assert fit["rays"] == {"rgbd": budget} and fit["robust_scale"] == {"rgbd": chosen}
+    tried = kept_add > TRACK_HELD * diameter
+    assert fit.get("rgbd_huber_add_m") == ({"0.1": pytest.approx(kept_add), "0.3": pytest.approx(wide_add)} if tried
+                                           else None)
+    assert fit["rgbd"] == fit["fine"]["rgbd"] == fit_track_scale([9.0 if chosen == WIDE_HUBER else 1.0] * 20, 7)
+    wide = [(False, budget, WIDE_HUBER)] * 2 if tried else []
+    finer = [(False, budget, WIDE_HUBER if chosen == WIDE_HUBER else 0.0)] * 2
+    # after the two budgets' on the views' camera: the wide scale's there where tried, then the finer camera's
+    assert [c for c in calls if not c[0]][4:] == wide + finer
+    assert all(c[2] == 0.0 for c in calls if c[0])  # without depth: the preset's
 
 
 def test_the_fits_sequences_drawn_ahead_in_their_own_process_are_the_ones_the_fit_draws(tmp_path, monkeypatch):

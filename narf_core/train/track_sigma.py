@@ -38,18 +38,19 @@ FINE_WIDTH = 640
 
 
 def track_nees(model: NarfModel, dataset: Dataset, rgb_only: bool, seed: int = 0,
-               jacobian_rgb: str | None = None, rays: int = 0) -> list[float]:
+               jacobian_rgb: str | None = None, rays: int = 0, huber: float = 0.0) -> list[float]:
     """The default tracker over the sequence ``dataset`` from its first label; per frame with a
     covariance, the NEES of its true error under the frame's Σ before the tracker's factor (``sigma_scale``
     1: the NEES at the factor used times its square)."""
-    return track_errors(model, dataset, rgb_only, seed, jacobian_rgb, rays)[0]
+    return track_errors(model, dataset, rgb_only, seed, jacobian_rgb, rays, huber)[0]
 
 
 def track_errors(model: NarfModel, dataset: Dataset, rgb_only: bool, seed: int = 0,
-                 jacobian_rgb: str | None = None, rays: int = 0) -> tuple[list[float], list[float]]:
+                 jacobian_rgb: str | None = None, rays: int = 0, huber: float = 0.0) -> tuple[list[float], list[float]]:
     """:func:`track_nees` and, per frame not lost, the ADD (m); without depth with the frame Jacobian
     ``jacobian_rgb`` (None: the default tracker's for this model), with ``rays`` per iteration (0: the solver's own,
-    not the model's choice: the one being made)."""
+    not the model's choice: the one being made) and with depth at the Huber scale ``huber`` (0: the preset's, not
+    the model's choice)."""
     from narf_core.estimate import local_error
     from narf_core.track import RETRY_SIGMA_SCALE, SIGMA_SCALE, TrackOptions, track
     from narf_core.track_io import load_frames, score, sequence_frames
@@ -59,8 +60,9 @@ def track_errors(model: NarfModel, dataset: Dataset, rgb_only: bool, seed: int =
     fixed = {"rgbd": RETRY_SIGMA_SCALE[TrackOptions().solver_for(True)],
              "rgb": SIGMA_SCALE[TrackOptions().solver_for(False)]["rgb"]}
     scale = fixed["rgb" if rgb_only else "rgbd"]
+    preset = TrackOptions().step_options(True).robust_scale  # not the model's own: the one being chosen
     options = TrackOptions(first_frame="warm", seed=seed, sigma_scale=fixed["rgbd"], sigma_scale_rgb=fixed["rgb"],
-                           rays_per_iteration=rays or TrackOptions().rays_for(not rgb_only),
+                           rays_per_iteration=rays or TrackOptions().rays_for(not rgb_only), robust_scale=huber or preset,
                            **({"jacobian_rgb": jacobian_rgb} if jacobian_rgb else {}))
     frames = sequence_frames(dataset)
     nees, adds = [], []
@@ -102,14 +104,15 @@ class _Tracks:
             self.pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                                             initializer=_load_worker, initargs=(str(path),))
 
-    def submit(self, folder: Path, rgb_only: bool, jacobian: str, rays: int = 0):
+    def submit(self, folder: Path, rgb_only: bool, jacobian: str, rays: int = 0, huber: float = 0.0):
         from concurrent.futures import Future
 
         if self.pool is not None:
-            return self.pool.submit(_worker_track, str(folder), rgb_only, jacobian, rays)
+            return self.pool.submit(_worker_track, str(folder), rgb_only, jacobian, rays, huber)
         done: Future = Future()
         with torch_threads(1):
-            done.set_result(track_errors(self.model, Dataset.open(folder), rgb_only, jacobian_rgb=jacobian, rays=rays))
+            done.set_result(track_errors(self.model, Dataset.open(folder), rgb_only, jacobian_rgb=jacobian, rays=rays,
+                                         huber=huber))
         return done
 
     def __enter__(self) -> _Tracks:
@@ -133,65 +136,84 @@ def _load_worker(path: str) -> None:
     _worker_model = load_bundle(Path(path), "cpu")
 
 
-def _worker_track(folder: str, rgb_only: bool, jacobian: str, rays: int = 0) -> tuple[list[float], list[float]]:
+def _worker_track(folder: str, rgb_only: bool, jacobian: str, rays: int = 0,
+                  huber: float = 0.0) -> tuple[list[float], list[float]]:
     assert _worker_model is not None, "the worker loads its bundle first"
-    return track_errors(_worker_model, Dataset.open(Path(folder)), rgb_only, jacobian_rgb=jacobian, rays=rays)
+    return track_errors(_worker_model, Dataset.open(Path(folder)), rgb_only, jacobian_rgb=jacobian, rays=rays,
+                        huber=huber)
 
 
 def track_calibration(tracks: _Tracks, cameras: dict[str, list[Path]], modalities=("rgbd", "rgb")) -> dict:
     """``metadata["uncertainty"]["track"]`` less its seeds: per camera (``cameras``: the sequences' folders at the
     views' camera under ``""``, and at a finer one under ``"fine"``) and per modality the factor on a warm-started
     frame's σ (:func:`narf_core.track.sigma_scale`) fitted on the pooled frames of its sequences (one camera, its
-    focal length ``fx`` in pixels), and at the views' camera the solver, the frame Jacobian and the rays it was
-    fitted with (``solvers``: the default tracker's for that modality; ``jacobians``: with depth the default
-    tracker's and without, where its ``jacobian_rgb`` is "auto", the one whose frames' mean ADD on the first sequence
-    at the views' camera is lower by :data:`~narf_core.track.DIFFERENCES_GAIN`, both means under ``rgb_add_m``;
-    ``rays``: with depth, where the default tracker leaves them to the model, :data:`~narf_core.track.FEWER_RAYS`
-    where the frames' mean ADD over every sequence at the views' camera stays within
-    :data:`~narf_core.track.FEWER_RAYS_LOSS` of the solver's own budget's and that one's within
-    :data:`~narf_core.track.FEWER_RAYS_HELD` of the object's diameter, else that budget, both means under
-    ``rgbd_add_m``, every sequence once more: a single sequence's track is one draw; training's time being the
-    issue's too, the Jacobian's choice takes one sequence; the finer camera's fit takes what was chosen). Every track
-    that waits on nothing is asked for first, so that ``tracks``' workers run side by side."""
+    focal length ``fx`` in pixels), and at the views' camera the solver, the frame Jacobian, the rays and the Huber
+    scale it was fitted with (``solvers``: the default tracker's for that modality; ``jacobians``: with depth the
+    default tracker's and without, where its ``jacobian_rgb`` is "auto", the one whose frames' mean ADD on the first
+    sequence at the views' camera is lower by :data:`~narf_core.track.DIFFERENCES_GAIN`, both means under
+    ``rgb_add_m``; ``rays``: with depth, where the default tracker leaves them to the model,
+    :data:`~narf_core.track.FEWER_RAYS` where the frames' mean ADD over every sequence at the views' camera stays
+    within :data:`~narf_core.track.FEWER_RAYS_LOSS` of the solver's own budget's and that one's within
+    :data:`~narf_core.track.TRACK_HELD` of the object's diameter, else that budget, both means under
+    ``rgbd_add_m``, every sequence once more: a single sequence's track is one draw; ``robust_scale``: with depth,
+    where the default tracker leaves it to the model, :data:`~narf_core.track.WIDE_HUBER` where the tracks on the
+    rays kept do not hold within :data:`~narf_core.track.TRACK_HELD` of the diameter and that scale's frames' mean
+    ADD, every sequence once more, comes out below :data:`~narf_core.track.WIDE_HUBER_GAIN` of theirs, else the
+    preset's, both means under ``rgbd_huber_add_m`` where tried; training's time being the issue's too, the
+    Jacobian's choice takes one sequence; the finer camera's fit takes what was chosen). Every track that waits on
+    nothing is asked for first, so that ``tracks``' workers run side by side."""
     from narf_core.estimate import JACOBIANS
-    from narf_core.track import DIFFERENCES_GAIN, FEWER_RAYS, FEWER_RAYS_HELD, FEWER_RAYS_LOSS, TrackOptions
+    from narf_core.track import (
+        DIFFERENCES_GAIN, FEWER_RAYS, FEWER_RAYS_LOSS, TRACK_HELD, WIDE_HUBER, WIDE_HUBER_GAIN, TrackOptions,
+    )
 
     default = TrackOptions()
     auto = "rgb" in modalities and default.jacobian_rgb == "auto" and default.solver_for(False) == "gauss-newton"
     budget = default.rays_for(True)  # the solver's own, not a model's
-    fewer = ("rgbd" in modalities and not default.rays_per_iteration and default.solver_for(True) == "gauss-newton"
-             and FEWER_RAYS < budget)
+    newton = "rgbd" in modalities and default.solver_for(True) == "gauss-newton"
+    fewer = newton and not default.rays_per_iteration and FEWER_RAYS < budget
+    wider = newton and not default.robust_scale and WIDE_HUBER != default.step_options(True).robust_scale
     asked: dict = {}
 
-    def ask(camera: str, modality: str, i: int, jacobian: str, rays: int = 0):
-        key = (camera, modality, i, jacobian, rays)
+    def ask(camera: str, modality: str, i: int, jacobian: str, rays: int = 0, huber: float = 0.0):
+        key = (camera, modality, i, jacobian, rays, huber)
         if key not in asked:
-            asked[key] = tracks.submit(cameras[camera][i], modality == "rgb", jacobian, rays)
+            asked[key] = tracks.submit(cameras[camera][i], modality == "rgb", jacobian, rays, huber)
         return asked[key]
 
     def mean_add(futures) -> float:  # over the frames of the tracks, pooled
         adds = [a for f in futures for a in f.result()[1]]
         return float(np.mean(adds)) if adds else math.inf
 
+    views = range(len(cameras[""]))
     chosen = {"rgbd": default.jacobian_for(True), "rgb": default.jacobian_for(False)}
     rays = {"rgbd": budget, "rgb": 0}
-    both = ({n: [ask("", "rgbd", i, chosen["rgbd"], n) for i in range(len(cameras[""]))] for n in (budget, FEWER_RAYS)}
-            if fewer else {})
+    huber = {"rgbd": 0.0, "rgb": 0.0}  # 0: the preset's
+    both = {n: [ask("", "rgbd", i, chosen["rgbd"], n) for i in views] for n in (budget, FEWER_RAYS)} if fewer else {}
     firsts = {j: ask("", "rgb", 0, j) for j in JACOBIANS} if auto else {}
     for camera, folders in cameras.items():
         for modality in modalities:
-            if (modality == "rgbd" and not fewer) or (modality == "rgb" and not auto):
+            if (modality == "rgbd" and not (fewer or wider)) or (modality == "rgb" and not auto):
                 for i in range(len(folders)):
                     ask(camera, modality, i, chosen[modality], rays[modality])
-    rays_mean = mean = None
-    if fewer:  # both budgets at the views' camera, then the finer camera's with the one chosen
+    rays_mean = huber_mean = mean = None
+    if fewer:  # both budgets at the views' camera
         rays_mean = {str(n): mean_add(f) for n, f in both.items()}
         own = rays_mean[str(budget)]
-        held = own <= FEWER_RAYS_HELD * tracks.model.diameter
+        held = own <= TRACK_HELD * tracks.model.diameter
         rays["rgbd"] = FEWER_RAYS if held and rays_mean[str(FEWER_RAYS)] <= FEWER_RAYS_LOSS * own else budget
+    if wider:  # on the rays kept, where their tracks do not hold, the wider scale too
+        kept = mean_add([ask("", "rgbd", i, chosen["rgbd"], rays["rgbd"]) for i in views])
+        if kept > TRACK_HELD * tracks.model.diameter:
+            preset = default.step_options(True).robust_scale
+            huber_mean = {str(preset): kept,
+                          str(WIDE_HUBER): mean_add([ask("", "rgbd", i, chosen["rgbd"], rays["rgbd"], WIDE_HUBER)
+                                                     for i in views])}
+            huber["rgbd"] = WIDE_HUBER if huber_mean[str(WIDE_HUBER)] < WIDE_HUBER_GAIN * kept else 0.0
+    if fewer or wider:  # then the finer camera's with what was chosen
         for camera, folders in cameras.items():
             for i in range(len(folders)):
-                ask(camera, "rgbd", i, chosen["rgbd"], rays["rgbd"])
+                ask(camera, "rgbd", i, chosen["rgbd"], rays["rgbd"], huber["rgbd"])
     if auto:  # both Jacobians on the first sequence (one more track), then the rest with the one chosen
         mean = {j: mean_add([f]) for j, f in firsts.items()}
         chosen["rgb"] = "differences" if mean["differences"] < DIFFERENCES_GAIN * mean["derivatives"] else "derivatives"
@@ -206,14 +228,18 @@ def track_calibration(tracks: _Tracks, cameras: dict[str, list[Path]], modalitie
                 fit["rgb_add_m"] = mean
             if camera == "" and modality == "rgbd" and rays_mean is not None:
                 fit["rgbd_add_m"] = rays_mean
+            if camera == "" and modality == "rgbd" and huber_mean is not None:
+                fit["rgbd_huber_add_m"] = huber_mean
             nees = [n for i in range(len(folders))
-                    for n in asked[(camera, modality, i, chosen[modality], rays[modality])].result()[0]]
+                    for n in asked[(camera, modality, i, chosen[modality], rays[modality], huber[modality])].result()[0]]
             fit[modality] = fit_track_scale(nees, 6 + len(tracks.model.joints))
             fit[f"{modality}_frames"] = len(nees)
         if camera == "":
             out = {"solvers": {m: default.solver_for(m == "rgbd") for m in modalities},
                    "jacobians": {m: chosen[m] for m in modalities},
-                   **({"rays": {"rgbd": rays["rgbd"]}} if "rgbd" in modalities else {}), **fit}
+                   **({"rays": {"rgbd": rays["rgbd"]}} if "rgbd" in modalities else {}),
+                   **({"robust_scale": {"rgbd": huber["rgbd"] or default.step_options(True).robust_scale}}
+                      if "rgbd" in modalities else {}), **fit}
         else:
             out[camera] = fit
     return out
