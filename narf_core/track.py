@@ -1260,7 +1260,7 @@ def sigma_scale(model: NarfModel, options: TrackOptions, depth: bool, camera: Pi
     if own and fitted_rays and model.aabb.device.type == "cpu" and fitted_rays != options.rays_for(depth, "cpu", model):
         own = None
     fitted_huber = calibrated_huber(model, key)
-    if own and fitted_huber and fitted_huber != options.step_options(depth, model.aabb.device, model).robust_scale:
+    if own and fitted_huber and fitted_huber != options.huber_for(depth, model):
         own = None
     factor, fitted_fx = (own, track.get("fx")) if own else (SIGMA_SCALE[solver][key], training_fx(model))
     if camera is None or not fitted_fx:

@@ -172,7 +172,8 @@ def track_calibration(tracks: _Tracks, cameras: dict[str, list[Path]], modalitie
     budget = default.rays_for(True)  # the solver's own, not a model's
     newton = "rgbd" in modalities and default.solver_for(True) == "gauss-newton"
     fewer = newton and not default.rays_per_iteration and FEWER_RAYS < budget
-    wider = newton and not default.robust_scale and WIDE_HUBER != default.step_options(True).robust_scale
+    preset = default.step_options(True).robust_scale  # not a model's: the one a wider scale is measured against
+    wider = newton and not default.robust_scale and WIDE_HUBER != preset
     asked: dict = {}
 
     def ask(camera: str, modality: str, i: int, jacobian: str, rays: int = 0, huber: float = 0.0):
@@ -205,7 +206,6 @@ def track_calibration(tracks: _Tracks, cameras: dict[str, list[Path]], modalitie
     if wider:  # on the rays kept, where their tracks do not hold, the wider scale too
         kept = mean_add([ask("", "rgbd", i, chosen["rgbd"], rays["rgbd"]) for i in views])
         if kept > TRACK_HELD * tracks.model.diameter:
-            preset = default.step_options(True).robust_scale
             huber_mean = {str(preset): kept,
                           str(WIDE_HUBER): mean_add([ask("", "rgbd", i, chosen["rgbd"], rays["rgbd"], WIDE_HUBER)
                                                      for i in views])}
@@ -238,7 +238,7 @@ def track_calibration(tracks: _Tracks, cameras: dict[str, list[Path]], modalitie
             out = {"solvers": {m: default.solver_for(m == "rgbd") for m in modalities},
                    "jacobians": {m: chosen[m] for m in modalities},
                    **({"rays": {"rgbd": rays["rgbd"]}} if "rgbd" in modalities else {}),
-                   **({"robust_scale": {"rgbd": huber["rgbd"] or default.step_options(True).robust_scale}}
+                   **({"robust_scale": {"rgbd": huber["rgbd"] or preset}}
                       if "rgbd" in modalities else {}), **fit}
         else:
             out[camera] = fit
