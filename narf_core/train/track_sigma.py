@@ -186,6 +186,9 @@ def track_calibration(tracks: _Tracks, cameras: dict[str, list[Path]], modalitie
         adds = [a for f in futures for a in f.result()[1]]
         return float(np.mean(adds)) if adds else math.inf
 
+    def holds(mean: float) -> bool:  # a track whose frames' mean ADD stays within TRACK_HELD of the diameter
+        return mean <= TRACK_HELD * tracks.model.diameter
+
     views = range(len(cameras[""]))
     chosen = {"rgbd": default.jacobian_for(True), "rgb": default.jacobian_for(False)}
     rays = {"rgbd": budget, "rgb": 0}
@@ -201,11 +204,10 @@ def track_calibration(tracks: _Tracks, cameras: dict[str, list[Path]], modalitie
     if fewer:  # both budgets at the views' camera
         rays_mean = {str(n): mean_add(f) for n, f in both.items()}
         own = rays_mean[str(budget)]
-        held = own <= TRACK_HELD * tracks.model.diameter
-        rays["rgbd"] = FEWER_RAYS if held and rays_mean[str(FEWER_RAYS)] <= FEWER_RAYS_LOSS * own else budget
+        rays["rgbd"] = FEWER_RAYS if holds(own) and rays_mean[str(FEWER_RAYS)] <= FEWER_RAYS_LOSS * own else budget
     if wider:  # on the rays kept, where their tracks do not hold, the wider scale too
         kept = mean_add([ask("", "rgbd", i, chosen["rgbd"], rays["rgbd"]) for i in views])
-        if kept > TRACK_HELD * tracks.model.diameter:
+        if not holds(kept):
             huber_mean = {str(preset): kept,
                           str(WIDE_HUBER): mean_add([ask("", "rgbd", i, chosen["rgbd"], rays["rgbd"], WIDE_HUBER)
                                                      for i in views])}
