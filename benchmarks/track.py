@@ -14,6 +14,7 @@ per-frame settings head the table; ``--band-m`` marches only a band around the m
 (``EstimateOptions.band_m``), to compare with the whole box, and ``--march iteration`` marches at
 every iteration instead of sampling the band found once per frame (``TrackOptions.march``);
 ``--no-depth-align`` leaves the prediction where the motion model puts it (``TrackOptions.depth_align``);
+``--surface-fit-iterations 0`` leaves out its fit to the depth's points (``TrackOptions.surface_fit_iterations``);
 ``--no-occluder-test`` trusts the mask in full with depth, also on the rays where the depth shows an occluder
 (``TrackOptions.occluder_test``); ``--hidden-joint-sigma 0`` leaves a joint the mask hides free
 (``TrackOptions.hidden_joint_sigma``). With
@@ -252,6 +253,7 @@ def markdown(result: dict) -> str:
                     for m, p in result.get("per_frame", {}).items())
         + f", {band}"
         + ("" if o.get("depth_align", True) else ", the prediction not aligned to the depth")
+        + _surface_fit_text(o.get("surface_fit_iterations", TrackOptions.surface_fit_iterations))
         + ("" if o.get("occluder_test", True) else ", with depth the mask trusted in full (no occluder test)")
         + _hold_text(o.get("hidden_joint_sigma", TrackOptions.hidden_joint_sigma))
         + ("" if o.get("outside_weight_rgb", 1.0) >= 1 else
@@ -300,6 +302,14 @@ def markdown(result: dict) -> str:
                       + ", ".join(f"{c['frame_seconds_mean'] * 1000:.0f} ({c['tracker_seconds_mean'] * 1000:.0f})"
                                   for c in service["per_client"] if "error" not in c)]
     return "\n".join(lines)
+
+
+def _surface_fit_text(iterations: int) -> str:
+    """The caption's clause for ``TrackOptions.surface_fit_iterations`` where it is not the tracker's default."""
+    if iterations == TrackOptions.surface_fit_iterations:
+        return ""
+    return (f", with depth the prediction fitted to the depth's points in {iterations} iterations" if iterations
+            else ", with depth the prediction not fitted to the depth's points")
 
 
 def _hold_text(sigma: float) -> str:
@@ -367,7 +377,7 @@ def _joint_cell(run: dict) -> str:
 def main(args: argparse.Namespace) -> int:
     """``narf bench track``: ``args`` has ``work``, ``models``, ``tools``, ``frames``, ``sizes``,
     ``modalities``, ``events``, ``seed`` (a list), ``ray_seeds``, ``images``, ``spp``, ``iterations``, ``rays``,
-    ``huber``, ``solver``, ``band_m``, ``march``, ``depth_align``, ``jacobian``, ``jacobian_once``, ``occluder_test``,
+    ``huber``, ``solver``, ``band_m``, ``march``, ``depth_align``, ``surface_fit_iterations``, ``jacobian``, ``jacobian_once``, ``occluder_test``,
     ``hidden_joint_sigma``, ``service_clients``, ``json``."""
     tools = args.tools or sorted(p.stem for p in args.models.glob("*.narf"))
     models, missing = {}, []
@@ -386,6 +396,7 @@ def main(args: argparse.Namespace) -> int:
                  "robust_scale": getattr(args, "huber", None),
                  "solver": getattr(args, "solver", None), "band_m": getattr(args, "band_m", None),
                  "march": getattr(args, "march", None), "depth_align": getattr(args, "depth_align", None),
+                 "surface_fit_iterations": getattr(args, "surface_fit_iterations", None),
                  "jacobian": getattr(args, "jacobian", None), "jacobian_rgb": getattr(args, "jacobian", None),
                  "outside_weight_rgb": getattr(args, "outside_weight_rgb", None),
                  "jacobian_once": getattr(args, "jacobian_once", None),

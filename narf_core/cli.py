@@ -1071,6 +1071,9 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     sub.add_argument("--no-depth-align", dest="depth_align", action="store_false",
                      help="with depth, do not first move the prediction along the line of sight onto the observed "
                           "depth (TrackOptions.depth_align; to compare)")
+    sub.add_argument("--surface-fit-iterations", type=_non_negative_int, default=None, metavar="N",
+                     help="with depth, iterations of the prediction's fit to the observed depth's points in pose and "
+                          "joints (TrackOptions.surface_fit_iterations; 0: off, to compare; default: the tracker's)")
     sub.add_argument("--no-occluder-test", dest="occluder_test", action="store_const", const=False, default=None,
                      help="with depth, trust the mask in full, also where the depth shows an occluder in front of the "
                           "render outside it (TrackOptions.occluder_test; to compare)")

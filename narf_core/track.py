@@ -56,6 +56,7 @@ from narf_core.geometry import Pinhole, Rays, so3_exp, so3_log
 from narf_core.modes import MODES, choose_mode
 from narf_core.observation import BORDER_CODE, check_observation, dilate, usable_depth
 from narf_core.sampling import Samples
+from narf_core.surface_fit import SurfaceFitOptions, surface_fit
 
 if TYPE_CHECKING:
     from narf_core.bundle import NarfModel
@@ -250,6 +251,11 @@ class TrackOptions:
     # points meet the observed depth (depth_aligned): the iterations' fixed step sizes alone let the
     # track lag behind the object's motion in depth.
     depth_align: bool = True
+    # With depth, the (aligned) prediction is then fitted to the observed depth's points in pose and joints, this
+    # many iterations of articulated ICP (narf_core/surface_fit.py; 0 = off): a thin part's joint moves the
+    # photometric iterations' rays by a pixel or less a frame, and alone they fell behind the lamp's joints by a
+    # degree a frame (docs/benchmarks.md, session 64).
+    surface_fit_iterations: int = 3
     mode: str = "auto"  # the render mode (narf_core/modes.py)
     # "frame": where a ray can meet the object is found once per frame, from the model's surface
     # points at the prediction, and no iteration marches (refine_frame; narf mode, band_m 0);
@@ -372,6 +378,7 @@ class TrackOptions:
         need(self.rays_per_iteration >= 0, "rays_per_iteration", "must be >= 0 (0 = the solver's own)")
         need(self.robust_scale >= 0, "robust_scale", "must be >= 0 (0 = the model's own or the preset's)")
         need(self.reinit_iterations >= 1, "reinit_iterations", "must be >= 1")
+        need(0 <= self.surface_fit_iterations <= 100, "surface_fit_iterations", "must be in [0, 100] (0 = off)")
         need(1 <= self.reinit_theta_starts <= 64, "reinit_theta_starts", "must be in [1, 64]")
         need(self.first_frame in FIRST_FRAMES, "first_frame", f"must be one of {', '.join(FIRST_FRAMES)}")
         need(0 < self.velocity_smoothing <= 1, "velocity_smoothing", "must be in (0, 1]")
@@ -1483,6 +1490,10 @@ def _step(
         T_pred, joints_pred = predict(model, state, t)
         if depth is not None and opts.depth_align:
             T_pred = depth_aligned(model, camera, T_pred, joints_pred, mask, depth)
+        if depth is not None and opts.surface_fit_iterations:
+            fit = surface_fit(model, camera, T_pred, joints_pred, mask, depth,
+                              SurfaceFitOptions(iterations=opts.surface_fit_iterations))
+            T_pred, joints_pred = fit.T_cam_obj, fit.joints
         result = _warm_refine(model, camera, frame.image, mask, depth, T_pred, joints_pred, opts, checks, colour)
         iterations += result.iterations
         retry_scale = opts.sigma_scale or RETRY_SIGMA_SCALE[opts.solver_for(True)]

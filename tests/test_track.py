@@ -859,8 +859,8 @@ def test_a_frame_whose_sigma_passes_the_limits_gets_a_second_round(clamp, clamp_
 def test_frame_and_iteration_marching_give_the_same_step(clamp, clamp_sequence: Path) -> None:
     """A warm-started Adam step without marching (march "frame") lands where the refiner that marches
     every iteration lands: the same rays, the same loss, renders equal up to the march's early stop.
-    Both start from the prediction itself (the move onto the depth before either, the same for both,
-    is tested on its own below)."""
+    Both start from the prediction itself (the move onto the depth and the fit to its points before either,
+    the same for both, are tested on their own: below and in tests/test_surface_fit.py)."""
     from narf_core.data.dataset import Dataset
     from narf_core.geometry import se3_exp
     from narf_core.track import TrackOptions, TrackState, step
@@ -877,7 +877,8 @@ def test_frame_and_iteration_marching_give_the_same_step(clamp, clamp_sequence: 
         for march in ("frame", "iteration"):
             state = TrackState.initial(clamp, off @ frames[i].T_cam_obj, frames[i].joints, frames[i - 1].time,
                                        status="tracking")
-            options = TrackOptions(march=march, solver="adam", depth_align=False, retry_uncertain=False)  # one round
+            options = TrackOptions(march=march, solver="adam", depth_align=False, retry_uncertain=False,
+                                   surface_fit_iterations=0)  # one round
             result, _ = step(clamp, dataset.camera, observed, state, options)
             assert result.status in ("tracking", "uncertain") and result.uncertainty is not None
             answers.append(result)
@@ -991,7 +992,8 @@ def test_tracker_aligns_the_prediction_to_the_depth(clamp, clamp_sequence: Path)
     about a centimetre off (they see the depth's change along a ray only between two samples), one by
     differences (the default) lands within millimetres too: within 3 mm taken at every iteration, within 5 with
     the frame's first kept (``jacobian_once``, the default; from a centimetre and a half off the chord's steps
-    come up shorter)."""
+    come up shorter). The fit to the depth's points (on by default) is off here: it closes that gap as well
+    (tests/test_surface_fit.py)."""
     from narf_core.data.dataset import Dataset
     from narf_core.track import TrackInputError, TrackOptions, TrackState, _centre, step
 
@@ -1008,7 +1010,8 @@ def test_tracker_aligns_the_prediction_to_the_depth(clamp, clamp_sequence: Path)
                                   (False, "differences", False), (False, "derivatives", False),
                                   (False, "differences", True)):
         state = TrackState.initial(clamp, start, frame.joints, observed.time - 1 / 30, status="tracking")
-        options = TrackOptions(depth_align=align, uncertainty_rays=0, jacobian=jacobian, jacobian_once=once)
+        options = TrackOptions(depth_align=align, uncertainty_rays=0, jacobian=jacobian, jacobian_once=once,
+                               surface_fit_iterations=0)
         result, _ = step(clamp, dataset.camera, observed, state, options)
         assert result.status == "tracking"
         centre_now = result.T_cam_obj[:3, :3] @ _centre(clamp) + result.T_cam_obj[:3, 3]
