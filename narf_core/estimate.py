@@ -181,6 +181,7 @@ GN_UNCERTAINTY_RAYS = 1024  # the gauss-newton preset's uncertainty_rays
 GN_POSE_STARTS = 9  # the gauss-newton preset's pose_starts, refined only below ...
 GN_POSE_OVERLAP = 0.8  # ... this overlap of the first estimate's silhouette with the mask (pose_starts_overlap)
 GN_SLIDE_SHARE = 0.05  # the gauss-newton preset's slide_share (docs/benchmarks.md, session 49)
+GN_SURFACE_FIT = 20  # the gauss-newton preset's surface_fit_iterations (docs/benchmarks.md, session 64)
 # The robust preset's reference_box_px: the largest mask box (grown by box_margin) of the bundled
 # clamp's test and novel views at 160x120, its training size; boxes up to it keep the plain sampling.
 ROBUST_BOX_PX = 144
@@ -309,6 +310,11 @@ class EstimateOptions:
     # the line of sight, which Gauss-Newton's narrower basin does not pull back; on in `gauss-newton` (whose
     # pruning keeps the starts that tie, see narf_core/gauss_newton.py), off in the Adam presets.
     align_start: bool = False
+    # With depth, every start row (pose and θ, after align_start and the configuration search) is first fitted to
+    # the observed depth's points inside the mask, this many iterations of articulated ICP (narf_core/surface_fit.py;
+    # 0 = off): a thin part's joint moves few of the refiner's rays, whose robust loss is flat until the part's edge
+    # crosses them, while every observed point of the part pulls it; on in `gauss-newton`.
+    surface_fit_iterations: int = 0
     # With two joints or more: this many configurations (the given one and a Latin hypercube over the joint
     # box) are first fitted to the mask through the model's surface points (_theta_search: a silhouette
     # chamfer, whose basin is wide where a thin rendered part that misses its image has no gradient, and with
@@ -389,6 +395,7 @@ class EstimateOptions:
         need(0 <= self.pose_starts_overlap < 1, "pose_starts_overlap", "must be in [0, 1) (0 = every pose start at once)")
         need(0 <= self.slide_share <= 0.25, "slide_share", "must be in [0, 0.25] (0 = off)")
         need(0 <= self.theta_search <= 256, "theta_search", "must be in [0, 256] (0 = off)")
+        need(0 <= self.surface_fit_iterations <= 100, "surface_fit_iterations", "must be in [0, 100] (0 = off)")
         need(0 <= self.search_theta_starts <= 64, "search_theta_starts", "must be in [0, 64] (0 = theta_starts)")
         need(1 <= self.uncertainty_patch <= 64, "uncertainty_patch", "must be in [1, 64]")
         for name in ("sigma_floor_position", "sigma_floor_rotation", "sigma_floor_joint", "uncertainty_usual_residual",
@@ -433,7 +440,8 @@ class EstimateOptions:
         ``adam_iterations`` runs Adam first instead of the pyramid. Each configuration start begins at the
         given pose or its copy moved onto the mask and the depth, whichever scores lower (``align_start``):
         a thin tool's start 2 cm off along the line of sight otherwise ends there, or in a wrong joint
-        basin (docs/benchmarks.md). Where the estimate's silhouette then overlaps the mask less than
+        basin (docs/benchmarks.md); with depth each start is then fitted to the observed surface's points
+        (``surface_fit_iterations``, ``GN_SURFACE_FIT``): the lamp's joints came out twice as near. Where the estimate's silhouette then overlaps the mask less than
         ``GN_POSE_OVERLAP`` (intersection over union), it refines once more from ``GN_POSE_STARTS`` pose starts
         (``pose_starts_overlap``): Gauss-Newton's basin is narrower than Adam's, and a start 30 deg off
         often ends in a wrong minimum, while one within the basin explains the mask and pays only the check.
@@ -458,7 +466,7 @@ class EstimateOptions:
             "tolerance": 3e-3, "patience": 2, "uncertainty_rays": GN_UNCERTAINTY_RAYS, "theta_search": 16,
             "search_theta_starts": 8, "align_start": True, "pose_starts": GN_POSE_STARTS,
             "pose_starts_overlap": GN_POSE_OVERLAP, "refinements": 3, "slide_share": GN_SLIDE_SHARE, **PARTIAL_MASK,
-            **overrides,
+            "surface_fit_iterations": GN_SURFACE_FIT, **overrides,
         })
 
     def max_rays(self, depth: bool = True) -> int:
@@ -1060,6 +1068,12 @@ class _Parameterisation:
     def thetas(self, p: Tensor) -> Tensor:
         return self.mid + self.half * torch.sin(p[:, 6:])
 
+    def rows_of(self, T: Tensor, theta: Tensor) -> Tensor:
+        """``[S, 6 + k]``: the rows whose :meth:`poses` are ``T [S, 4, 4]`` and :meth:`thetas` ``θ [S, k]`` (θ kept
+        ``_U_LIMIT`` inside its limits, as :meth:`u_of` keeps it)."""
+        xi = se3_log(invert_pose(self.T_centre) @ T @ invert_pose(self.T_init) @ self.T_centre)
+        return torch.cat([xi[:, :3] / self.radius, xi[:, 3:6], self.u_of(theta)], -1)
+
     def moved(self, p: Tensor, shift: Tensor) -> Tensor:
         """The rows ``p [R, 6 + k]`` with their poses moved by ``shift [R, 3]`` metres in the camera frame."""
         T_shift = torch.eye(4, dtype=torch.float64).repeat(len(p), 1, 1)
@@ -1155,7 +1169,24 @@ def _start_rows(
         losses = loss_fn(rays, obs.levels[0], index, param.poses(both), param.thetas(both)).cpu()
         losses = torch.where(torch.isfinite(losses), losses, math.inf).reshape(2, -1)  # [given, moved] per θ start
         rows = both.reshape(2, len(rows), -1)[losses.argmin(0), torch.arange(len(rows))]
+    if opts.surface_fit_iterations and loss_fn.uses_depth:
+        rows = _surface_fitted(loss_fn.model, obs, camera, param, rows, opts)
     return torch.cat([rows, _turned_rows(loss_fn, obs, camera, param, rows)]) if wide else rows
+
+
+def _surface_fitted(model: NarfModel, obs: _Observation, camera: Pinhole, param: _Parameterisation, rows: Tensor,
+                    opts: EstimateOptions) -> Tensor:
+    """``rows [S, 6 + k]``, each fitted to the observed depth's points inside the mask (``opts.surface_fit_iterations``
+    iterations of :func:`narf_core.surface_fit.fit_points`; the points drawn with ``opts.seed``)."""
+    from narf_core.surface_fit import SurfaceFitOptions, fit_points, pixel_points
+
+    target = obs.levels[-1]
+    inside = (target.mask > 0.5).cpu()
+    fit = SurfaceFitOptions(iterations=opts.surface_fit_iterations)
+    observed = pixel_points(camera, obs.pixels.cpu()[inside], target.depth.cpu()[inside], fit.observed_points, opts.seed)
+    T, theta = param.poses(rows), param.thetas(rows)
+    fitted = [fit_points(model, camera, T[i], theta[i], observed, fit)[:2] for i in range(len(rows))]
+    return param.rows_of(torch.stack([f[0] for f in fitted]), torch.stack([f[1] for f in fitted]))
 
 
 def _score_rays(obs: _Observation, camera: Pinhole, seed: int) -> tuple[Tensor, Rays]:

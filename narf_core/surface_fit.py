@@ -69,18 +69,24 @@ class SurfaceFit:
 
 
 def observed_points(camera: Pinhole, mask: np.ndarray, depth: np.ndarray, count: int, seed: int = 0) -> Tensor:
-    """``[M, 3]`` float64 camera-frame points of up to ``count`` of ``mask``'s pixels (``[H, W]``, > 0.5) with a
-    finite ``depth`` > 0 (z, metres), drawn evenly with ``seed``; pixel ``(u, v)`` is seen at its centre."""
+    """``[M, 3]``: :func:`pixel_points` of ``mask``'s pixels (``[H, W]``, > 0.5) at their ``depth`` (``[H, W]``)."""
     d = np.asarray(depth, dtype=np.float64)
-    v, u = np.nonzero((np.asarray(mask) > 0.5) & np.isfinite(d) & (d > 0))
-    if len(v) > count:
-        pick = np.sort(np.random.default_rng(seed).choice(len(v), count, replace=False))
-        v, u = v[pick], u[pick]
+    v, u = np.nonzero(np.asarray(mask) > 0.5)
+    return pixel_points(camera, torch.from_numpy(np.stack([u, v], -1)), torch.from_numpy(d[v, u]), count, seed)
+
+
+def pixel_points(camera: Pinhole, uv: Tensor, z: Tensor, count: int, seed: int = 0) -> Tensor:
+    """``[M, 3]`` float64 camera-frame points of up to ``count`` of the integer pixels ``uv [Q, 2]`` (u, v) whose
+    depth ``z [Q]`` (metres) is finite and > 0, drawn evenly with ``seed``; a pixel is seen at its centre."""
+    uv, z = uv.cpu().double(), z.cpu().double()
+    has = torch.isfinite(z) & (z > 0)
+    uv, z = uv[has], z[has]
+    if len(z) > count:
+        pick = np.sort(np.random.default_rng(seed).choice(len(z), count, replace=False))
+        uv, z = uv[pick], z[pick]
     K = camera.K.detach().double().cpu()
-    z = torch.from_numpy(d[v, u])
-    x = (torch.from_numpy(u + 0.5) - K[0, 2]) / K[0, 0] * z
-    y = (torch.from_numpy(v + 0.5) - K[1, 2]) / K[1, 1] * z
-    return torch.stack([x, y, z], -1)
+    xy = (uv + 0.5 - K[:2, 2]) / torch.stack([K[0, 0], K[1, 1]]) * z[:, None]
+    return torch.cat([xy, z[:, None]], -1)
 
 
 def _link_points(model: NarfModel) -> tuple[Tensor, Tensor]:
@@ -124,21 +130,33 @@ def surface_fit(
 ) -> SurfaceFit:
     """The pose ``T_cam_obj [4, 4]`` and ``joints`` moved so that the model's visible surface points meet
     the points the ``depth`` image (``[H, W]``, z in metres) observes inside ``mask`` (``[H, W]``): see the
-    module. Returned unchanged (``pairs`` 0) where there is nothing to fit: no surface points, fewer than
-    ``_MIN_PAIRS`` observed or kept pairs, a step that is not finite."""
+    module and :func:`fit_points`."""
     kin = model.kinematics
-    theta = kin.joint_vector(joints).double()
+    T, theta, pairs, rms = fit_points(model, camera, torch.as_tensor(np.asarray(T_cam_obj), dtype=torch.float64),
+                                      kin.joint_vector(joints).double(),
+                                      observed_points(camera, mask, depth, options.observed_points), options)
+    return SurfaceFit(T.numpy().copy(), {n: float(theta[i]) for i, n in enumerate(kin.joint_names)}, pairs, rms)
+
+
+def fit_points(
+    model: NarfModel, camera: Pinhole, T_cam_obj: Tensor, theta: Tensor, observed: Tensor,
+    options: SurfaceFitOptions = SurfaceFitOptions(),
+) -> tuple[Tensor, Tensor, int, float]:
+    """The fit of the module from ``T_cam_obj [4, 4]`` and ``θ [k]`` (float64) to the camera-frame points
+    ``observed [M, 3]``: the moved pose and θ, the pairs the last step kept and their weighted RMS distance
+    before it (metres). The start comes back (0 pairs, NaN) where there is nothing to fit: no surface points,
+    fewer than ``_MIN_PAIRS`` observed or kept pairs, a step that is not finite."""
+    kin = model.kinematics
     k = theta.shape[0]
-    T = torch.as_tensor(np.asarray(T_cam_obj), dtype=torch.float64).clone()
-    unchanged = SurfaceFit(T.numpy().copy(), {n: float(theta[i]) for i, n in enumerate(kin.joint_names)}, 0,
-                           float("nan"))
+    T, theta = T_cam_obj.detach().double().cpu().clone(), theta.detach().double().cpu().clone()
     points, owners = _link_points(model)
-    O = observed_points(camera, mask, depth, options.observed_points)
+    O = observed.double().cpu()
     if options.iterations <= 0 or len(points) == 0 or len(O) < _MIN_PAIRS:
-        return unchanged
+        return T, theta, 0, float("nan")
     low, high = kin.lower, kin.upper
     shifts = torch.cat([torch.zeros(1, k), torch.eye(k), -torch.eye(k)]).double() * _DIFFERENCE
     seen = None
+    start = (T.clone(), theta.clone())
     pairs, rms = 0, float("nan")
     for _ in range(options.iterations):
         links = kin.link_poses(theta[None] + shifts) if k else kin.link_poses(None)[None]
@@ -147,7 +165,7 @@ def surface_fit(
             everything = torch.ones(1, len(points), dtype=torch.bool)
             seen = torch.nonzero(~hidden_points(X, camera, point_spacing(model), everything)[0])[:, 0]
             if len(seen) == 0:
-                return unchanged
+                break
         distance, nearest = torch.cdist(O, X[seen]).min(1)
         paired = seen[nearest]
         w = _huber_weights(distance, options.huber_m, options.reject_m)
@@ -177,6 +195,5 @@ def surface_fit(
             theta = torch.minimum(torch.maximum(theta + step[6:], low), high)
         pairs, rms = kept, float(((w * distance**2).sum() / w.sum()).sqrt())
     if pairs == 0:
-        return unchanged
-    return SurfaceFit(T.numpy().copy(), {n: float(theta[i]) for i, n in enumerate(kin.joint_names)}, pairs, rms)
-
+        return start[0], start[1], 0, float("nan")
+    return T, theta, pairs, rms

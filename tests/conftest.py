@@ -1,4 +1,4 @@
-"""Shared test fixtures: the hand-written assets and the two float dtypes every numeric test runs in.
+"""Shared test fixtures: the hand-written assets, the bundled clamp and the two float dtypes every numeric test runs in.
 
 The service and client tests live in ``tests/service/`` with their own ``conftest.py``.
 """
@@ -23,6 +23,14 @@ def pytest_configure(config: pytest.Config) -> None:
 def assets() -> Path:
     """The folder of hand-written test assets (URDFs and their meshes)."""
     return ASSETS
+
+
+@pytest.fixture(scope="session")
+def bundled_clamp():
+    """The bundled model ``models/clamp.narf``, loaded once (tests must not change it)."""
+    from narf_core.bundle import load_bundle
+
+    return load_bundle(Path(__file__).resolve().parent.parent / "models" / "clamp.narf")
 
 
 @pytest.fixture(params=[torch.float32, torch.float64], ids=["f32", "f64"])

@@ -19,10 +19,11 @@ from tests.test_estimate import CAMERA, TRUTH, loss_problem, make_model, observe
 LENGTH = 0.18  # the toy's box along x, its longest side
 # One Levenberg-Marquardt iteration damped so hard that it barely moves: the refinement ends where it starts, as
 # one stuck in a minimum along the axis does; the pose starts and the other estimates are off, so that only the
-# slide's second refinement can move it (align_start, which would move the start onto the mask, is off too). The
-# mask is trusted partially, as where a depth image contradicts it (the slide runs only there), with one θ start.
+# slide's second refinement can move it (align_start, which would move the start onto the mask, is off too, and so
+# is the starts' fit to the depth's points, which moves it back along the bar). The mask is trusted partially, as
+# where a depth image contradicts it (the slide runs only there), with one θ start.
 STUCK = dict(iterations=1, damping=1e6, uncertainty=False, theta_starts=1, pose_starts=1, refinements=1,
-             align_start=False, mask_trust="partial", partial_theta_starts=1)
+             align_start=False, mask_trust="partial", partial_theta_starts=1, surface_fit_iterations=0)
 
 
 @pytest.fixture(scope="module")

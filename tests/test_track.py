@@ -16,10 +16,8 @@ CLAMP = ROOT / "models" / "clamp.narf"
 
 
 @pytest.fixture(scope="module")
-def clamp():
-    from narf_core.bundle import load_bundle
-
-    return load_bundle(CLAMP)
+def clamp(bundled_clamp):
+    return bundled_clamp
 
 
 @pytest.fixture(scope="module")
