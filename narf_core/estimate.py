@@ -1177,16 +1177,15 @@ def _start_rows(
 def _surface_fitted(model: NarfModel, obs: _Observation, camera: Pinhole, param: _Parameterisation, rows: Tensor,
                     opts: EstimateOptions) -> Tensor:
     """``rows [S, 6 + k]``, each fitted to the observed depth's points inside the mask (``opts.surface_fit_iterations``
-    iterations of :func:`narf_core.surface_fit.fit_points`; the points drawn with ``opts.seed``)."""
+    iterations of :func:`narf_core.surface_fit.fit_points`, all rows at once; the points drawn with ``opts.seed``)."""
     from narf_core.surface_fit import SurfaceFitOptions, fit_points, pixel_points
 
     target = obs.levels[-1]
     inside = (target.mask > 0.5).cpu()
     fit = SurfaceFitOptions(iterations=opts.surface_fit_iterations)
     observed = pixel_points(camera, obs.pixels.cpu()[inside], target.depth.cpu()[inside], fit.observed_points, opts.seed)
-    T, theta = param.poses(rows), param.thetas(rows)
-    fitted = [fit_points(model, camera, T[i], theta[i], observed, fit)[:2] for i in range(len(rows))]
-    return param.rows_of(torch.stack([f[0] for f in fitted]), torch.stack([f[1] for f in fitted]))
+    T, theta, _, _ = fit_points(model, camera, param.poses(rows), param.thetas(rows), observed, fit)  # every row at once
+    return param.rows_of(T, theta)
 
 
 def _score_rays(obs: _Observation, camera: Pinhole, seed: int) -> tuple[Tensor, Rays]:

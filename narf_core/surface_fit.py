@@ -13,12 +13,12 @@ Observed points: the mask's pixels with a finite depth > 0, back-projected into 
 surface points (``NarfModel.sample_points``, link frame) moved by forward kinematics at θ and by the
 pose, those no other point hides in its image cell at the start (:func:`narf_core.band.hidden_points`:
 a point on a part's far side must not pair with the near side's observation). Each iteration pairs
-every observed point with the nearest model point and takes the Gauss-Newton step (Levenberg-Marquardt,
+every observed point with the nearest model point (a k-d tree) and takes the Gauss-Newton step (Levenberg-Marquardt,
 a fixed damping) in the translation, the rotation about the paired points' centroid (both camera
 frame) and θ that moves the paired points onto the observed ones: point to point, each pair weighted
 by Huber at ``huber_m`` and left out beyond ``reject_m`` (a mask's stray blob, an occluder's edge).
 θ's columns of the Jacobian are central differences of forward kinematics, θ stays within the
-limits. Point to point, not to the plane: normals from the surface points' neighbours (a few millimetres
+limits. Several starts (the refiner's rows) are fitted at once. Point to point, not to the plane: normals from the surface points' neighbours (a few millimetres
 apart) were wrong on thin parts, and the observed depth's own normals, which converge in fewer iterations
 from centimetres off, tracked no better on our sequences and would carry a real sensor's noise
 (docs/benchmarks.md, session 64).
@@ -106,11 +106,32 @@ def _link_points(model: NarfModel) -> tuple[Tensor, Tensor]:
 
 
 def _camera_from_links(T_cam_obj: Tensor, links: Tensor, points: Tensor, owners: Tensor) -> Tensor:
-    """``[C, N, 3]``: link-frame ``points [N, 3]`` of links ``owners [N]`` in the camera frame, for every
-    configuration's link poses ``links [C, L, 4, 4]`` (object frame) under ``T_cam_obj [4, 4]``."""
-    A = T_cam_obj @ links  # [C, L, 4, 4]
-    R, t = A[:, owners, :3, :3], A[:, owners, :3, 3]
-    return (R @ points[None, :, :, None])[..., 0] + t
+    """``[S, C, N, 3]``: link-frame ``points`` (``[N, 3]``, or ``[S, N, 3]`` per pose) of links ``owners`` (``[N]`` or
+    ``[S, N]``) in the camera frame, for every pose ``T_cam_obj [S, 4, 4]`` and each of its configurations' link poses
+    ``links [S, C, L, 4, 4]`` (object frame)."""
+    A = T_cam_obj[:, None, None] @ links  # [S, C, L, 4, 4]
+    S, C = A.shape[:2]
+    points, owners = points.expand(S, -1, -1), owners.expand(S, -1)
+    index = owners[:, None, :, None, None].expand(S, C, owners.shape[1], 4, 4)
+    A = torch.gather(A, 2, index)  # [S, C, N, 4, 4]
+    return (A[..., :3, :3] @ points[:, None, :, :, None])[..., 0] + A[..., :3, 3]
+
+
+def _nearest(observed: Tensor, X: Tensor, hidden: Tensor) -> tuple[Tensor, Tensor]:
+    """``(distance [S, M], index [S, M])``: for each of the points ``observed [M, 3]``, the nearest of each pose's
+    points ``X [S, N, 3]`` that ``hidden [S, N]`` leaves in (a k-d tree a pose: a dense distance matrix cost ten
+    times as much)."""
+    from scipy.spatial import cKDTree
+
+    query = observed.numpy()
+    distance = torch.full(observed.shape[:1], float("inf"), dtype=torch.float64).repeat(len(X), 1)
+    index = torch.zeros(len(X), len(observed), dtype=torch.long)
+    for s, (points, hide) in enumerate(zip(X, hidden)):
+        kept = torch.nonzero(~hide)[:, 0]
+        if len(kept):
+            d, i = cKDTree(points[kept].numpy()).query(query)
+            distance[s], index[s] = torch.from_numpy(d), kept[torch.from_numpy(i)]
+    return distance, index
 
 
 def _huber_weights(distance: Tensor, scale: float, reject: float) -> Tensor:
@@ -132,68 +153,76 @@ def surface_fit(
     the points the ``depth`` image (``[H, W]``, z in metres) observes inside ``mask`` (``[H, W]``): see the
     module and :func:`fit_points`."""
     kin = model.kinematics
-    T, theta, pairs, rms = fit_points(model, camera, torch.as_tensor(np.asarray(T_cam_obj), dtype=torch.float64),
-                                      kin.joint_vector(joints).double(),
+    T, theta, pairs, rms = fit_points(model, camera, torch.as_tensor(np.asarray(T_cam_obj), dtype=torch.float64)[None],
+                                      kin.joint_vector(joints).double()[None],
                                       observed_points(camera, mask, depth, options.observed_points), options)
-    return SurfaceFit(T.numpy().copy(), {n: float(theta[i]) for i, n in enumerate(kin.joint_names)}, pairs, rms)
+    return SurfaceFit(T[0].numpy().copy(), {n: float(theta[0, i]) for i, n in enumerate(kin.joint_names)},
+                      int(pairs[0]), float(rms[0]))
 
 
 def fit_points(
     model: NarfModel, camera: Pinhole, T_cam_obj: Tensor, theta: Tensor, observed: Tensor,
     options: SurfaceFitOptions = SurfaceFitOptions(),
-) -> tuple[Tensor, Tensor, int, float]:
-    """The fit of the module from ``T_cam_obj [4, 4]`` and ``θ [k]`` (float64) to the camera-frame points
-    ``observed [M, 3]``: the moved pose and θ, the pairs the last step kept and their weighted RMS distance
-    before it (metres). The start comes back (0 pairs, NaN) where there is nothing to fit: no surface points,
-    fewer than ``_MIN_PAIRS`` observed or kept pairs, a step that is not finite."""
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The fit of the module from each of the starts ``T_cam_obj [S, 4, 4]`` and ``θ [S, k]`` (float64) to the
+    camera-frame points ``observed [M, 3]``, all starts at once: the moved poses ``[S, 4, 4]`` and θ ``[S, k]``, the
+    pairs each one's last step kept ``[S]`` and their weighted RMS distance before it ``[S]`` (metres). A start comes
+    back as it was (0 pairs, NaN) where there is nothing to fit: no surface points, fewer than ``_MIN_PAIRS``
+    observed or kept pairs; a start stops where its step is not finite or it keeps too few pairs."""
     kin = model.kinematics
-    k = theta.shape[0]
-    T, theta = T_cam_obj.detach().double().cpu().clone(), theta.detach().double().cpu().clone()
+    S, k = theta.shape
+    T0, theta0 = T_cam_obj.detach().double().cpu(), theta.detach().double().cpu()
+    T, theta = T0.clone(), theta0.clone()
     points, owners = _link_points(model)
+    edges = torch.cumsum(torch.bincount(owners, minlength=len(model.links)), 0).tolist()
+    spans = [(i, a, b) for i, (a, b) in enumerate(zip([0] + edges[:-1], edges)) if b > a]  # each link's points
     O = observed.double().cpu()
+    pairs, rms = torch.zeros(S, dtype=torch.long), torch.full((S,), float("nan"), dtype=torch.float64)
     if options.iterations <= 0 or len(points) == 0 or len(O) < _MIN_PAIRS:
-        return T, theta, 0, float("nan")
-    low, high = kin.lower, kin.upper
+        return T, theta, pairs, rms
     shifts = torch.cat([torch.zeros(1, k), torch.eye(k), -torch.eye(k)]).double() * _DIFFERENCE
-    seen = None
-    start = (T.clone(), theta.clone())
-    pairs, rms = 0, float("nan")
+    active = torch.ones(S, dtype=torch.bool)
+    far = None  # [S, N] the points hidden at the start, kept out of the pairing
+    eye = torch.eye(6 + k, dtype=torch.float64)
     for _ in range(options.iterations):
-        links = kin.link_poses(theta[None] + shifts) if k else kin.link_poses(None)[None]
-        X = _camera_from_links(T, links[:1], points, owners)[0]  # [N, 3] at θ
-        if seen is None:
+        links = kin.link_poses(theta[:, None] + shifts) if k else kin.link_poses(None)[None, None].expand(S, 1, -1, -1, -1)
+        A = T[:, None] @ links[:, 0]  # [S, L, 4, 4] camera from link, at θ
+        X = torch.cat([points[a:b] @ A[:, i, None, :3, :3].mT[:, 0] + A[:, i, None, :3, 3] for i, a, b in spans], 1)
+        if far is None:
             everything = torch.ones(1, len(points), dtype=torch.bool)
-            seen = torch.nonzero(~hidden_points(X, camera, point_spacing(model), everything)[0])[:, 0]
-            if len(seen) == 0:
-                break
-        distance, nearest = torch.cdist(O, X[seen]).min(1)
-        paired = seen[nearest]
+            far = torch.stack([hidden_points(x, camera, point_spacing(model), everything)[0] for x in X])
+            active &= ~far.all(1)
+        distance, nearest = _nearest(O, X, far)  # [S, M]
         w = _huber_weights(distance, options.huber_m, options.reject_m)
-        kept = int((w > 0).sum())
-        if kept < _MIN_PAIRS:
+        kept = (w > 0).sum(1)
+        active &= kept >= _MIN_PAIRS
+        if not bool(active.any()):
             break
-        P = X[paired]
-        centre = (w[:, None] * P).sum(0) / w.sum()
-        q = P - centre
-        J = torch.zeros(len(P), 3, 6 + k, dtype=torch.float64)
-        J[:, :, :3] = torch.eye(3, dtype=torch.float64)
-        J[:, :, 3:6] = -skew(q)  # d(ω x q)/dω = -[q]x
+        P = torch.gather(X, 1, nearest[..., None].expand(-1, -1, 3))  # [S, M, 3]
+        centre = (w[..., None] * P).sum(1) / w.sum(1).clamp_min(1e-12)[:, None]
+        q = P - centre[:, None]
+        J = torch.zeros(S, len(O), 3, 6 + k, dtype=torch.float64)
+        J[..., :3] = torch.eye(3, dtype=torch.float64)
+        J[..., 3:6] = -skew(q)  # d(ω x q)/dω = -[q]x
         if k:
-            moved = _camera_from_links(T, links[1:], points[paired], owners[paired])  # [2k, M, 3]
-            J[:, :, 6:] = ((moved[:k] - moved[k:]) / (2 * _DIFFERENCE)).permute(1, 2, 0)
-        r = (O - P).reshape(-1)
-        Jf, wf = J.reshape(-1, 6 + k), w.repeat_interleave(3)
-        H = Jf.T @ (wf[:, None] * Jf)
-        H = H + options.damping * torch.diag(torch.diagonal(H)) + 1e-12 * torch.eye(6 + k, dtype=H.dtype)
-        step = torch.linalg.solve(H, Jf.T @ (wf * r))
-        if not bool(torch.isfinite(step).all()):
-            break
-        R = so3_exp(step[3:6])
-        T[:3, :3] = R @ T[:3, :3]
-        T[:3, 3] = R @ (T[:3, 3] - centre) + centre + step[:3]
+            paired = torch.gather(points.expand(S, -1, -1), 1, nearest[..., None].expand(-1, -1, 3))
+            moved = _camera_from_links(T, links[:, 1:], paired, owners[nearest])  # [S, 2k, M, 3]
+            J[..., 6:] = ((moved[:, :k] - moved[:, k:]) / (2 * _DIFFERENCE)).permute(0, 2, 3, 1)
+        Jf, wf = J.reshape(S, -1, 6 + k), w.repeat_interleave(3, dim=1)
+        H = Jf.transpose(1, 2) @ (wf[..., None] * Jf)
+        H = H + options.damping * torch.diag_embed(torch.diagonal(H, dim1=1, dim2=2)) + 1e-12 * eye
+        g = (Jf.transpose(1, 2) @ (wf * (O - P).reshape(S, -1))[..., None])[..., 0]
+        step = torch.linalg.solve(H, g)
+        active &= torch.isfinite(step).all(1)
+        step = torch.where(active[:, None], step, torch.zeros_like(step))
+        R = so3_exp(step[:, 3:6])
+        T[:, :3, 3] = (R @ (T[:, :3, 3] - centre)[..., None])[..., 0] + centre + step[:, :3]
+        T[:, :3, :3] = R @ T[:, :3, :3]
         if k:
-            theta = torch.minimum(torch.maximum(theta + step[6:], low), high)
-        pairs, rms = kept, float(((w * distance**2).sum() / w.sum()).sqrt())
-    if pairs == 0:
-        return start[0], start[1], 0, float("nan")
+            theta = torch.minimum(torch.maximum(theta + step[:, 6:], kin.lower), kin.upper)
+        fitted = torch.sqrt((w * distance**2).sum(1) / w.sum(1).clamp_min(1e-12))
+        pairs = torch.where(active, kept, pairs)
+        rms = torch.where(active, fitted, rms)
+    never = pairs == 0  # as it came, to the bit
+    T[never], theta[never] = T0[never], theta0[never]
     return T, theta, pairs, rms

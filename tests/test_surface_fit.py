@@ -183,3 +183,29 @@ def test_the_refiner_fits_its_starts_to_the_depth(clamp, frames) -> None:
     torch.testing.assert_close(back, rows, atol=1e-12, rtol=0)
     with pytest.raises(EstimateInputError, match=r"options\.surface_fit_iterations"):
         EstimateOptions.gauss_newton(surface_fit_iterations=-1)
+
+
+def test_starts_fitted_together_land_where_each_lands_alone(clamp, frames) -> None:
+    """``fit_points`` fits several starts at once (the refiner's rows): each lands where it lands fitted alone, a start
+    with nothing to pair (behind the camera) comes back as it was, and the others are not held up by it."""
+    import torch
+
+    from narf_core.surface_fit import SurfaceFitOptions, fit_points, observed_points
+
+    dataset, pairs = frames
+    label, observed = pairs[2]
+    options = SurfaceFitOptions(iterations=4)
+    points = observed_points(dataset.camera, observed.mask, observed.depth, options.observed_points)
+    starts = [_off(label), _off(label, shift_m=(-0.005, 0.002, -0.004), turn_rad=(0.03, 0.0, -0.02), jaw_m=-0.01)]
+    behind = np.array(label.T_cam_obj, dtype=np.float64)
+    behind[2, 3] = -1.0
+    T = torch.as_tensor(np.stack([s[0] for s in starts] + [behind]))
+    theta = torch.tensor([[s[1]["jaw_opening"]] for s in starts] + [[label.joints["jaw_opening"]]], dtype=torch.float64)
+    together = fit_points(clamp, dataset.camera, T, theta, points, options)
+    for i in range(len(starts)):
+        alone = fit_points(clamp, dataset.camera, T[i:i + 1], theta[i:i + 1], points, options)
+        torch.testing.assert_close(together[0][i], alone[0][0], atol=1e-9, rtol=0)
+        torch.testing.assert_close(together[1][i], alone[1][0], atol=1e-9, rtol=0)
+        assert int(together[2][i]) == int(alone[2][0]) >= 20
+    assert int(together[2][2]) == 0 and bool(torch.isnan(together[3][2]))
+    assert torch.equal(together[0][2], T[2]) and torch.equal(together[1][2], theta[2])
