@@ -441,7 +441,8 @@ class EstimateOptions:
         given pose or its copy moved onto the mask and the depth, whichever scores lower (``align_start``):
         a thin tool's start 2 cm off along the line of sight otherwise ends there, or in a wrong joint
         basin (docs/benchmarks.md); with depth each start is then fitted to the observed surface's points
-        (``surface_fit_iterations``, ``GN_SURFACE_FIT``): the lamp's joints came out twice as near. Where the estimate's silhouette then overlaps the mask less than
+        (``surface_fit_iterations``, ``GN_SURFACE_FIT``): the lamp's joints came out twice as near. Where the
+        estimate's silhouette then overlaps the mask less than
         ``GN_POSE_OVERLAP`` (intersection over union), it refines once more from ``GN_POSE_STARTS`` pose starts
         (``pose_starts_overlap``): Gauss-Newton's basin is narrower than Adam's, and a start 30 deg off
         often ends in a wrong minimum, while one within the basin explains the mask and pays only the check.

@@ -13,15 +13,15 @@ Observed points: the mask's pixels with a finite depth > 0, back-projected into 
 surface points (``NarfModel.sample_points``, link frame) moved by forward kinematics at θ and by the
 pose, those no other point hides in its image cell at the start (:func:`narf_core.band.hidden_points`:
 a point on a part's far side must not pair with the near side's observation). Each iteration pairs
-every observed point with the nearest model point (a k-d tree) and takes the Gauss-Newton step (Levenberg-Marquardt,
-a fixed damping) in the translation, the rotation about the paired points' centroid (both camera
+every observed point with the nearest model point (a k-d tree) and takes the Gauss-Newton step
+(Levenberg-Marquardt, a fixed damping) in the translation, the rotation about the paired points' centroid (both camera
 frame) and θ that moves the paired points onto the observed ones: point to point, each pair weighted
 by Huber at ``huber_m`` and left out beyond ``reject_m`` (a mask's stray blob, an occluder's edge).
 θ's columns of the Jacobian are central differences of forward kinematics, θ stays within the
-limits. Several starts (the refiner's rows) are fitted at once. Point to point, not to the plane: normals from the surface points' neighbours (a few millimetres
-apart) were wrong on thin parts, and the observed depth's own normals, which converge in fewer iterations
-from centimetres off, tracked no better on our sequences and would carry a real sensor's noise
-(docs/benchmarks.md, session 64).
+limits. Several starts (the refiner's rows) are fitted at once. Point to point, not to the plane:
+normals from the surface points' neighbours (a few millimetres apart) were wrong on thin parts, and the
+observed depth's own normals, which converge in fewer iterations from centimetres off, tracked no better
+on our sequences and would carry a real sensor's noise (docs/benchmarks.md, session 64).
 """
 
 from __future__ import annotations
@@ -174,8 +174,6 @@ def fit_points(
     T0, theta0 = T_cam_obj.detach().double().cpu(), theta.detach().double().cpu()
     T, theta = T0.clone(), theta0.clone()
     points, owners = _link_points(model)
-    edges = torch.cumsum(torch.bincount(owners, minlength=len(model.links)), 0).tolist()
-    spans = [(i, a, b) for i, (a, b) in enumerate(zip([0] + edges[:-1], edges)) if b > a]  # each link's points
     O = observed.double().cpu()
     pairs, rms = torch.zeros(S, dtype=torch.long), torch.full((S,), float("nan"), dtype=torch.float64)
     if options.iterations <= 0 or len(points) == 0 or len(O) < _MIN_PAIRS:
@@ -185,9 +183,9 @@ def fit_points(
     far = None  # [S, N] the points hidden at the start, kept out of the pairing
     eye = torch.eye(6 + k, dtype=torch.float64)
     for _ in range(options.iterations):
-        links = kin.link_poses(theta[:, None] + shifts) if k else kin.link_poses(None)[None, None].expand(S, 1, -1, -1, -1)
-        A = T[:, None] @ links[:, 0]  # [S, L, 4, 4] camera from link, at θ
-        X = torch.cat([points[a:b] @ A[:, i, None, :3, :3].mT[:, 0] + A[:, i, None, :3, 3] for i, a, b in spans], 1)
+        links = (kin.link_poses(theta[:, None] + shifts) if k  # [S, 1 + 2k, L, 4, 4]: at θ, then θ ± a step
+                 else kin.link_poses(None)[None, None].expand(S, 1, -1, -1, -1))
+        X = _camera_from_links(T, links[:, :1], points, owners)[:, 0]  # [S, N, 3] at θ
         if far is None:
             everything = torch.ones(1, len(points), dtype=torch.bool)
             far = torch.stack([hidden_points(x, camera, point_spacing(model), everything)[0] for x in X])
