@@ -377,8 +377,8 @@ def _joint_cell(run: dict) -> str:
 def main(args: argparse.Namespace) -> int:
     """``narf bench track``: ``args`` has ``work``, ``models``, ``tools``, ``frames``, ``sizes``,
     ``modalities``, ``events``, ``seed`` (a list), ``ray_seeds``, ``images``, ``spp``, ``iterations``, ``rays``,
-    ``huber``, ``solver``, ``band_m``, ``march``, ``depth_align``, ``surface_fit_iterations``, ``jacobian``, ``jacobian_once``, ``occluder_test``,
-    ``hidden_joint_sigma``, ``service_clients``, ``json``."""
+    ``huber``, ``solver``, ``band_m``, ``march``, ``depth_align``, ``surface_fit_iterations``, ``jacobian``,
+    ``jacobian_once``, ``occluder_test``, ``hidden_joint_sigma``, ``service_clients``, ``json``."""
     tools = args.tools or sorted(p.stem for p in args.models.glob("*.narf"))
     models, missing = {}, []
     for tool in tools:

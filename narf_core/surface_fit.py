@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 
 from narf_core.band import hidden_points, point_spacing
+from narf_core.gauss_newton import robust_weights
 from narf_core.geometry import Pinhole, skew, so3_exp
 
 if TYPE_CHECKING:
@@ -134,9 +135,10 @@ def _nearest(observed: Tensor, X: Tensor, hidden: Tensor) -> tuple[Tensor, Tenso
     return distance, index
 
 
-def _huber_weights(distance: Tensor, scale: float, reject: float) -> Tensor:
-    """IRLS weights of Huber's loss at ``scale`` for ``distance [M]``, 0 beyond ``reject``."""
-    w = torch.where(distance <= scale, torch.ones_like(distance), scale / distance.clamp_min(1e-12))
+def _pair_weights(distance: Tensor, scale: float, reject: float) -> Tensor:
+    """IRLS weights of Huber's loss at ``scale`` (:func:`~narf_core.gauss_newton.robust_weights`) for the pairs'
+    ``distance``, 0 beyond ``reject``."""
+    w = robust_weights(distance, "huber", scale)
     return torch.where(distance > reject, torch.zeros_like(w), w)
 
 
@@ -191,7 +193,7 @@ def fit_points(
             far = torch.stack([hidden_points(x, camera, point_spacing(model), everything)[0] for x in X])
             active &= ~far.all(1)
         distance, nearest = _nearest(O, X, far)  # [S, M]
-        w = _huber_weights(distance, options.huber_m, options.reject_m)
+        w = _pair_weights(distance, options.huber_m, options.reject_m)
         kept = (w > 0).sum(1)
         active &= kept >= _MIN_PAIRS
         if not bool(active.any()):

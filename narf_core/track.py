@@ -3,10 +3,11 @@
 Each frame is a few iterations of the refiner (:func:`refine_frame`: Gauss-Newton on one set of rays;
 see :class:`TrackOptions`) that start from a constant-velocity
 prediction of the previous estimate; with depth the prediction is first moved onto the observed depth
-(:func:`depth_aligned`) and fitted to its points in pose and θ (:func:`narf_core.surface_fit.surface_fit`). The state carried from frame to frame is a
-:class:`TrackState`: the last estimate (pose, θ), its time, the velocity of the object's box
-centre and its angular velocity (both in camera axes, so that the prediction turns the object
-about itself), the joint velocities and, where the solver gives one, the covariance Σ.
+(:func:`depth_aligned`) and fitted to its points in pose and θ (:func:`narf_core.surface_fit.surface_fit`).
+The state carried from frame to frame is a :class:`TrackState`: the last estimate (pose, θ), its time,
+the velocity of the object's box centre and its angular velocity (both in camera axes, so that the
+prediction turns the object about itself), the joint velocities and, where the solver gives one, the
+covariance Σ.
 
 Without depth the state also carries a colour gain per channel: each tracked frame's own fit at its
 estimate moves it a step (``options.colour_rate_rgb``), and once it is far from one
