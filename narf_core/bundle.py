@@ -8,6 +8,8 @@ A bundle holds tensors only (never pickle):
   ``part.<i>.*``           the part fields, if the bundle keeps them (render mode ``parts``)
   ``part_grid.<i>``        their occupancy grids (bits, packed)
   ``points.<link>``        surface points per link, in the link frame, for ADD
+  ``dense.<link>``         denser surface points per link (link frame) that depth is fitted to; a bundle
+                           saved without them loads, and the fit uses ``points.*``
 and one JSON document in the safetensors metadata under ``"narf"``: format and version, object
 name, links, joints with limits, bounds, field architectures and hyper-parameters, the URDF text
 (for FK), training provenance and metrics, the render modes' measurement (``mode_measurement``,
@@ -89,7 +91,10 @@ class NarfModel:
 
     ``field`` is any field callable ``(x [n,3], d [n,3], θ [n,k]) -> (σ [n], rgb [n,3])`` (a trained
     :class:`~narf_core.fields.base.RadianceField` in practice); ``grid`` is its occupancy grid over
-    the object box, valid for every θ within the limits.
+    the object box, valid for every θ within the limits. ``sample_points`` (500 a link) are the model points
+    of ADD and the refiner's geometric checks; ``dense_points`` (:meth:`~narf_core.kinematics.KinematicTree.
+    dense_points`, a few millimetres apart) are what a depth image's points are fitted to, empty in a bundle
+    saved before they were kept (the fit then uses ``sample_points``).
     """
 
     name: str
@@ -101,6 +106,7 @@ class NarfModel:
     metadata: dict = dataclass_field(default_factory=dict)
     step: float | None = None
     sample_points: dict[str, np.ndarray] = dataclass_field(default_factory=dict)
+    dense_points: dict[str, np.ndarray] = dataclass_field(default_factory=dict)
 
     def __post_init__(self) -> None:
         kin = self.kinematics
@@ -111,8 +117,9 @@ class NarfModel:
         self.aabb = self.grid.aabb.to(torch.float32)
         if self.step is None:
             self.step = march_step(self.aabb)
-        if not self.sample_points:
+        if not self.sample_points:  # built from a URDF with its meshes (training), not loaded
             self.sample_points = kin.sample_points()
+            self.dense_points = self.dense_points or kin.dense_points()
         points = np.concatenate(list(self.sample_points.values())) if self.sample_points else np.zeros((0, 3))
         self.diameter = float(self.metadata.get("diameter") or _diameter(points, kin, self.sample_points))
 
@@ -237,6 +244,22 @@ def _diameter(points: np.ndarray, kin: KinematicTree, sample_points: dict[str, n
     return float(object_diameter(np.concatenate(world)))
 
 
+def with_dense_points(model: NarfModel, urdf: str | Path) -> NarfModel:
+    """``model`` with the ``dense_points`` of the meshes that ``urdf`` (a file whose meshes lie beside it) names,
+    for a bundle saved before they were kept. The meshes must be those the model was trained on: their 500
+    points a link, drawn as at training, must come out as the bundle's ``sample_points`` (float32 rounding), else
+    :class:`BundleError` names the first link that differs."""
+    kin = KinematicTree.from_urdf(urdf)
+    if list(kin.links) != list(model.links):
+        raise BundleError(f"{urdf}: its links {list(kin.links)} are not the model's {list(model.links)}")
+    points = kin.sample_points()
+    for name, own in model.sample_points.items():
+        theirs = points.get(name)
+        if theirs is None or theirs.shape != own.shape or not np.allclose(theirs, own, rtol=0, atol=1e-6):
+            raise BundleError(f"{urdf}: link {name!r}'s meshes are not the ones {model.name!r} was trained on")
+    return dataclasses.replace(model, dense_points=kin.dense_points())
+
+
 def save_bundle(path: str | Path, model: NarfModel) -> Path:
     """Write ``model`` to ``path`` atomically (a temporary file renamed into place)."""
     path = Path(path)
@@ -253,6 +276,8 @@ def save_bundle(path: str | Path, model: NarfModel) -> Path:
         part_meta.append({"field": pf.config(), "grid_aabb": pg.aabb.tolist(), "grid_shape": list(pg.occupancy.shape)})
     for link, pts in model.sample_points.items():
         tensors[f"points.{link}"] = torch.as_tensor(pts, dtype=torch.float32)
+    for link, pts in model.dense_points.items():
+        tensors[f"dense.{link}"] = torch.as_tensor(pts, dtype=torch.float32)
     meta = {
         **{k: v for k, v in model.metadata.items() if k not in ("format", "version")},
         "format": FORMAT,
@@ -350,6 +375,7 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> NarfMod
         else:
             field = _load_module(meta["field"], tensors, "field.", device)
         points = {k[len("points."):]: v.cpu().numpy() for k, v in tensors.items() if k.startswith("points.")}
+        dense = {k[len("dense."):]: v.cpu().numpy() for k, v in tensors.items() if k.startswith("dense.")}
         return NarfModel(
             name=str(meta["name"]),
             kinematics=kin,
@@ -360,6 +386,7 @@ def load_bundle(path: str | Path, device: str | torch.device = "cpu") -> NarfMod
             metadata=meta,
             step=meta.get("step"),
             sample_points=points,
+            dense_points=dense,
         )
     except (KeyError, RuntimeError, TypeError, ValueError) as e:  # ValueError: UrdfError, bad field config or grid
         raise BundleError(f"{path}: incomplete or inconsistent model bundle ({_one_line(e)})") from None

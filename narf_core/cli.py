@@ -89,7 +89,8 @@ def build_parser() -> argparse.ArgumentParser:
              f"(default: ${DEVICE_ENV}, else cpu); training runs on the CPU",
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_add_synth, _add_restyle, _add_train, _add_eval, _add_render, _add_estimate, _add_track, _add_bench, _add_serve):
+    for add in (_add_synth, _add_restyle, _add_train, _add_points, _add_eval, _add_render, _add_estimate, _add_track,
+                _add_bench, _add_serve):
         add(commands)
     return parser
 
@@ -640,6 +641,35 @@ def _run_eval(args: argparse.Namespace) -> int:
     _emit(args, result, lambda r: (
         f"{r['split']} ({r['mode']}, {r['width']}x{r['height']}): MSE {r['mse']:.5f}  PSNR {r['psnr']:.2f} dB  "
         f"N {r['n']}  {r['ms_per_image']:.1f} ms/image" + _mode_line(r)))
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# narf points
+
+
+def _add_points(commands: argparse._SubParsersAction) -> None:
+    parser = commands.add_parser(
+        "points", help="add the dense surface points that depth is fitted to, to a bundle saved without them",
+        description="Sample a few millimetres apart the meshes of the URDF the model was trained on (checked against "
+                    "the bundle's own points) and write the bundle with them (models trained now keep them already).",
+    )
+    arg = parser.add_argument
+    arg("model", type=Path, metavar="MODEL.narf")
+    arg("--urdf", required=True, type=Path, metavar="URDF", help="the training data's object.urdf, its meshes beside it")
+    arg("--out", type=Path, metavar="OUT.narf", help="where to write (default: over MODEL.narf)")
+    _add_json_flag(parser)
+    parser.set_defaults(run=_run_points)
+
+
+def _run_points(args: argparse.Namespace) -> int:
+    from narf_core.bundle import load_bundle, save_bundle, with_dense_points
+
+    model = with_dense_points(load_bundle(args.model), args.urdf)
+    out = save_bundle(args.out or args.model, model)
+    result = {"out": str(out), "points": {name: len(p) for name, p in model.dense_points.items()}}
+    _emit(args, result, lambda r: f"wrote {r['out']}: " + ", ".join(f"{n} {c}" for n, c in r["points"].items())
+          + " dense points")
     return 0
 
 

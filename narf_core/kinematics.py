@@ -55,6 +55,11 @@ _AXIS_NORM_TOLERANCE = 1e-3  # axes written with 3-4 digits ("0.707 0 0.707") ar
 _BOUNDS_ANGLE_STEP = math.radians(10.0)
 _BOUNDS_MAX_CONFIGS = 4096
 _BOUNDS_MARGIN = 0.02  # of the diagonal; 10-degree steps miss at most r (1 - cos 5 deg) < 0.004 r
+# The surface points a depth image's points are fitted to (narf_core/surface_fit.py): a point-to-point pair sits
+# about half this spacing off the observed surface, a bias of millimetres where a large part's 500 points lie
+# centimetres apart (the cabinet's body, 2 cm); at most this many on one link (the cabinet's 1 m² body: 11 mm).
+DENSE_SPACING_M = 0.005
+DENSE_MOST_PER_LINK = 8000
 
 
 class UrdfError(ValueError):
@@ -343,6 +348,20 @@ class KinematicTree:
         meshes = self.visual_meshes()
         return {
             name: np.asarray(trimesh.sample.sample_surface(mesh, n_per_link, seed=seed + i)[0], np.float64)
+            for i, (name, mesh) in enumerate(meshes.items())
+        }
+
+    def dense_points(self, spacing_m: float = DENSE_SPACING_M, most_per_link: int = DENSE_MOST_PER_LINK,
+                     seed: int = 0) -> dict[str, np.ndarray]:
+        """``{link: [n, 3]}`` float64 points, uniform on each link's visual surface (link frame), about
+        ``spacing_m`` apart: a link's area over ``spacing_m²`` of them, at least 500 and at most
+        ``most_per_link``."""
+        if not spacing_m > 0 or most_per_link < 500:
+            raise ValueError(f"spacing_m must be > 0 and most_per_link >= 500, got {spacing_m} and {most_per_link}")
+        meshes = self.visual_meshes()
+        return {
+            name: np.asarray(trimesh.sample.sample_surface(
+                mesh, int(np.clip(mesh.area / spacing_m**2, 500, most_per_link)), seed=seed + i)[0], np.float64)
             for i, (name, mesh) in enumerate(meshes.items())
         }
 

@@ -10,8 +10,10 @@ iterations start within their reach.
 
 Observed points: the mask's pixels with a finite depth > 0, back-projected into the camera frame
 (up to ``observed_points`` of them, an even draw with a fixed seed). Model points: every link's
-surface points (``NarfModel.sample_points``, link frame) moved by forward kinematics at θ and by the
-pose, those no other point hides in its image cell at the start (:func:`narf_core.band.hidden_points`:
+surface points a few millimetres apart (``NarfModel.dense_points``, link frame; in a bundle saved
+without them its ``sample_points``, centimetres apart on a large part, where a pair sits millimetres
+off the surface and biases the fit), moved by forward kinematics at θ and by the pose, those no
+other point hides in its image cell at the start (:func:`narf_core.band.hidden_points`:
 a point on a part's far side must not pair with the near side's observation). Each iteration pairs
 every observed point with the nearest model point (a k-d tree) and takes the Gauss-Newton step
 (Levenberg-Marquardt, a fixed damping) in the translation, the rotation about the paired points' centroid (both camera
@@ -34,7 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from narf_core.band import hidden_points, point_spacing
+from narf_core.band import hidden_points
 from narf_core.gauss_newton import robust_weights
 from narf_core.geometry import Pinhole, skew, so3_exp
 
@@ -90,18 +92,25 @@ def pixel_points(camera: Pinhole, uv: Tensor, z: Tensor, count: int, seed: int =
     return torch.cat([xy, z[:, None]], -1)
 
 
-def _link_points(model: NarfModel) -> tuple[Tensor, Tensor]:
-    """Every link's surface points ``[N, 3]`` (link frame, float64) and their links' indices ``[N]`` in
-    ``model.links`` order; cached on the model."""
+def _link_points(model: NarfModel) -> tuple[Tensor, Tensor, float]:
+    """Every link's surface points ``[N, 3]`` (link frame, float64: ``model.dense_points``, else its
+    ``sample_points``), their links' indices ``[N]`` in ``model.links`` order and the points' spacing (metres:
+    twice the mean distance to the nearest point on the same link); cached on the model."""
+    from scipy.spatial import cKDTree
+
     cached = getattr(model, "_surface_fit_points", None)
     if cached is not None:
         return cached
-    points, owners = [], []
+    source = getattr(model, "dense_points", None) or model.sample_points
+    points, owners, gaps = [], [], []
     for i, name in enumerate(model.links):
-        p = torch.as_tensor(np.asarray(model.sample_points.get(name, np.zeros((0, 3))), dtype=np.float64))
-        points.append(p.reshape(-1, 3))
-        owners.append(torch.full((len(points[-1]),), i, dtype=torch.long))
-    cached = (torch.cat(points), torch.cat(owners))
+        p = np.asarray(source.get(name, np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
+        points.append(torch.from_numpy(p))
+        owners.append(torch.full((len(p),), i, dtype=torch.long))
+        if len(p) > 1:
+            gaps.append(cKDTree(p).query(p, k=2)[0][:, 1])
+    spacing = 2 * float(np.concatenate(gaps).mean()) if gaps else 0.0
+    cached = (torch.cat(points), torch.cat(owners), spacing)
     model._surface_fit_points = cached
     return cached
 
@@ -175,7 +184,7 @@ def fit_points(
     S, k = theta.shape
     T0, theta0 = T_cam_obj.detach().double().cpu(), theta.detach().double().cpu()
     T, theta = T0.clone(), theta0.clone()
-    points, owners = _link_points(model)
+    points, owners, spacing = _link_points(model)
     O = observed.double().cpu()
     pairs, rms = torch.zeros(S, dtype=torch.long), torch.full((S,), float("nan"), dtype=torch.float64)
     if options.iterations <= 0 or len(points) == 0 or len(O) < _MIN_PAIRS:
@@ -190,7 +199,7 @@ def fit_points(
         X = _camera_from_links(T, links[:, :1], points, owners)[:, 0]  # [S, N, 3] at θ
         if far is None:
             everything = torch.ones(1, len(points), dtype=torch.bool)
-            far = torch.stack([hidden_points(x, camera, point_spacing(model), everything)[0] for x in X])
+            far = torch.stack([hidden_points(x, camera, spacing, everything)[0] for x in X])
             active &= ~far.all(1)
         distance, nearest = _nearest(O, X, far)  # [S, M]
         w = _pair_weights(distance, options.huber_m, options.reject_m)

@@ -90,6 +90,8 @@ def test_round_trip_keeps_weights_grids_points_and_renders_bit_identical(tiny_bu
     assert all(torch.equal(a.occupancy, b.occupancy) for a, b in zip(model.part_grids, copy.part_grids))
     assert model.sample_points.keys() == copy.sample_points.keys() == {"lower_half", "upper_half"}
     assert all(np.array_equal(model.sample_points[k], copy.sample_points[k]) for k in model.sample_points)
+    assert model.dense_points.keys() == copy.dense_points.keys() == {"lower_half", "upper_half"}  # kept at training
+    assert all(np.array_equal(model.dense_points[k], copy.dense_points[k]) for k in model.dense_points)
     assert copy.step == model.step and copy.diameter == model.diameter
 
     T, joints, camera = first_test_view(tiny_dataset)
@@ -493,3 +495,36 @@ def test_a_bundle_whose_parts_do_not_rebuild_its_field_config_is_refused(tmp_pat
     path = save_bundle(tmp_path / "once.narf", articulated_clamp())
     changed = rewrite_metadata(path, tmp_path / "changed.narf", lambda m: {**m, "field": {**m["field"], "hidden": 32}})
     assert_refused(changed, "incomplete or inconsistent model bundle", "differs from the bundle's field config")
+
+
+# Dense surface points added to a bundle saved without them (``narf points``)
+
+
+def test_narf_points_adds_the_training_meshes_dense_points_and_refuses_other_meshes(bundled_clamp, tmp_path, capsys):
+    """A bundle saved without dense points loads with none; ``narf points`` samples them from the URDF it was trained
+    on (the clamp of seed 0, whose 500 points a link are the bundle's), and refuses in one line other meshes (the bar
+    scaled by 1 %) and another object, leaving the bundle as it was."""
+    from narf_core.cli import EXIT_ERROR, main
+    from narf_core.data.synth.tools import build_tool
+    from narf_core.kinematics import KinematicTree
+
+    old = save_bundle(tmp_path / "old.narf", dataclasses.replace(bundled_clamp, dense_points={}))
+    assert load_bundle(old).dense_points == {}
+    own = build_tool("clamp", tmp_path / "own", seed=0)
+    assert main(["points", str(old), "--urdf", str(own), "--out", str(tmp_path / "new.narf")]) == 0
+    assert "bar 2053, moving_jaw 570 dense points" in capsys.readouterr().out
+    new = load_bundle(tmp_path / "new.narf")
+    expected = KinematicTree.from_urdf(own).dense_points()
+    assert new.dense_points.keys() == expected.keys() == {"bar", "moving_jaw"}
+    for name, points in expected.items():
+        np.testing.assert_allclose(new.dense_points[name], points, rtol=0, atol=1e-6)  # stored as float32
+    scaled = own.with_name("scaled.urdf")  # the bar's mesh 1 % larger
+    scaled.write_text(own.read_text().replace('<mesh filename="meshes/bar.obj" />',
+                                              '<mesh filename="meshes/bar.obj" scale="1.01 1.01 1.01" />', 1))
+    for urdf, words in [(scaled, "link 'bar''s meshes are not the ones 'clamp' was trained on"),
+                        (build_tool("gripper", tmp_path / "gripper", seed=0), "are not the model's")]:
+        before = old.read_bytes()
+        assert main(["points", str(old), "--urdf", str(urdf)]) == EXIT_ERROR
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("narf points: error: ") and words in err and "\n" not in err
+        assert old.read_bytes() == before

@@ -331,6 +331,23 @@ def test_sample_points(tree):
         tree.sample_points(0)
 
 
+def test_dense_points_follow_each_links_area(tree):
+    """A link gets its area over the spacing squared of points, at least 500 and at most the cap, on its surface."""
+    meshes = tree.visual_meshes()
+    points = tree.dense_points(spacing_m=0.002, most_per_link=600)
+    for name, mesh in meshes.items():
+        assert len(points[name]) == int(np.clip(mesh.area / 0.002**2, 500, 600))
+    on_box = np.abs(points["slider"]) / [0.015, 0.005, 0.005]
+    np.testing.assert_allclose(on_box.max(1), 1.0, atol=1e-9)
+    fine = tree.dense_points(spacing_m=0.0005, most_per_link=100_000)
+    slider = meshes["slider"].area
+    assert len(fine["slider"]) == int(slider / 0.0005**2) > 500  # 2 * (0.03*0.01 + 0.03*0.01 + 0.01*0.01) m² / 0.25 mm²
+    with pytest.raises(ValueError, match="spacing_m must be > 0"):
+        tree.dense_points(spacing_m=0.0)
+    with pytest.raises(ValueError, match="most_per_link >= 500"):
+        tree.dense_points(most_per_link=10)
+
+
 def test_bounds_hold_every_configuration(tree):
     box = tree.bounds()
     assert box.shape == (2, 3) and (box[0] < box[1]).all()
