@@ -182,6 +182,7 @@ GN_POSE_STARTS = 9  # the gauss-newton preset's pose_starts, refined only below 
 GN_POSE_OVERLAP = 0.8  # ... this overlap of the first estimate's silhouette with the mask (pose_starts_overlap)
 GN_SLIDE_SHARE = 0.05  # the gauss-newton preset's slide_share (docs/benchmarks.md, session 49)
 GN_SURFACE_FIT = 20  # the gauss-newton preset's surface_fit_iterations (docs/benchmarks.md, session 64)
+GN_SURFACE_POLISH = 5  # the gauss-newton preset's surface_polish_iterations (docs/benchmarks.md, session 65)
 # The robust preset's reference_box_px: the largest mask box (grown by box_margin) of the bundled
 # clamp's test and novel views at 160x120, its training size; boxes up to it keep the plain sampling.
 ROBUST_BOX_PX = 144
@@ -315,6 +316,11 @@ class EstimateOptions:
     # 0 = off): a thin part's joint moves few of the refiner's rays, whose robust loss is flat until the part's edge
     # crosses them, while every observed point of the part pulls it; on in `gauss-newton`.
     surface_fit_iterations: int = 0
+    # With depth and a fully trusted mask, the final estimate is fitted the same way, this many iterations (0 = off):
+    # the photometric minimum carries the field's own error of a degree or two on a thin part's joint, the depth's
+    # points on the meshes' surface points less (docs/benchmarks.md, session 65); on in `gauss-newton`. Not where
+    # the mask is trusted partially (a segmenter's or an occluder's mask, whose pixels the fit would pull on).
+    surface_polish_iterations: int = 0
     # With two joints or more: this many configurations (the given one and a Latin hypercube over the joint
     # box) are first fitted to the mask through the model's surface points (_theta_search: a silhouette
     # chamfer, whose basin is wide where a thin rendered part that misses its image has no gradient, and with
@@ -396,6 +402,7 @@ class EstimateOptions:
         need(0 <= self.slide_share <= 0.25, "slide_share", "must be in [0, 0.25] (0 = off)")
         need(0 <= self.theta_search <= 256, "theta_search", "must be in [0, 256] (0 = off)")
         need(0 <= self.surface_fit_iterations <= 100, "surface_fit_iterations", "must be in [0, 100] (0 = off)")
+        need(0 <= self.surface_polish_iterations <= 100, "surface_polish_iterations", "must be in [0, 100] (0 = off)")
         need(0 <= self.search_theta_starts <= 64, "search_theta_starts", "must be in [0, 64] (0 = theta_starts)")
         need(1 <= self.uncertainty_patch <= 64, "uncertainty_patch", "must be in [1, 64]")
         for name in ("sigma_floor_position", "sigma_floor_rotation", "sigma_floor_joint", "uncertainty_usual_residual",
@@ -441,7 +448,9 @@ class EstimateOptions:
         given pose or its copy moved onto the mask and the depth, whichever scores lower (``align_start``):
         a thin tool's start 2 cm off along the line of sight otherwise ends there, or in a wrong joint
         basin (docs/benchmarks.md); with depth each start is then fitted to the observed surface's points
-        (``surface_fit_iterations``, ``GN_SURFACE_FIT``): the lamp's joints came out twice as near. Where the
+        (``surface_fit_iterations``, ``GN_SURFACE_FIT``): the lamp's joints came out twice as near; where the
+        mask is trusted in full, so is the final estimate (``surface_polish_iterations``, ``GN_SURFACE_POLISH``).
+        Where the
         estimate's silhouette then overlaps the mask less than
         ``GN_POSE_OVERLAP`` (intersection over union), it refines once more from ``GN_POSE_STARTS`` pose starts
         (``pose_starts_overlap``): Gauss-Newton's basin is narrower than Adam's, and a start 30 deg off
@@ -467,7 +476,7 @@ class EstimateOptions:
             "tolerance": 3e-3, "patience": 2, "uncertainty_rays": GN_UNCERTAINTY_RAYS, "theta_search": 16,
             "search_theta_starts": 8, "align_start": True, "pose_starts": GN_POSE_STARTS,
             "pose_starts_overlap": GN_POSE_OVERLAP, "refinements": 3, "slide_share": GN_SLIDE_SHARE, **PARTIAL_MASK,
-            "surface_fit_iterations": GN_SURFACE_FIT, **overrides,
+            "surface_fit_iterations": GN_SURFACE_FIT, "surface_polish_iterations": GN_SURFACE_POLISH, **overrides,
         })
 
     def max_rays(self, depth: bool = True) -> int:
@@ -477,7 +486,8 @@ class EstimateOptions:
         ``pose_starts_overlap``, the overlap check and the choice between its two refinements) and the
         covariance; with ``refinements``, all that many refinements (Adam: inside the estimate) or
         estimates (``gauss-newton``: :func:`_gauss_newton_estimates`, their overlap check), and the choice
-        among them. ``depth``: whether the view comes with a depth image (without one:
+        among them, and the loss of ``surface_polish_iterations``' fitted estimate. ``depth``: whether the view
+        comes with a depth image (without one:
         ``rgb_refinements``, and a mask trusted partially only where ``mask_trust`` is "partial", as nothing
         else contradicts it; with one, also where it is "auto"). Not counted: ``parts`` mode's forward
         differences in θ for ``gauss-newton`` (one more render per joint at each linearisation), which
@@ -490,11 +500,12 @@ class EstimateOptions:
         covariance = self.uncertainty_rays * self.uncertainty_patch**2 if self.uncertainty else 0
         # refinements with a depth image too: one found unusable (usable_depth) leaves a view refine runs them on
         runs = max(1, self.refinements, 0 if depth else self.rgb_refinements)
+        polish = self.eval_rays if self.surface_polish_iterations and depth and self.mask_trust != "partial" else 0
         if self.solver != "gauss-newton":  # the runs inside the estimate (_best_refinement)
             work = self._estimate_rays(theta_starts,
                                        lambda starts: self._adam_rays(self.iterations, starts, scale, runs))
             slide = self._slide_rays(self._adam_rays(self.iterations, 1, scale, runs)) if partial else 0
-            return scoring + work + slide + (0 if depth else self._polish_rays()) + covariance
+            return scoring + work + slide + (0 if depth else self._polish_rays()) + polish + covariance
         estimates = _gauss_newton_estimates(replace(self, mask_trust="partial" if partial else "full"), runs)
         work = sum(o._estimate_rays(theta_starts, lambda starts, o=o: o._gauss_newton_run_rays(starts, scale))
                    for o in estimates)
@@ -502,7 +513,7 @@ class EstimateOptions:
         check = self.eval_rays if several and self.pose_starts_overlap > 0 else 0  # _best_gauss_newton's
         choice = len(estimates) * _CHOICE_RAYS if several else 0  # _lowest_run among the estimates
         slide = self._slide_rays(self._gauss_newton_run_rays(1, scale)) if partial else 0
-        return scoring + work + check + choice + slide + covariance
+        return scoring + work + check + choice + slide + polish + covariance
 
     def _slide_rays(self, refinement: int) -> int:
         """The rays of ``slide_share`` (:func:`_slid_refinement`, where the mask is trusted partially): the
@@ -1770,6 +1781,11 @@ def refine(
         return result("non_finite", None, None, run)
     row, loss, replaced = final
     run.recovered |= replaced
+    if opts.surface_polish_iterations and uses_depth and not partial and opts.iterations > 0 \
+            and run.status in ("max_iterations", "converged"):  # (no iterations: the start itself is asked for)
+        polish = replace(opts, surface_fit_iterations=opts.surface_polish_iterations)
+        row = _surface_fitted(model, obs, camera, param, row, polish)
+        loss = float(_fixed_rays_loss(loss_fn, obs, camera, param, row, run.rng)[0])
     return result(run.status, row, loss, run)
 
 

@@ -721,7 +721,9 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     preset = EstimateOptions.preset("gauss-newton")
     # (the preset's partial trust, refinements and 8 starts where its configuration search runs: below)
     # (and its slide along the object's axis: below)
-    gauss = replace(preset, mask_trust="full", refinements=0, search_theta_starts=0, slide_share=0.0)
+    # (and its fit of the final estimate to the depth's points: below)
+    gauss = replace(preset, mask_trust="full", refinements=0, search_theta_starts=0, slide_share=0.0,
+                    surface_polish_iterations=0)
     assert gauss.iterations == 25
     rays, iterations, covariance = gauss.rays_per_iteration, gauss.iterations, gauss.uncertainty_rays * 16
 
@@ -742,6 +744,12 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     assert every.max_rays() == scoring + run(8) + 2 * 8 * gauss.eval_rays + covariance
     choices = (2 * 4 + 1 + 2 * (1 + 8)) * gauss.eval_rays  # the first run's rows, the check, both estimates' rows
     assert gauss.max_rays() == scoring + run(4) + run(8) + choices + covariance
+    # The final estimate fitted to the depth's points (surface_polish_iterations): its loss on eval_rays, with a depth
+    # image and a mask that may be trusted in full.
+    polished = replace(gauss, surface_polish_iterations=5)
+    assert polished.max_rays() == gauss.max_rays() + gauss.eval_rays
+    assert polished.max_rays(depth=False) == gauss.max_rays(depth=False)
+    assert replace(polished, mask_trust="partial").max_rays() == replace(gauss, mask_trust="partial").max_rays()
     # The slide, only where the mask is trusted partially (below): the estimate and its four slid copies scored,
     # one more refinement from one start and the choice between both estimates.
     slide = 9 * gauss.eval_rays + run(1)
@@ -759,7 +767,9 @@ def test_max_rays_bounds_every_preset_including_the_box_scale_and_adam_warm_star
     assert preset.mask_trust == "auto" and preset.partial_theta_starts == 8 and preset.refinements == 3
     partial = 3 * 9 * 8 * 1024 + run(8) + run(16) + (2 * 8 + 1 + 2 * (1 + 16)) * gauss.eval_rays
     edges = run(8) + 2 * 8 * gauss.eval_rays
-    assert preset.max_rays() == 3 * 8 * 1024 + 2 * partial + edges + gauss.eval_rays + 3 * 16384 + slide + covariance
+    polish = gauss.eval_rays  # "auto": trusted in full where the depth agrees
+    assert preset.max_rays() == (3 * 8 * 1024 + 2 * partial + edges + gauss.eval_rays + 3 * 16384 + slide + polish
+                                 + covariance)
     # Without one, the bound counts the 8 starts of an object whose configuration search runs (three joints or more).
     assert preset.search_theta_starts == 8
     assert preset.max_rays(depth=False) == replace(two, theta_starts=8).max_rays(depth=False)
