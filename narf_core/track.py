@@ -477,6 +477,7 @@ class TrackOptions:
                   "uncertainty_trained_footprint": depth, "uncertainty_rotation_shape": True,
                   "occlusion_margin": self.occlusion_margin, "refinements": 0, "rgb_refinements": 0, "rgb_polish": 0,
                   "pose_starts": 1, "search_theta_starts": 0, "slide_share": 0.0,
+                  "surface_fit_iterations": 0, "surface_polish_iterations": 0,  # the tracker fits on its own
                   "jacobian": self.jacobian_for(depth, model), "jacobian_once": self.jacobian_once and depth}
         if depth:
             common.update(DEPTH_MASK_TRUST if self.occluder_test else {"mask_trust": "full"})

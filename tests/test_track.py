@@ -831,7 +831,9 @@ def test_a_frame_whose_sigma_passes_the_limits_gets_a_second_round(clamp, clamp_
     """With depth, a warm-started frame whose Σ passes the limits (``max_position_sigma_m``, here
     set below any σ) runs its iterations twice, the second round from where the first ended, and
     ends closer to the truth than one round from a start 1.5 cm off; never without depth, nor with
-    ``retry_uncertain`` off."""
+    ``retry_uncertain`` off. The fit to the depth's points is off: the rounds are what is compared (from 1.5 cm
+    along the bar three of its iterations leave 1.3 cm, and the rounds after them end within a millimetre of
+    each other)."""
     from narf_core.data.dataset import Dataset
     from narf_core.track import TrackFrame, TrackOptions, TrackState, step
     from narf_core.track_io import score
@@ -841,7 +843,8 @@ def test_a_frame_whose_sigma_passes_the_limits_gets_a_second_round(clamp, clamp_
     images = dataset.load(frame)
     T_off = np.array(frame.T_cam_obj, dtype=np.float64)
     T_off[:3, 3] += np.array([0.015, 0.0, 0.0])  # across the line of sight: no depth alignment catches it
-    fast = dict(solver="adam", iterations=3, rays_per_iteration=256, uncertainty_rays=64, max_position_sigma_m=1e-6)
+    fast = dict(solver="adam", iterations=3, rays_per_iteration=256, uncertainty_rays=64, max_position_sigma_m=1e-6,
+                surface_fit_iterations=0)
     runs = {}
     for depth in (images.depth, None):
         for retry in (True, False):
