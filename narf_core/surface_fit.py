@@ -128,10 +128,9 @@ def _camera_from_links(T_cam_obj: Tensor, links: Tensor, points: Tensor, owners:
 
 
 class _LinkTrees:
-    """Each start's k-d trees of its links' surface points (link frame) that the start's pose left visible: built
-    once, as the points move with their link rigidly; the nearest point of a pose is the nearest over its links'
-    trees of the observed points moved into each link's frame (a tree a pose and iteration over every link's
-    moved points cost several times as much on the cabinet's 30 000 points)."""
+    """Each start's k-d trees of its links' surface points (link frame) that the start's pose left visible, built
+    once: a link's points move with it rigidly, so the observed points are moved into each link's frame instead and
+    the nearest over the links' trees is the pose's nearest point (no tree to build again each iteration)."""
 
     def __init__(self, points: Tensor, owners: Tensor, hidden: Tensor, n_links: int) -> None:
         from scipy.spatial import cKDTree
